@@ -1,0 +1,1 @@
+"""hydrosoft: differentiable non-holonomic hydroelastic contact models for compliant tactile manipulation."""

@@ -1,0 +1,39 @@
+"""Normal/tangential split and friction-cone projection shared by every contact model.
+
+Convention (all contact models): for an object surface point, ``normal`` is the unit vector along which a
+positive normal force pushes the object, i.e. the object's *inward* surface normal (a point pressed into a
+compliant body is pushed back out of it, towards the object's interior). Forces are in newtons, world frame.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hydrosoft.geometry.se3 import safe_norm
+
+
+def split_normal(v: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
+    """Split ``v (..., 3)`` into its component along ``normal (..., 3)`` (unit) and the tangential rest.
+
+    Returns ``(v_n (...), v_t (..., 3))`` with ``v = v_n * normal + v_t``.
+    """
+    v_n = (v * normal).sum(-1)
+    return v_n, v - v_n.unsqueeze(-1) * normal
+
+
+def project_to_cone(f_n: Tensor, f_t: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
+    """Project a contact force onto the Coulomb cone (paper eq. 9 and 18-19).
+
+    Args:
+        f_n: ``(...)`` normal force in N (any sign).
+        f_t: ``(..., 3)`` tangential force in N.
+        mu: friction coefficient, broadcastable to ``f_n``.
+    Returns:
+        ``(relu(f_n), min(1, mu relu(f_n) / |f_t|) f_t)``. The tangential scale is computed as a ratio of
+        clamped quantities, so it is finite with finite gradients for ``f_t = 0`` and ``f_n = 0``.
+    """
+    f_n = torch.relu(f_n)
+    limit = mu * f_n
+    scale = torch.clamp(limit / safe_norm(f_t), max=1.0)
+    return f_n, scale.unsqueeze(-1) * f_t

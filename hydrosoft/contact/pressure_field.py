@@ -1,0 +1,53 @@
+"""Path-independent hydroelastic baselines: Pressure Field (PF) and PF Frictionless (PFF), paper eq. 3-5."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from hydrosoft.contact.base import ContactStep, Material
+from hydrosoft.contact.cone import split_normal
+from hydrosoft.geometry.se3 import safe_norm
+
+
+def _normal_force(geometry: ContactStep, material: Material) -> Tensor:
+    """``f_n = max(-E A phi_{k+1}, 0)``, ``(B, M, N)`` in newtons (eq. 3)."""
+    E = material.E.view(1, -1, 1)
+    return E * geometry.area * torch.relu(-geometry.phi_next)
+
+
+@dataclass(frozen=True)
+class PressureFieldFrictionless:
+    """PFF: the pressure-field normal force only; never any tangential force."""
+
+    name: ClassVar[str] = "pff"
+
+    def step(self, geometry: ContactStep, forces: Tensor, material: Material) -> Tensor:
+        """Forces ``(B, M, N, 3)``; ``forces`` (the previous state) is ignored."""
+        return _normal_force(geometry, material).unsqueeze(-1) * geometry.normal
+
+
+@dataclass(frozen=True)
+class PressureField:
+    """PF: pressure-field normal force plus kinetic Coulomb friction opposing the relative sliding (eq. 4).
+
+    The sliding direction comes from the step's relative displacement: the object point moves by ``-r``
+    relative to the body, so friction on the object points along ``+r_t``. Eq. 4 is discontinuous at zero
+    slip; ``slip_tolerance`` (metres per step) regularises it as ``r_t / sqrt(|r_t|^2 + slip_tolerance^2)``, so
+    zero slip gives exactly zero friction and the force never leaves the cone.
+    """
+
+    slip_tolerance: float = 1e-7
+    name: ClassVar[str] = "pf"
+
+    def step(self, geometry: ContactStep, forces: Tensor, material: Material) -> Tensor:
+        """Forces ``(B, M, N, 3)``; ``forces`` (the previous state) is ignored."""
+        f_n = _normal_force(geometry, material)
+        _, r_t = split_normal(geometry.displacement, geometry.normal)
+        slip = torch.sqrt(safe_norm(r_t) ** 2 + self.slip_tolerance**2)
+        mu = material.mu.view(1, -1, 1)
+        f_t = (mu * f_n / slip).unsqueeze(-1) * r_t
+        return f_n.unsqueeze(-1) * geometry.normal + f_t

@@ -1,0 +1,237 @@
+"""Receding-horizon MPC by iterative cross-entropy + gradient descent (paper Sec. IV-E, Algorithm 1, after
+Bharadhwaj et al., "Model-predictive control via cross-entropy and gradient-based optimization", 2020).
+
+Each ``solve`` call is one time step ``h`` of Algorithm 1: sample ``B`` action sequences of ``K`` steps from a
+diagonal Gaussian, improve every sequence by ``G`` Adam steps on its own rollout cost, refit the Gaussian to
+the ``M`` lowest-cost sequences, return the first action of the best one, then shift the Gaussian and the
+elites one step ahead as the warm start of the next call (where the ``B - M`` others are resampled).
+
+The problem is given as plain differentiable functions:
+
+- ``dynamics(state, u) -> state``: ``state`` is a tensor or a (named) tuple of tensors, each with a leading
+  batch axis ``B``; ``u`` is ``(B, *action_shape)``. The batch rows must not interact (row ``b`` of the
+  output depends only on row ``b`` of the inputs), so that one backward pass gives every sample's gradient.
+- ``stage_cost(state, u, k) -> (B,)``: cost ``l_k(x_k, u_k)`` of step ``k`` in ``0..K-1``.
+- ``terminal_cost(state) -> (B,)``: cost ``Phi(x_K)``.
+
+Step sizes and spreads are fractions of the action half-range ``(high - low) / 2``, so one configuration
+suits actions that mix metres and radians. An axis with ``low == high`` is held at that value.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
+
+import torch
+from torch import Tensor
+from torch.utils._pytree import tree_map
+
+State = Any
+"""A tensor or a pytree (tuple, NamedTuple, dict) of tensors, each with a leading batch axis."""
+
+
+@dataclass(frozen=True)
+class CemGdConfig:
+    """Solver settings. ``lr``, ``init_std`` and ``min_std`` are fractions of the action half-range."""
+
+    samples: int = 64  # B, parallel action sequences
+    elites: int = 8  # M <= B, sequences that refit the Gaussian and are kept for the next call
+    horizon: int = 10  # K, steps per sequence
+    grad_steps: int = 2  # G, Adam steps per CEM iteration (0: pure CEM)
+    cem_iterations: int = 1  # sample / descend / refit rounds per solve call
+    lr: float = 0.05  # Adam step size, fraction of the half-range per step
+    grad_clip: float = 100.0  # max per-sample gradient norm w.r.t. the half-range-normalized actions (cost)
+    init_std: float = 0.5  # initial sampling std, fraction of the half-range
+    min_std: float = 0.05  # floor of the refitted std, fraction of the half-range
+    adam_betas: tuple[float, float] = (0.9, 0.999)
+    adam_eps: float = 1e-8  # in cost units, like the normalized gradient
+    seed: int = 0  # seed of the solver's private generator
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.elites <= self.samples:
+            raise ValueError(f"need 1 <= elites <= samples, got elites={self.elites}, samples={self.samples}")
+        if self.horizon < 1 or self.grad_steps < 0 or self.cem_iterations < 1:
+            raise ValueError("need horizon >= 1, grad_steps >= 0 and cem_iterations >= 1")
+        if self.lr < 0 or self.grad_clip <= 0 or self.init_std < 0 or self.min_std < 0:
+            raise ValueError("need lr >= 0, grad_clip > 0, init_std >= 0 and min_std >= 0")
+
+
+class PlanResult(NamedTuple):
+    """Outcome of one ``CemGd.solve`` call; tensors in the solver's dtype and device."""
+
+    action: Tensor  # (*action_shape), first action of the best sequence, to apply now
+    plan: Tensor  # (K, *action_shape), the best sequence
+    cost: float  # its cost J; inf when no sample had a finite cost
+    status: str  # "ok" or "no_finite_sample" (then action and plan are the rest action)
+    timings: dict[str, float]  # wall seconds: rollout_s (forward), backward_s (gradients + Adam), cem_s
+
+
+class CemGd:
+    """Cross-entropy + gradient-descent MPC over action sequences ``(K, *action_shape)`` within box bounds.
+
+    ``action_low, action_high``: bounds ``(*action_shape)`` with ``low <= high``; every sampled, optimized
+    and returned action lies within them. The "rest" action is zero projected into the bounds: it seeds
+    the Gaussian mean and fills the step appended when the warm start is shifted.
+
+    Attributes ``mean`` and ``std`` ``(K, *action_shape)`` (action units) are the Gaussian that the next
+    ``solve`` samples from.
+    """
+
+    def __init__(
+        self,
+        dynamics: Callable[[State, Tensor], State],
+        stage_cost: Callable[[State, Tensor, int], Tensor],
+        terminal_cost: Callable[[State], Tensor],
+        action_low: Tensor,
+        action_high: Tensor,
+        config: CemGdConfig = CemGdConfig(),
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.dynamics = dynamics
+        self.stage_cost = stage_cost
+        self.terminal_cost = terminal_cost
+        self.config = config
+        self.dtype = dtype
+        self.device = torch.device(device)
+        self.low = torch.as_tensor(action_low, dtype=dtype, device=self.device)
+        self.high = torch.as_tensor(action_high, dtype=dtype, device=self.device)
+        finite = torch.isfinite(self.low).all() & torch.isfinite(self.high).all()
+        if self.low.shape != self.high.shape or not bool(finite & (self.low <= self.high).all()):
+            raise ValueError("action_low and action_high need the same shape, finite values and low <= high")
+        self.action_shape = self.low.shape
+        self._half = (self.high - self.low) / 2
+        self._rest = torch.zeros_like(self.low).clamp(self.low, self.high)
+        self._generator = torch.Generator(device=self.device)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the warm start (Gaussian back to rest mean and ``init_std``, no elites) and reseed."""
+        horizon = self.config.horizon
+        self._generator.manual_seed(self.config.seed)
+        self.mean = self._rest.expand(horizon, *self.action_shape).clone()
+        self.std = (self.config.init_std * self._half).expand(horizon, *self.action_shape).clone()
+        self._elites: Tensor | None = None  # (n <= M, K, *action_shape), already shifted
+
+    def solve(self, x0: State) -> PlanResult:
+        """Plan from the measured state ``x0`` (its tensors have batch size 1) and advance the warm start.
+
+        Floating-point tensors of ``x0`` are cast to the solver's dtype, all of them moved to its device.
+        Samples with a non-finite cost are never elites nor returned; their gradients, and any non-finite
+        gradient, are zeroed. Runs with gradients enabled even when called under ``torch.no_grad()``.
+        """
+        cfg = self.config
+        timings = {"rollout_s": 0.0, "backward_s": 0.0, "cem_s": 0.0}
+        x0 = tree_map(self._expand, x0)
+        best_cost, best_plan = math.inf, None
+        for _ in range(cfg.cem_iterations):
+            tic = self._clock()
+            u = self._sample()
+            timings["cem_s"] += self._clock() - tic
+            u = self._descend(x0, u, timings)
+
+            tic = self._clock()
+            with torch.no_grad():
+                cost = self._rollout(x0, u)
+            timings["rollout_s"] += self._clock() - tic
+
+            tic = self._clock()
+            cost = torch.where(torch.isfinite(cost), cost, math.inf)
+            n_finite = int(torch.isfinite(cost).sum())
+            if n_finite > 0:
+                order = torch.argsort(cost, stable=True)
+                lowest = cost[order[0]].item()
+                if lowest < best_cost:
+                    best_cost, best_plan = lowest, u[order[0]]
+                self._elites = u[order[: min(cfg.elites, n_finite)]]
+                self.mean = self._elites.mean(0)
+                self.std = self._elites.std(0, correction=0).maximum(cfg.min_std * self._half)
+            timings["cem_s"] += self._clock() - tic
+
+        if best_plan is None:
+            self.reset()
+            plan = self._rest.expand(cfg.horizon, *self.action_shape).clone()
+            return PlanResult(plan[0].clone(), plan, math.inf, "no_finite_sample", timings)
+
+        tic = self._clock()
+        self._shift()
+        timings["cem_s"] += self._clock() - tic
+        return PlanResult(best_plan[0].clone(), best_plan, best_cost, "ok", timings)
+
+    def _expand(self, leaf: Any) -> Any:
+        """Batch-1 tensor -> ``(B, ...)`` contiguous copy on the solver's device (floats in its dtype)."""
+        if not isinstance(leaf, Tensor):
+            return leaf
+        leaf = leaf.to(device=self.device, dtype=self.dtype if leaf.is_floating_point() else None)
+        return leaf.expand(self.config.samples, *leaf.shape[1:]).contiguous()
+
+    def _sample(self) -> Tensor:
+        """Kept elites followed by fresh draws from N(mean, std) clamped to the bounds: ``(B, K, *A)``."""
+        kept = 0 if self._elites is None else self._elites.shape[0]
+        noise = torch.randn(
+            (self.config.samples - kept, *self.mean.shape),
+            generator=self._generator, dtype=self.dtype, device=self.device,
+        )
+        fresh = (self.mean + self.std * noise).clamp(self.low, self.high)
+        return fresh if self._elites is None else torch.cat([self._elites, fresh])
+
+    def _rollout(self, x: State, u: Tensor) -> Tensor:
+        """Total cost ``J (B,)`` of sequences ``u (B, K, *A)`` from states ``x`` (batch B), eq. 21."""
+        cost = torch.zeros(u.shape[0], dtype=self.dtype, device=self.device)
+        for k in range(u.shape[1]):
+            cost = cost + self.stage_cost(x, u[:, k], k)
+            x = self.dynamics(x, u[:, k])
+        cost = cost + self.terminal_cost(x)
+        if cost.shape != (u.shape[0],):
+            raise ValueError(f"costs must have shape (B,) = ({u.shape[0]},), got {tuple(cost.shape)}")
+        return cost
+
+    def _descend(self, x0: State, u: Tensor, timings: dict[str, float]) -> Tensor:
+        """``G`` Adam steps on each sample's own cost, in half-range-normalized coordinates, kept in bounds.
+
+        The per-sample gradient is taken w.r.t. ``z = u / half``; a sample whose cost or gradient is not
+        finite gets a zero gradient, and each sample's gradient norm is clipped to ``grad_clip``.
+        """
+        cfg = self.config
+        beta1, beta2 = cfg.adam_betas
+        step = cfg.lr * self._half
+        per_sample = (-1,) + (1,) * (u.dim() - 1)
+        m = torch.zeros_like(u)
+        v = torch.zeros_like(u)
+        for i in range(1, cfg.grad_steps + 1):
+            tic = self._clock()
+            with torch.enable_grad():
+                leaf = u.detach().requires_grad_(True)
+                cost = self._rollout(x0, leaf)
+                timings["rollout_s"] += self._clock() - tic
+                tic = self._clock()
+                finite = torch.isfinite(cost)
+                (grad,) = torch.autograd.grad(torch.where(finite, cost, 0.0).sum(), leaf)
+            grad = grad * self._half
+            ok = finite & torch.isfinite(grad).flatten(1).all(1)
+            grad = torch.where(ok.view(per_sample), grad, 0.0)
+            norm = grad.flatten(1).norm(dim=1).clamp_min(torch.finfo(self.dtype).tiny)
+            grad = grad * (cfg.grad_clip / norm).clamp(max=1.0).view(per_sample)
+            m.lerp_(grad, 1 - beta1)
+            v.lerp_(grad.square(), 1 - beta2)
+            m_hat = m / (1 - beta1**i)
+            v_hat = v / (1 - beta2**i)
+            u = (u - step * m_hat / (v_hat.sqrt() + cfg.adam_eps)).clamp(self.low, self.high)
+            timings["backward_s"] += self._clock() - tic
+        return u
+
+    def _shift(self) -> None:
+        """Advance the warm start one step: drop step 0 of mean, std and elites, append the rest action."""
+        tail = self._rest.unsqueeze(0)
+        self.mean = torch.cat([self.mean[1:], tail])
+        self.std = torch.cat([self.std[1:], (self.config.init_std * self._half).unsqueeze(0)])
+        kept = self._elites.shape[0]
+        self._elites = torch.cat([self._elites[:, 1:], tail.expand(kept, *tail.shape)], dim=1)
+
+    def _clock(self) -> float:
+        """Wall time (s), after waiting for queued CUDA work so that the phases are timed correctly."""
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        return time.perf_counter()

@@ -1,0 +1,257 @@
+"""The quasi-dynamic step ``x_{k+1} = f(x_k, u_k)`` of paper section IV-D, batched and differentiable.
+
+State ``x = (object_pose (B, 7), body_poses (B, M, 7), forces (B, M, N, 3))``; control ``u (B, M, 6)``: per
+compliant body a world-frame translation increment (m) and rotation-vector increment (rad) about the body's
+origin. One step:
+
+1. apply the controls to the actuated bodies;
+2. sum the current contact forces into the object wrench about its centre of mass, plus gravity;
+3. move the object by ``(h^2 / epsilon) M^{-1} w`` (``epsilon`` in s^2/s = s: a damping time; larger is
+   slower and more stable), restricted to (x, y, yaw) for planar models;
+4. update the per-point forces with the contact model from the geometry before and after the step.
+
+Stability. Step 3 is explicit gradient flow on the contact energy. Linearised, the object update is
+``dq <- (1 - (h^2/epsilon) M^{-1} K_c) dq`` with ``K_c`` the contact stiffness, so the step is stable only when
+``(h^2/epsilon) lambda_max(M^{-1} K_c) < 2``. ``stiffness_bound`` gives an upper bound of that eigenvalue for a
+compiled model (all its active points in contact at once); the compiler sub-steps when the bound is exceeded:
+``n`` sub-steps of ``h/n`` each (controls split evenly, mobility ``h/epsilon`` held fixed) satisfy
+``(h/epsilon)(h/n) lambda < 2``. It raises an error naming the bound when that would need more sub-steps than
+allowed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from hydrosoft.contact import ContactModel, ContactStep, Material, wrench
+from hydrosoft.geometry import se3
+
+
+class State(NamedTuple):
+    """Quasi-dynamic state (paper IV-D). SI units, world frame.
+
+    object_pose: ``(B, 7)`` pose of the rigid object (origin at its centre of mass).
+    body_poses: ``(B, M, 7)`` poses of the compliant bodies.
+    forces: ``(B, M, N, 3)`` force each body applies to each object surface point, N.
+    """
+
+    object_pose: Tensor
+    body_poses: Tensor
+    forces: Tensor
+
+
+@dataclass(frozen=True)
+class Model:
+    """A compiled scene: the minimal tensors and callables one step needs, in one dtype and device.
+
+    points, normals: ``(N, 3)`` object-frame surface points (m) and outward unit normals; areas ``(N,)`` m^2.
+    bodies: ``M`` signed distance functions, each mapping body-frame points ``(..., 3)`` to ``(...)`` metres.
+    material: per-body ``E, K, mu``, each ``(M,)``. actuated: ``(M,)`` bool, bodies the controls move.
+    mass (kg), inertia ``(3, 3)`` (kg m^2, object frame, about the centre of mass), gravity ``(3,)`` m/s^2.
+    dt: step h (s); epsilon: the quasi-dynamic damping time (s); substeps: sub-steps per step.
+    planar: the object moves in (x, y, yaw) only, its height and tilt held.
+    """
+
+    points: Tensor
+    normals: Tensor
+    areas: Tensor
+    bodies: tuple
+    body_names: tuple[str, ...]
+    material: Material
+    actuated: Tensor
+    contact: ContactModel
+    mass: float
+    inertia: Tensor
+    gravity: Tensor
+    dt: float
+    epsilon: float
+    planar: bool
+    substeps: int = 1
+
+    @property
+    def n_points(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.bodies)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.points.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.points.device
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "Model":
+        """The same model with its float tensors cast to ``dtype`` and moved to ``device``."""
+
+        def cast(t: Tensor) -> Tensor:
+            return t.to(device=device, dtype=dtype if t.is_floating_point() else None)
+
+        return replace(
+            self,
+            points=cast(self.points),
+            normals=cast(self.normals),
+            areas=cast(self.areas),
+            material=Material(*(cast(t) for t in self.material)),
+            actuated=cast(self.actuated),
+            inertia=cast(self.inertia),
+            gravity=cast(self.gravity),
+        )
+
+
+def stiffness_bound(model: Model, active: Tensor | None = None) -> float:
+    """Upper bound of ``lambda_max(M^{-1} K_c)`` (1/s^2) over the points that can touch each body.
+
+    ``K_c = sum_{m,i} active_{m,i} A_i J_i^T S_{m,i} J_i`` with ``S = E_m n n^T + K_m (I - n n^T)`` the per-point
+    stiffness against body ``m`` and ``J_i = [I, -[p_i]x]`` the point Jacobian, in the object frame (so the
+    bound does not depend on the object's pose); restricted to (x, y, yaw) for planar models. ``active (M, N)``
+    bool marks the points that can touch each body (all by default). Exact when all of them are in contact
+    at once, an upper bound otherwise (contact only removes terms).
+    """
+    p, n, a = model.points.double(), model.normals.double(), model.areas.double()
+    if active is None:
+        active = torch.ones(model.n_bodies, model.n_points, dtype=torch.bool)
+    eye = torch.eye(3, dtype=torch.float64)
+    nnT = n.unsqueeze(-1) * n.unsqueeze(-2)
+    skew = torch.zeros(p.shape[0], 3, 3, dtype=torch.float64)
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+    skew = skew - skew.transpose(1, 2)
+    J = torch.cat([eye.expand_as(skew), -skew], dim=-1)
+    weights = active.to(torch.float64).cpu() * a.cpu()
+    E = (weights * model.material.E.double().cpu().view(-1, 1)).sum(0)
+    K = (weights * model.material.K.double().cpu().view(-1, 1)).sum(0)
+    S = E.view(-1, 1, 1) * nnT.cpu() + K.view(-1, 1, 1) * (eye - nnT.cpu())
+    K_c = torch.einsum("nji,njk,nkl->il", J.cpu(), S, J.cpu())
+    mass = torch.block_diag(model.mass * eye, model.inertia.double().cpu())
+    if model.planar:
+        keep = [0, 1, 5]
+        K_c, mass = K_c[keep][:, keep], mass[keep][:, keep]
+    return float(torch.linalg.eigvals(torch.linalg.solve(mass, K_c)).real.max())
+
+
+def substeps_for(model: Model, max_substeps: int, active: Tensor | None = None) -> int:
+    """Sub-steps per step that keep the explicit update stable, ``ceil(h^2 lambda / (2 * 0.9 epsilon))``.
+
+    ``active (M, N)`` as in ``stiffness_bound``. Raises ValueError naming the bound when more than
+    ``max_substeps`` would be needed.
+    """
+    lam = stiffness_bound(model, active)
+    ratio = model.dt**2 * lam / model.epsilon
+    n = max(1, math.ceil(ratio / (2 * 0.9)))
+    if n > max_substeps:
+        raise ValueError(
+            f"quasi-dynamic step unstable: h^2/epsilon * lambda_max(M^-1 K_c) = {ratio:.3g} must stay below 2 "
+            f"(h = {model.dt} s, epsilon = {model.epsilon} s, lambda <= {lam:.3g} 1/s^2 from the contact "
+            f"stiffness E, K times the active area over mass {model.mass} kg); it needs {n} sub-steps but "
+            f"max_substeps = {max_substeps}. Raise epsilon to >= {model.dt**2 * lam / 1.8:.3g} s, lower dt, "
+            f"soften E/K, or allow more sub-steps."
+        )
+    return n
+
+
+def object_wrench(model: Model, state: State) -> Tensor:
+    """Net wrench ``(B, 6)`` (N, N m) of the contact forces and gravity on the object, about its centre of mass."""
+    points = se3.transform_points(state.object_pose, model.points)
+    w = wrench(state.forces.sum(1), points, state.object_pose[:, :3])
+    gravity = torch.cat([model.mass * model.gravity, torch.zeros_like(model.gravity)])
+    return w + gravity
+
+
+def body_wrenches(model: Model, state: State) -> Tensor:
+    """Wrench ``(B, M, 6)`` the object applies to each compliant body, about each body's origin (eq. 11)."""
+    points = se3.transform_points(state.object_pose, model.points).unsqueeze(1)
+    return wrench(-state.forces, points, state.body_poses[..., :3])
+
+
+def _object_motion(model: Model, state: State, w: Tensor, dt_sub: float) -> Tensor:
+    """Object displacement ``(B, 6)`` ``(h/epsilon) dt_sub M^{-1} w`` (world translation, rotation vector)."""
+    gain = model.dt / model.epsilon * dt_sub
+    R = se3.quat_to_matrix(state.object_pose[:, 3:])
+    if model.planar:
+        izz = torch.einsum("bi,ij,bj->b", R[:, 2], model.inertia, R[:, 2])
+        zero = torch.zeros_like(izz)
+        return gain * torch.stack(
+            [w[:, 0] / model.mass, w[:, 1] / model.mass, zero, zero, zero, w[:, 5] / izz], dim=-1
+        )
+    torque_body = torch.einsum("bji,bj->bi", R, w[:, 3:])
+    omega_body = torch.linalg.solve(model.inertia, torque_body.unsqueeze(-1)).squeeze(-1)
+    omega = torch.einsum("bij,bj->bi", R, omega_body)
+    return gain * torch.cat([w[:, :3] / model.mass, omega], dim=-1)
+
+
+def signed_distances(model: Model, body_points: Tensor) -> Tensor:
+    """Signed distance ``(B, M, N)`` (m) of body-frame points ``(B, M, N, 3)`` to each body."""
+    return torch.stack([sdf(body_points[:, m]) for m, sdf in enumerate(model.bodies)], dim=1)
+
+
+def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses: Tensor) -> ContactStep:
+    """Geometry of the step from ``prev`` to the poses ``object_pose (B, 7)``, ``body_poses (B, M, 7)``."""
+    p0 = se3.transform_points(prev.object_pose, model.points).unsqueeze(1)
+    p1 = se3.transform_points(object_pose, model.points).unsqueeze(1)
+    x0 = se3.transform_points(se3.inverse(prev.body_poses), p0)
+    x1 = se3.transform_points(se3.inverse(body_poses), p1)
+    normal = -se3.rotate_vectors(object_pose, model.normals).unsqueeze(1)
+    return ContactStep(
+        phi_prev=signed_distances(model, x0),
+        phi_next=signed_distances(model, x1),
+        displacement=se3.rotate_vectors(body_poses, x0 - x1),
+        normal=normal,
+        area=model.areas,
+    )
+
+
+def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: Tensor) -> State:
+    """Move object and bodies kinematically to the given poses and update the forces (step 4 of IV-D).
+
+    ``object_pose (B, 7)`` and ``body_poses (B, M, 7)``; used by the step and to replay prescribed motions
+    (force benchmarks, tactile estimation).
+    """
+    geometry = contact_geometry(model, state, object_pose, body_poses)
+    return State(object_pose, body_poses, model.contact.step(geometry, state.forces, model.material))
+
+
+def _substep(model: Model, state: State, u: Tensor, dt_sub: float) -> State:
+    body_poses = se3.retract(state.body_poses, u * model.actuated.view(1, -1, 1))
+    w = object_wrench(model, state)
+    object_pose = se3.retract(state.object_pose, _object_motion(model, state, w, dt_sub))
+    return advance_forces(model, state, object_pose, body_poses)
+
+
+def step(model: Model, state: State, u: Tensor) -> State:
+    """One quasi-dynamic step of length ``model.dt``: ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
+    n = model.substeps
+    if n == 1:
+        return _substep(model, state, u, model.dt)
+    u_sub = u / n
+    for _ in range(n):
+        state = _substep(model, state, u_sub, model.dt / n)
+    return state
+
+
+def rollout(model: Model, state: State, controls: Tensor) -> list[State]:
+    """States ``x_0 .. x_K`` from ``state`` under ``controls (B, K, M, 6)``."""
+    states = [state]
+    for k in range(controls.shape[1]):
+        states.append(step(model, states[-1], controls[:, k]))
+    return states
+
+
+def pressed_forces(model: Model, object_pose: Tensor, body_poses: Tensor) -> Tensor:
+    """Forces ``(B, M, N, 3)`` of the configuration reached by pressing straight in from contact-free.
+
+    For pure normal indentation every model gives the pressure-field force ``E A max(-phi, 0) n``; this is
+    the consistent initial force state for a scene that starts in contact (e.g. an object resting on a table).
+    """
+    points = se3.transform_points(object_pose, model.points).unsqueeze(1)
+    phi = signed_distances(model, se3.transform_points(se3.inverse(body_poses), points))
+    normal = -se3.rotate_vectors(object_pose, model.normals).unsqueeze(1)
+    f_n = model.material.E.view(1, -1, 1) * model.areas * torch.relu(-phi)
+    return f_n.unsqueeze(-1) * normal

@@ -1,0 +1,291 @@
+"""Declarative scenes and their compilation into the minimal model the scene needs.
+
+A scene names one rigid object (shape, surface spacing, mass, pose), the compliant bodies (SDF shape, pose,
+material, whether the controls move them; a table is a stiff compliant half-space), gravity, the contact
+model and the step. ``load_scene`` reads it from TOML and validates it with messages that name the field.
+``compile_scene`` turns it into a ``dynamics.Model`` and an initial ``dynamics.State``, keeping only what can
+matter over the motion the scene declares (``reach``):
+
+- planar (x, y, yaw) dynamics when the scene says ``planar = true`` (checked: gravity along -z, object upright);
+- only body-object pairs that can touch: a body whose distance lower bound to the object's bounding sphere
+  exceeds ``reach`` is dropped;
+- only surface points that can touch a kept body: a point whose signed distance to every kept body exceeds
+  ``reach`` times the SDF's Lipschitz bound is dropped (the active set).
+
+Every omission is listed in the returned ``CompileReport``. Example TOML::
+
+    contact = "nh"
+    dt = 0.05
+    epsilon = 0.5
+    planar = true
+    reach = 0.03
+    [object]
+    shape = "cube"
+    params = { side = 0.05 }
+    spacing = 0.005
+    mass = 0.2
+    pose = [0.0, 0.0, 0.025, 1.0, 0.0, 0.0, 0.0]
+    [[bodies]]
+    name = "table"
+    sdf = "halfspace"
+    E = 1e8
+    K = 1e5
+    mu = 0.3
+    actuated = false
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import torch
+
+from hydrosoft import contact as contact_models
+from hydrosoft.contact import Material
+from hydrosoft.dynamics import Model, State, pressed_forces, substeps_for
+from hydrosoft.geometry import sdf as sdfs
+from hydrosoft.geometry import se3
+from hydrosoft.geometry import surface as surfaces
+
+OBJECT_SHAPES = ("plate", "box", "cube", "triangle_prism", "trapezoid_prism", "cylinder", "mesh")
+IDENTITY_POSE = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+class SceneError(ValueError):
+    """A scene that cannot be loaded or compiled; the message names the offending field."""
+
+
+def _check_pose(pose: list[float], where: str) -> None:
+    if len(pose) != 7 or not all(math.isfinite(v) for v in pose):
+        raise SceneError(f"{where}: a pose is 7 finite numbers [x, y, z, qw, qx, qy, qz], got {pose}")
+    if abs(math.sqrt(sum(v * v for v in pose[3:])) - 1.0) > 1e-6:
+        raise SceneError(f"{where}: quaternion {pose[3:]} is not unit length")
+
+
+class ObjectSpec(msgspec.Struct, forbid_unknown_fields=True):
+    """The rigid object: ``shape`` (one of OBJECT_SHAPES; ``mesh`` takes ``path``), its size ``params`` (m),
+    surface ``spacing`` (m), ``mass`` (kg) and initial ``pose``."""
+
+    shape: str
+    mass: float
+    params: dict[str, Any] = {}
+    spacing: float = 0.005
+    pose: list[float] = list(IDENTITY_POSE)
+    path: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.shape not in OBJECT_SHAPES:
+            raise SceneError(f"object.shape: unknown shape {self.shape!r}; known: {', '.join(OBJECT_SHAPES)}")
+        if self.shape == "mesh" and not self.path:
+            raise SceneError("object.path: a mesh object needs the path of a watertight STL/OBJ file")
+        if not (self.mass > 0 and math.isfinite(self.mass)):
+            raise SceneError(f"object.mass: must be a positive number of kg, got {self.mass}")
+        if not (self.spacing > 0 and math.isfinite(self.spacing)):
+            raise SceneError(f"object.spacing: must be a positive number of metres, got {self.spacing}")
+        _check_pose(self.pose, "object.pose")
+
+
+class BodySpec(msgspec.Struct, forbid_unknown_fields=True):
+    """A compliant body: ``sdf`` kind and ``params`` (m), ``pose``, material ``E``, ``K`` (Pa/m), ``mu``."""
+
+    name: str
+    sdf: str
+    E: float
+    K: float
+    mu: float
+    params: dict[str, Any] = {}
+    pose: list[float] = list(IDENTITY_POSE)
+    actuated: bool = True
+
+    def __post_init__(self) -> None:
+        where = f"bodies[{self.name}]"
+        for field in ("E", "K"):
+            value = getattr(self, field)
+            if not (value > 0 and math.isfinite(value)):
+                raise SceneError(f"{where}.{field}: must be a positive number of Pa/m, got {value}")
+        if not (self.mu >= 0 and math.isfinite(self.mu)):
+            raise SceneError(f"{where}.mu: must be a non-negative number, got {self.mu}")
+        _check_pose(self.pose, f"{where}.pose")
+
+
+class Scene(msgspec.Struct, forbid_unknown_fields=True):
+    """A whole scene; see the module docstring for the TOML layout. Times in s, lengths in m."""
+
+    object: ObjectSpec
+    bodies: list[BodySpec]
+    contact: str = "nh"
+    contact_params: dict[str, float] = {}
+    dt: float = 0.05
+    epsilon: float = 0.5
+    planar: bool = False
+    gravity: list[float] = [0.0, 0.0, -9.81]
+    reach: float = 0.05
+    max_substeps: int = 64
+
+    def __post_init__(self) -> None:
+        if self.contact not in contact_models.MODELS:
+            raise SceneError(f"contact: unknown model {self.contact!r}; known: {', '.join(contact_models.MODELS)}")
+        if not self.bodies:
+            raise SceneError("bodies: a scene needs at least one compliant body")
+        names = [b.name for b in self.bodies]
+        if len(set(names)) != len(names):
+            raise SceneError(f"bodies: names must be unique, got {names}")
+        for field in ("dt", "epsilon"):
+            value = getattr(self, field)
+            if not (value > 0 and math.isfinite(value)):
+                raise SceneError(f"{field}: must be a positive number of seconds, got {value}")
+        if not (self.reach >= 0 and math.isfinite(self.reach)):
+            raise SceneError(f"reach: must be a non-negative number of metres, got {self.reach}")
+        if len(self.gravity) != 3 or not all(math.isfinite(g) for g in self.gravity):
+            raise SceneError(f"gravity: must be 3 finite numbers (m/s^2), got {self.gravity}")
+        if self.max_substeps < 1:
+            raise SceneError(f"max_substeps: must be at least 1, got {self.max_substeps}")
+
+
+def parse_scene(text: str | bytes, origin: str = "scene") -> Scene:
+    """Validate a scene from TOML text. Raises SceneError naming ``origin`` and the offending field."""
+    try:
+        return msgspec.toml.decode(text, type=Scene)
+    except msgspec.ValidationError as err:
+        raise SceneError(f"invalid {origin}: {err}") from err
+    except msgspec.DecodeError as err:
+        raise SceneError(f"{origin} is not valid TOML: {err}") from err
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a scene TOML file. Raises SceneError naming the file and the offending field."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"scene file {path} does not exist")
+    return parse_scene(path.read_bytes(), origin=f"scene {path}")
+
+
+@dataclass(frozen=True)
+class CompileReport:
+    """What ``compile_scene`` kept and left out."""
+
+    planar: bool
+    bodies_kept: tuple[str, ...]
+    bodies_dropped: tuple[str, ...]
+    points_total: int
+    points_kept: int
+    substeps: int
+
+    def summary(self) -> str:
+        dropped = f"; dropped bodies out of reach: {', '.join(self.bodies_dropped)}" if self.bodies_dropped else ""
+        return (
+            f"{'planar SE(2)' if self.planar else 'spatial SE(3)'} model, bodies {', '.join(self.bodies_kept)}"
+            f"{dropped}; {self.points_kept}/{self.points_total} surface points active; "
+            f"{self.substeps} sub-step(s) per step"
+        )
+
+
+def build_surface(spec: ObjectSpec) -> surfaces.Surface:
+    """The object's discretized surface from its spec."""
+    try:
+        if spec.shape == "mesh":
+            return surfaces.from_mesh(spec.path, spacing=spec.spacing)
+        return getattr(surfaces, spec.shape)(spacing=spec.spacing, **spec.params)
+    except TypeError as err:
+        raise SceneError(f"object.params: {err}") from err
+
+
+def build_sdf(spec: BodySpec):
+    """The signed distance function of a body spec."""
+    try:
+        return sdfs.from_spec(spec.sdf, **spec.params)
+    except (TypeError, ValueError) as err:
+        raise SceneError(f"bodies[{spec.name}]: {err}") from err
+
+
+def _check_planar(scene: Scene) -> None:
+    g = scene.gravity
+    if abs(g[0]) > 1e-12 or abs(g[1]) > 1e-12 or g[2] > 0:
+        raise SceneError(f"planar: a planar scene needs gravity along -z, got {g}")
+    qw, qx, qy, _ = scene.object.pose[3:]
+    if abs(qx) > 1e-9 or abs(qy) > 1e-9:
+        raise SceneError("planar: the object must be upright (its pose may only rotate about z)")
+
+
+def compile_scene(
+    scene: Scene, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu", prune: bool = True
+) -> tuple[Model, State, CompileReport]:
+    """Compile a scene into ``(model, initial state with B = 1, report)``.
+
+    ``prune=False`` keeps every body and point (the full model, for checking what pruning changes). The
+    initial forces are those of pressing straight into the initial configuration (``pressed_forces``).
+    """
+    if scene.planar:
+        _check_planar(scene)
+    surface = build_surface(scene.object)
+    object_pose = torch.tensor(scene.object.pose, dtype=torch.float64)
+    bodies = [(spec, build_sdf(spec)) for spec in scene.bodies]
+
+    world_points = se3.transform_points(object_pose, surface.points)
+    kept, dropped, near = [], [], []
+    for spec, sdf in bodies:
+        body_pose = torch.tensor(spec.pose, dtype=torch.float64)
+        local = se3.transform_points(se3.inverse(body_pose), world_points)
+        phi = sdf(local)
+        centre = se3.transform_points(se3.inverse(body_pose), object_pose[:3].view(1, 3))[0]
+        lower_bound = float(sdf(centre)) - sdf.lipschitz * surface.bounding_radius
+        if prune and lower_bound > scene.reach * sdf.lipschitz:
+            dropped.append(spec.name)
+            continue
+        kept.append((spec, sdf))
+        near.append(phi <= scene.reach * sdf.lipschitz if prune else torch.ones_like(phi, dtype=torch.bool))
+    if not kept:
+        raise SceneError(
+            f"no compliant body can reach the object within reach = {scene.reach} m: "
+            f"dropped {', '.join(dropped)}; move the bodies closer or raise reach"
+        )
+    active = torch.stack(near)
+    index = active.any(0).nonzero().squeeze(-1)
+    if prune and index.numel() == 0:
+        index = torch.arange(surface.n_points)
+    surface = surface.subset(index)
+    active = active[:, index]
+
+    specs = [spec for spec, _ in kept]
+    material = Material(
+        E=torch.tensor([s.E for s in specs], dtype=torch.float64),
+        K=torch.tensor([s.K for s in specs], dtype=torch.float64),
+        mu=torch.tensor([s.mu for s in specs], dtype=torch.float64),
+    )
+    model = Model(
+        points=surface.points,
+        normals=surface.normals,
+        areas=surface.areas,
+        bodies=tuple(sdf for _, sdf in kept),
+        body_names=tuple(s.name for s in specs),
+        material=material,
+        actuated=torch.tensor([s.actuated for s in specs], dtype=torch.float64),
+        contact=contact_models.make(scene.contact, **scene.contact_params),
+        mass=scene.object.mass,
+        inertia=scene.object.mass * surface.unit_inertia,
+        gravity=torch.tensor(scene.gravity, dtype=torch.float64),
+        dt=scene.dt,
+        epsilon=scene.epsilon,
+        planar=scene.planar,
+    )
+    try:
+        n_sub = substeps_for(model, scene.max_substeps, active)
+    except ValueError as err:
+        raise SceneError(str(err)) from err
+    model = replace(model, substeps=n_sub).to(dtype=dtype, device=device)
+    object_pose = object_pose.to(dtype=dtype, device=device).unsqueeze(0)
+    body_poses = torch.tensor([s.pose for s in specs], dtype=dtype, device=device).unsqueeze(0)
+    state = State(object_pose, body_poses, pressed_forces(model, object_pose, body_poses))
+    report = CompileReport(
+        planar=scene.planar,
+        bodies_kept=model.body_names,
+        bodies_dropped=tuple(dropped),
+        points_total=int(world_points.shape[0]),
+        points_kept=int(index.numel()),
+        substeps=n_sub,
+    )
+    return model, state, report

@@ -1,0 +1,1 @@
+"""Services: asyncio processes, bus, launcher and the `hydrosoft-stack` command line."""

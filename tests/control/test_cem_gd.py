@@ -1,0 +1,275 @@
+"""CEM + gradient-descent MPC (Algorithm 1) on a single integrator x_{k+1} = x_k + u_k with known optimum."""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hydrosoft.control import CemGd, CemGdConfig, effort_cost
+
+F64 = torch.float64
+GOAL = torch.tensor([0.5, -0.3, 0.2], dtype=F64)
+BOUND = 0.1  # |u| per axis and step (m)
+
+
+class State(NamedTuple):
+    pos: torch.Tensor  # (B, 3) m
+    steps: torch.Tensor  # (B,) int64, steps taken: a non-float leaf rides along
+
+
+def integrator(state: State, u: torch.Tensor) -> State:
+    """Single integrator on a (B, 1, 3) action."""
+    return State(state.pos + u[:, 0], state.steps + 1)
+
+
+def to_goal(state: State) -> torch.Tensor:
+    return (state.pos - GOAL.to(state.pos)).square().sum(-1)
+
+
+def tracking_cost(state: State, u: torch.Tensor, k: int) -> torch.Tensor:
+    return to_goal(state) + 0.01 * effort_cost(u)
+
+
+def x0(pos=(0.0, 0.0, 0.0), dtype=F64) -> State:
+    return State(torch.tensor([pos], dtype=dtype), torch.zeros(1, dtype=torch.int64))
+
+
+def make_solver(config: CemGdConfig, dynamics=integrator, stage=tracking_cost, dtype=F64) -> CemGd:
+    low = torch.full((1, 3), -BOUND, dtype=F64)
+    return CemGd(dynamics, stage, to_goal, low, -low, config, dtype=dtype)
+
+
+class Recorder:
+    """Dynamics wrapper recording every action batch it is called with (detached)."""
+
+    def __init__(self, dynamics):
+        self.dynamics = dynamics
+        self.calls: list[torch.Tensor] = []
+
+    def __call__(self, state, u):
+        self.calls.append(u.detach().clone())
+        return self.dynamics(state, u)
+
+    def sequences(self, first_call: int, horizon: int) -> torch.Tensor:
+        """(B, K, *A) sequences of the K consecutive calls starting at ``first_call``."""
+        return torch.stack(self.calls[first_call : first_call + horizon], dim=1)
+
+
+def close_loop(solver: CemGd, steps: int) -> tuple[list[float], float]:
+    """Receding horizon: apply each first action; distances to the goal and the summed stage cost."""
+    state, errors, total = x0(), [], 0.0
+    for _ in range(steps):
+        result = solver.solve(state)
+        assert result.status == "ok"
+        total += to_goal(state).item()
+        state = integrator(state, result.action.unsqueeze(0))
+        errors.append((state.pos[0] - GOAL).norm().item())
+    return errors, total
+
+
+def test_config_and_bounds_are_validated():
+    with pytest.raises(ValueError):
+        CemGdConfig(samples=4, elites=5)
+    with pytest.raises(ValueError):
+        CemGdConfig(horizon=0)
+    low = torch.zeros(1, 3, dtype=F64)
+    with pytest.raises(ValueError):
+        CemGd(integrator, tracking_cost, to_goal, low, low - 1.0)
+    with pytest.raises(ValueError):
+        CemGd(integrator, tracking_cost, to_goal, low, torch.full((1, 3), math.inf))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_gradient_steps_lower_the_cost_of_the_same_samples(seed):
+    pure = make_solver(CemGdConfig(grad_steps=0, seed=seed)).solve(x0())
+    descended = make_solver(CemGdConfig(grad_steps=2, seed=seed)).solve(x0())
+    assert descended.cost < 0.9 * pure.cost
+
+
+def test_reaches_the_known_optimum():
+    # min |x_K - g|^2 + lam sum_k |u_k|^2 from x_0 = 0: u_k = g / (K + lam), J* = lam |g|^2 / (K + lam).
+    goal, lam, horizon = torch.tensor([0.2, -0.1, 0.15], dtype=F64), 0.1, 5
+    low = torch.full((3,), -BOUND, dtype=F64)
+    solver = CemGd(
+        lambda x, u: x + u,
+        lambda x, u, k: lam * effort_cost(u),
+        lambda x: (x - goal).square().sum(-1),
+        low, -low,
+        CemGdConfig(horizon=horizon, grad_steps=10, cem_iterations=5),
+    )
+    result = solver.solve(torch.zeros(1, 3, dtype=F64))
+    optimum = lam * goal.square().sum().item() / (horizon + lam)
+    assert optimum <= result.cost < 1.1 * optimum
+    assert torch.allclose(result.plan, (goal / (horizon + lam)).expand(horizon, 3), atol=0.01)
+
+
+@pytest.mark.parametrize("grad_steps", [0, 2])
+def test_receding_horizon_drives_the_state_to_the_goal(grad_steps):
+    errors, _ = close_loop(make_solver(CemGdConfig(grad_steps=grad_steps)), steps=20)
+    assert max(errors[-5:]) < 0.04
+
+
+def test_pure_cem_converges_more_slowly():
+    _, with_gradients = close_loop(make_solver(CemGdConfig(grad_steps=2)), steps=12)
+    _, pure = close_loop(make_solver(CemGdConfig(grad_steps=0)), steps=12)
+    assert with_gradients < pure
+
+
+def test_same_seed_same_plans_bitwise_and_other_seed_differs():
+    def plans(seed):
+        solver = make_solver(CemGdConfig(seed=seed, cem_iterations=2))
+        state, out = x0(), []
+        for _ in range(3):
+            result = solver.solve(state)
+            out.append(result.plan)
+            state = integrator(state, result.action.unsqueeze(0))
+        return out
+
+    first, again, other = plans(3), plans(3), plans(4)
+    assert all(torch.equal(a, b) for a, b in zip(first, again))
+    assert not torch.equal(first[0], other[0])
+
+
+def test_reset_behaves_like_a_fresh_solver():
+    solver = make_solver(CemGdConfig())
+    first = solver.solve(x0())
+    solver.solve(x0((0.1, 0.0, 0.0)))
+    solver.reset()
+    assert torch.equal(solver.solve(x0()).plan, first.plan)
+
+
+def test_global_rng_is_untouched():
+    before = torch.get_rng_state()
+    make_solver(CemGdConfig()).solve(x0())
+    assert torch.equal(torch.get_rng_state(), before)
+
+
+def test_solves_with_gradients_under_no_grad():
+    expected = make_solver(CemGdConfig()).solve(x0())
+    with torch.no_grad():
+        result = make_solver(CemGdConfig()).solve(x0())
+    assert torch.equal(result.plan, expected.plan)
+
+
+def test_float32_result_and_timings():
+    result = make_solver(CemGdConfig(), dtype=torch.float32).solve(x0(dtype=torch.float32))
+    assert result.plan.dtype == result.action.dtype == torch.float32
+    assert result.plan.shape == (10, 1, 3) and result.action.shape == (1, 3)
+    assert set(result.timings) == {"rollout_s", "backward_s", "cem_s"}
+    assert all(t > 0 for t in result.timings.values())
+
+
+def test_cost_of_wrong_shape_is_rejected():
+    solver = make_solver(CemGdConfig(), stage=lambda s, u, k: to_goal(s).sum())
+    with pytest.raises(ValueError, match="shape"):
+        solver.solve(x0())
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    low=st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=6),
+    width=st.lists(st.sampled_from([0.0, 0.01, 0.3, 2.0]), min_size=6, max_size=6),
+    start=st.lists(st.floats(-5.0, 5.0), min_size=6, max_size=6),
+    dtype=st.sampled_from([torch.float32, torch.float64]),
+)
+def test_every_sample_and_the_action_stay_within_bounds(low, width, start, dtype):
+    low_t = torch.tensor(low, dtype=dtype).view(2, 3)
+    high_t = low_t + torch.tensor(width, dtype=dtype).view(2, 3)
+    far = torch.tensor([[10.0, -10.0, 10.0], [-10.0, 10.0, 0.0]], dtype=dtype)
+    recorder = Recorder(lambda x, u: x + u)
+    config = CemGdConfig(samples=12, elites=3, horizon=3, grad_steps=3, cem_iterations=2, lr=0.5)
+    solver = CemGd(
+        recorder, lambda x, u, k: effort_cost(u), lambda x: (x - far).square().flatten(1).sum(-1),
+        low_t, high_t, config, dtype=dtype,
+    )
+    state = torch.tensor(start, dtype=dtype).view(1, 2, 3)
+    for _ in range(2):
+        result = solver.solve(state)
+        state = state + result.action
+        for u in [*recorder.calls, result.action.unsqueeze(0), result.plan]:
+            assert bool(((u >= low_t) & (u <= high_t)).all())
+    fixed = low_t == high_t
+    assert torch.equal(result.action[fixed], low_t[fixed])
+
+
+def test_samples_with_nan_dynamics_are_never_chosen():
+    def nan_when_pushing_x(state, u):  # the goal lies towards +x, but any u_x > 0 gives NaN
+        nxt = integrator(state, u)
+        bad = (u[:, 0, 0] > 0).unsqueeze(-1)
+        return State(torch.where(bad, math.nan, nxt.pos), nxt.steps)
+
+    solver = make_solver(CemGdConfig(grad_steps=2), dynamics=nan_when_pushing_x)
+    for _ in range(2):
+        result = solver.solve(x0())
+        assert result.status == "ok" and math.isfinite(result.cost)
+        assert torch.isfinite(result.plan).all() and (result.plan[..., 0] <= 0).all()
+        assert torch.isfinite(solver.mean).all() and torch.isfinite(solver.std).all()
+
+
+def test_all_nan_returns_the_rest_action_and_recovers():
+    broken = True
+
+    def dynamics(state, u):
+        nxt = integrator(state, u)
+        return State(nxt.pos * math.nan, nxt.steps) if broken else nxt
+
+    solver = make_solver(CemGdConfig(grad_steps=2), dynamics=dynamics)
+    result = solver.solve(x0())
+    assert result.status == "no_finite_sample" and result.cost == math.inf
+    assert torch.equal(result.action, torch.zeros(1, 3, dtype=F64))
+    assert torch.equal(result.plan, torch.zeros(10, 1, 3, dtype=F64))
+    broken = False
+    result = solver.solve(x0())
+    assert result.status == "ok" and math.isfinite(result.cost)
+
+
+def test_nan_gradients_are_zeroed_per_sample():
+    # Finite forward, NaN backward wherever some u < 0 (gradient of the unselected sqrt branch).
+    recorder = Recorder(lambda s, u: State(s.pos + torch.where(u < 0, u, u.sqrt())[:, 0], s.steps + 1))
+    solver = make_solver(CemGdConfig(grad_steps=3), dynamics=recorder)
+    result = solver.solve(x0())
+    assert result.status == "ok" and math.isfinite(result.cost)
+    assert all(torch.isfinite(u).all() for u in recorder.calls)
+    # The samples that kept finite gradients did move: some recorded actions differ between steps.
+    horizon = solver.config.horizon
+    assert not torch.equal(recorder.sequences(0, horizon), recorder.sequences(3 * horizon, horizon))
+
+
+def test_warm_start_refits_to_elites_then_shifts():
+    config = CemGdConfig(samples=256, elites=16, horizon=4, grad_steps=0, min_std=0.01)
+    recorder = Recorder(integrator)
+    solver = make_solver(config, dynamics=recorder)
+    solver.solve(x0())
+    first = recorder.sequences(0, config.horizon)  # (B, K, 1, 3), G = 0: one rollout per solve
+    positions = first[:, :, 0].cumsum(1)  # x_1..x_K
+    costs = (positions - GOAL).square().sum(-1)
+    costs = costs[:, :-1].sum(1) + costs[:, -1] + 0.01 * first.square().flatten(1).sum(1)
+    elites = first[torch.argsort(costs)[: config.elites]]
+    rest = torch.zeros(1, 1, 1, 3, dtype=F64)
+    shifted = torch.cat([elites[:, 1:], rest.expand(config.elites, 1, 1, 3)], dim=1)
+    assert torch.allclose(solver.mean, shifted.mean(0), atol=1e-12)
+
+    solver.solve(x0())
+    second = recorder.sequences(config.horizon, config.horizon)
+    assert torch.equal(second[: config.elites], shifted)  # elites kept, shifted
+    fresh = second[config.elites :]  # resampled around the shifted mean
+    spread = solver.std.new_tensor(BOUND) / math.sqrt(fresh.shape[0])
+    assert ((fresh.mean(0) - shifted.mean(0)).abs() < 5 * spread).all()
+
+
+def test_second_solve_starts_from_the_shifted_plan():
+    # One elite and no std floor: the mean is the best plan and every fresh sample equals it exactly.
+    config = CemGdConfig(samples=16, elites=1, horizon=5, grad_steps=0, min_std=0.0)
+    recorder = Recorder(integrator)
+    solver = make_solver(config, dynamics=recorder)
+    best = solver.solve(x0()).plan
+    assert torch.equal(solver.mean[:-1], best[1:])
+    assert torch.equal(solver.mean[-1], torch.zeros(1, 3, dtype=F64))
+    solver.solve(x0())
+    second = recorder.sequences(config.horizon, config.horizon)
+    assert torch.equal(second[:, :-1], best[1:].expand(16, 4, 1, 3))
+    assert second[1:, -1].std(0).min() > 0.01  # the appended step is explored with init_std
