@@ -244,14 +244,29 @@ def rollout(model: Model, state: State, controls: Tensor) -> list[State]:
     return states
 
 
-def pressed_forces(model: Model, object_pose: Tensor, body_poses: Tensor) -> Tensor:
-    """Forces ``(B, M, N, 3)`` of the configuration reached by pressing straight in from contact-free.
+def press_in(model: Model, object_pose: Tensor, body_poses: Tensor, steps: int = 4) -> State:
+    """The state reached by pressing each body straight into its given pose from contact-free.
 
-    For pure normal indentation every model gives the pressure-field force ``E A max(-phi, 0) n``; this is
-    the consistent initial force state for a scene that starts in contact (e.g. an object resting on a table).
+    ``object_pose (B, 7)``, ``body_poses (B, M, 7)``. Each body starts backed off along its own outward SDF
+    gradient at the object's centre (by the deepest penetration plus 1 mm) and moves to its pose in
+    ``steps`` kinematic steps with the model's contact model, the object held still. This is the consistent
+    initial force state for a scene that starts in contact (an object resting on a table, held in a grasp):
+    for NH, faces pressed along their normal carry ``E A depth`` and faces sliding in tangentially carry none.
     """
     points = se3.transform_points(object_pose, model.points).unsqueeze(1)
-    phi = signed_distances(model, se3.transform_points(se3.inverse(body_poses), points))
-    normal = -se3.rotate_vectors(object_pose, model.normals).unsqueeze(1)
-    f_n = model.material.E.view(1, -1, 1) * model.areas * torch.relu(-phi)
-    return f_n.unsqueeze(-1) * normal
+    local = se3.transform_points(se3.inverse(body_poses), points)
+    depth = torch.relu(-signed_distances(model, local)).amax(-1)
+    centre = se3.transform_points(se3.inverse(body_poses), object_pose[:, None, None, :3])[:, :, 0]
+    with torch.enable_grad():
+        probe = centre.detach().requires_grad_(True)
+        (grad,) = torch.autograd.grad(signed_distances(model, probe.unsqueeze(2)).sum(), probe)
+    outward = se3.rotate_vectors(body_poses, torch.nn.functional.normalize(grad, dim=-1).unsqueeze(2))[:, :, 0]
+    offset = (depth + 1e-3).unsqueeze(-1) * outward
+    zeros = torch.zeros_like(offset)
+    start = se3.retract(body_poses, torch.cat([-offset, zeros], dim=-1))
+    state = State(object_pose, start, torch.zeros(*body_poses.shape[:2], model.n_points, 3, dtype=model.dtype,
+                                                  device=model.device))
+    for k in range(1, steps + 1):
+        poses = se3.retract(body_poses, torch.cat([-offset * (1 - k / steps), zeros], dim=-1))
+        state = advance_forces(model, state, object_pose, poses)
+    return State(object_pose, body_poses, state.forces)

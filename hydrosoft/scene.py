@@ -12,6 +12,10 @@ matter over the motion the scene declares (``reach``):
 - only surface points that can touch a kept body: a point whose signed distance to every kept body exceeds
   ``reach`` times the SDF's Lipschitz bound is dropped (the active set).
 
+The sub-step count comes from ``dynamics.substeps_for`` over the contact patch the scene starts with, grown by
+``stability_margin`` (points within that distance of a body): a conservative bound of the stiffness the step
+meets, without assuming that every point within ``reach`` touches at once.
+
 Every omission is listed in the returned ``CompileReport``. Example TOML::
 
     contact = "nh"
@@ -46,7 +50,7 @@ import torch
 
 from hydrosoft import contact as contact_models
 from hydrosoft.contact import Material
-from hydrosoft.dynamics import Model, State, pressed_forces, substeps_for
+from hydrosoft.dynamics import Model, State, press_in, substeps_for
 from hydrosoft.geometry import sdf as sdfs
 from hydrosoft.geometry import se3
 from hydrosoft.geometry import surface as surfaces
@@ -74,7 +78,7 @@ class ObjectSpec(msgspec.Struct, forbid_unknown_fields=True):
     mass: float
     params: dict[str, Any] = {}
     spacing: float = 0.005
-    pose: list[float] = list(IDENTITY_POSE)
+    pose: list[float] = msgspec.field(default_factory=lambda: list(IDENTITY_POSE))
     path: str | None = None
 
     def __post_init__(self) -> None:
@@ -98,7 +102,7 @@ class BodySpec(msgspec.Struct, forbid_unknown_fields=True):
     K: float
     mu: float
     params: dict[str, Any] = {}
-    pose: list[float] = list(IDENTITY_POSE)
+    pose: list[float] = msgspec.field(default_factory=lambda: list(IDENTITY_POSE))
     actuated: bool = True
 
     def __post_init__(self) -> None:
@@ -122,8 +126,9 @@ class Scene(msgspec.Struct, forbid_unknown_fields=True):
     dt: float = 0.05
     epsilon: float = 0.5
     planar: bool = False
-    gravity: list[float] = [0.0, 0.0, -9.81]
+    gravity: list[float] = msgspec.field(default_factory=lambda: [0.0, 0.0, -9.81])
     reach: float = 0.05
+    stability_margin: float = 0.005
     max_substeps: int = 64
 
     def __post_init__(self) -> None:
@@ -138,8 +143,10 @@ class Scene(msgspec.Struct, forbid_unknown_fields=True):
             value = getattr(self, field)
             if not (value > 0 and math.isfinite(value)):
                 raise SceneError(f"{field}: must be a positive number of seconds, got {value}")
-        if not (self.reach >= 0 and math.isfinite(self.reach)):
-            raise SceneError(f"reach: must be a non-negative number of metres, got {self.reach}")
+        for field in ("reach", "stability_margin"):
+            value = getattr(self, field)
+            if not (value >= 0 and math.isfinite(value)):
+                raise SceneError(f"{field}: must be a non-negative number of metres, got {value}")
         if len(self.gravity) != 3 or not all(math.isfinite(g) for g in self.gravity):
             raise SceneError(f"gravity: must be 3 finite numbers (m/s^2), got {self.gravity}")
         if self.max_substeps < 1:
@@ -217,7 +224,7 @@ def compile_scene(
     """Compile a scene into ``(model, initial state with B = 1, report)``.
 
     ``prune=False`` keeps every body and point (the full model, for checking what pruning changes). The
-    initial forces are those of pressing straight into the initial configuration (``pressed_forces``).
+    initial forces are those of pressing each body straight into its initial pose (``press_in``).
     """
     if scene.planar:
         _check_planar(scene)
@@ -226,7 +233,7 @@ def compile_scene(
     bodies = [(spec, build_sdf(spec)) for spec in scene.bodies]
 
     world_points = se3.transform_points(object_pose, surface.points)
-    kept, dropped, near = [], [], []
+    kept, dropped, near, touching = [], [], [], []
     for spec, sdf in bodies:
         body_pose = torch.tensor(spec.pose, dtype=torch.float64)
         local = se3.transform_points(se3.inverse(body_pose), world_points)
@@ -238,6 +245,7 @@ def compile_scene(
             continue
         kept.append((spec, sdf))
         near.append(phi <= scene.reach * sdf.lipschitz if prune else torch.ones_like(phi, dtype=torch.bool))
+        touching.append(phi <= scene.stability_margin)
     if not kept:
         raise SceneError(
             f"no compliant body can reach the object within reach = {scene.reach} m: "
@@ -248,7 +256,7 @@ def compile_scene(
     if prune and index.numel() == 0:
         index = torch.arange(surface.n_points)
     surface = surface.subset(index)
-    active = active[:, index]
+    touching = torch.stack(touching)[:, index]
 
     specs = [spec for spec, _ in kept]
     material = Material(
@@ -273,13 +281,13 @@ def compile_scene(
         planar=scene.planar,
     )
     try:
-        n_sub = substeps_for(model, scene.max_substeps, active)
+        n_sub = substeps_for(model, scene.max_substeps, touching)
     except ValueError as err:
         raise SceneError(str(err)) from err
     model = replace(model, substeps=n_sub).to(dtype=dtype, device=device)
     object_pose = object_pose.to(dtype=dtype, device=device).unsqueeze(0)
     body_poses = torch.tensor([s.pose for s in specs], dtype=dtype, device=device).unsqueeze(0)
-    state = State(object_pose, body_poses, pressed_forces(model, object_pose, body_poses))
+    state = press_in(model, object_pose, body_poses)
     report = CompileReport(
         planar=scene.planar,
         bodies_kept=model.body_names,

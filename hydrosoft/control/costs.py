@@ -6,7 +6,6 @@ zero error included (no ``sqrt(0)`` in the backward pass).
 """
 from __future__ import annotations
 
-import torch
 import torch.nn.functional as F
 from torch import Tensor
 

@@ -167,7 +167,7 @@ def rotate_vectors(pose: Tensor, v: Tensor) -> Tensor:
 
 
 def so3_exp(omega: Tensor) -> Tensor:
-    """Unit quaternion ``(..., 4)`` of rotation vectors ``omega (..., 3)`` (rad): angle |omega| about omega."""
+    """Quaternion ``(..., 4)`` of rotation vectors ``omega (..., 3)`` (rad): angle |omega| about omega."""
     t2 = (omega * omega).sum(-1, keepdim=True)
     small, t = _split(t2)
     # cos(t/2) and sin(t/2)/t, with their Taylor series about t = 0.
@@ -195,7 +195,7 @@ def so3_log(q: Tensor) -> Tensor:
 
 
 def _skew_terms(omega: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Pieces shared by the SE(3) maps: ``t^2``, the safe ``t``, the small-angle mask, ``w×v``, ``w×(w×v)``.
+    """Pieces shared by the SE(3) maps: ``t^2``, safe ``t``, small-angle mask, ``w×v``, ``w×(w×v)``.
 
     ``omega`` and ``v`` are ``(..., 3)``; ``t = |omega|`` is 1.0 where the mask holds, so closed forms
     divide by ``t * t`` (never by ``t^2``, which may be zero there).
@@ -207,7 +207,7 @@ def _skew_terms(omega: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tenso
 
 
 def se3_exp(xi: Tensor) -> Tensor:
-    """Pose ``(..., 7)`` of twists ``xi (..., 6) = [v (m), omega (rad)]``: ``p = V(omega) v``, ``q = exp(omega)``.
+    """Pose ``(..., 7)`` of twists ``xi (..., 6) = [v (m), omega (rad)]``: ``p = V v``, ``q = exp(omega)``.
 
     ``V = I + B [w]x + C [w]x^2`` is the left Jacobian of SO(3), ``B = (1 - cos t)/t^2``,
     ``C = (t - sin t)/t^3``, ``t = |omega|``.

@@ -24,7 +24,7 @@ def grid(z, x=0.0, n=4):
 
 
 def press(z_start=0.002, depth=0.003, steps=7, x=0.0):
-    return [grid(z, x) for z in torch.linspace(z_start, -depth, steps).tolist()]
+    return [grid(z, x) for z in torch.linspace(z_start, -depth, steps, dtype=torch.float64).tolist()]
 
 
 @pytest.mark.parametrize("model", [NonHolonomic(), PressureField(), PressureFieldFrictionless()])
@@ -47,7 +47,7 @@ def test_nh_equals_pf_for_normal_indentation_from_contact_free():
 def test_nh_sticks_then_slides_on_the_cone():
     depth = 0.002
     path = press(depth=depth, steps=3)
-    shear = [grid(-depth, x) for x in torch.linspace(0.0, -0.004, 41).tolist()]
+    shear = [grid(-depth, x) for x in torch.linspace(0.0, -0.004, 41, dtype=torch.float64).tolist()]
     _, history = drive(NonHolonomic(), path + shear[1:])
     f_n = E * AREA * depth
     for k, forces in enumerate(history[2:], start=1):

@@ -164,7 +164,7 @@ def test_float32_result_and_timings():
 
 
 def test_cost_of_wrong_shape_is_rejected():
-    solver = make_solver(CemGdConfig(), stage=lambda s, u, k: to_goal(s).sum())
+    solver = make_solver(CemGdConfig(), stage=lambda s, u, k: to_goal(s).unsqueeze(-1))
     with pytest.raises(ValueError, match="shape"):
         solver.solve(x0())
 
@@ -197,16 +197,16 @@ def test_every_sample_and_the_action_stay_within_bounds(low, width, start, dtype
 
 
 def test_samples_with_nan_dynamics_are_never_chosen():
-    def nan_when_pushing_x(state, u):  # the goal lies towards +x, but any u_x > 0 gives NaN
+    def nan_when_pushing_x(state, u):  # the goal lies towards +x, but any u_x > 0.05 gives NaN
         nxt = integrator(state, u)
-        bad = (u[:, 0, 0] > 0).unsqueeze(-1)
+        bad = (u[:, 0, 0] > 0.05).unsqueeze(-1)
         return State(torch.where(bad, math.nan, nxt.pos), nxt.steps)
 
     solver = make_solver(CemGdConfig(grad_steps=2), dynamics=nan_when_pushing_x)
     for _ in range(2):
         result = solver.solve(x0())
         assert result.status == "ok" and math.isfinite(result.cost)
-        assert torch.isfinite(result.plan).all() and (result.plan[..., 0] <= 0).all()
+        assert torch.isfinite(result.plan).all() and (result.plan[..., 0] <= 0.05).all()
         assert torch.isfinite(solver.mean).all() and torch.isfinite(solver.std).all()
 
 
@@ -228,8 +228,12 @@ def test_all_nan_returns_the_rest_action_and_recovers():
 
 
 def test_nan_gradients_are_zeroed_per_sample():
-    # Finite forward, NaN backward wherever some u < 0 (gradient of the unselected sqrt branch).
-    recorder = Recorder(lambda s, u: State(s.pos + torch.where(u < 0, u, u.sqrt())[:, 0], s.steps + 1))
+    def dynamics(state, u):  # finite forward; NaN backward where u_x < -0.08 (the unselected sqrt branch)
+        u_x = u[:, 0, 0]
+        bump = torch.where(u_x < -0.08, 0.0, (u_x + 0.08).sqrt())
+        return State(state.pos + u[:, 0] + 1e-3 * bump.unsqueeze(-1), state.steps + 1)
+
+    recorder = Recorder(dynamics)
     solver = make_solver(CemGdConfig(grad_steps=3), dynamics=recorder)
     result = solver.solve(x0())
     assert result.status == "ok" and math.isfinite(result.cost)
@@ -273,3 +277,12 @@ def test_second_solve_starts_from_the_shifted_plan():
     second = recorder.sequences(config.horizon, config.horizon)
     assert torch.equal(second[:, :-1], best[1:].expand(16, 4, 1, 3))
     assert second[1:, -1].std(0).min() > 0.01  # the appended step is explored with init_std
+
+
+def test_refitted_std_is_floored_to_keep_exploring():
+    # A single elite has zero spread: the std falls to the floor, then the appended step gets init_std.
+    config = CemGdConfig(samples=8, elites=1, horizon=4, min_std=0.2, init_std=0.5)
+    solver = make_solver(config)
+    solver.solve(x0())
+    torch.testing.assert_close(solver.std[:-1], torch.full((3, 1, 3), 0.2 * BOUND, dtype=F64))
+    torch.testing.assert_close(solver.std[-1], torch.full((1, 3), 0.5 * BOUND, dtype=F64))

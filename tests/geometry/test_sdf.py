@@ -1,0 +1,242 @@
+"""Tests of hydrosoft.geometry.sdf: known values, exactness, finite gradients, the ellipsoid's error bound."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import least_squares
+
+from hydrosoft.geometry import sdf
+
+F64 = torch.float64
+
+PRIMITIVES = {
+    "halfspace": sdf.HalfSpace(),
+    "box": sdf.Box((0.03, 0.02, 0.01)),
+    "sphere": sdf.Sphere(0.04),
+    "capsule": sdf.Capsule(0.02, 0.03),
+    "cylinder": sdf.Cylinder(0.025, 0.05),
+    "ellipsoid": sdf.Ellipsoid((0.06, 0.04, 0.02)),
+}
+
+# (points, expected signed distance) per primitive, by hand.
+KNOWN = {
+    "halfspace": [((0.3, -2.0, 0.05), 0.05), ((1.0, 1.0, -0.2), -0.2), ((5.0, 0.0, 0.0), 0.0)],
+    "box": [
+        ((0, 0, 0), -0.01),
+        ((0.05, 0, 0), 0.02),
+        ((0.03, 0.02, 0.01), 0.0),  # corner
+        ((0.04, 0.03, 0.01), math.sqrt(2) * 0.01),  # beyond an edge
+        ((0.04, 0.03, 0.02), math.sqrt(3) * 0.01),  # beyond a corner
+        ((0.025, 0.0, 0.0), -0.005),
+    ],
+    "sphere": [((0, 0, 0), -0.04), ((0.0, 0.04, 0.0), 0.0), ((0.03, 0.04, 0.0), 0.01)],
+    "capsule": [
+        ((0, 0, 0), -0.02),
+        ((0, 0, 0.05), 0.0),
+        ((0, 0, 0.06), 0.01),
+        ((0.03, 0.0, 0.01), 0.01),
+        ((0.03, 0.04, 0.07), math.sqrt(0.03**2 + 0.04**2 + 0.04**2) - 0.02),
+    ],
+    "cylinder": [
+        ((0, 0, 0), -0.025),
+        ((0, 0, 0.06), 0.01),
+        ((0.03, 0.0, 0.01), 0.005),
+        ((0.03, 0.04, 0.0), 0.025),
+        ((0.0, 0.035, 0.06), math.sqrt(0.01**2 + 0.01**2)),
+        ((0.0, 0.02, 0.049), -0.001),
+        ((0.025, 0.0, 0.05), 0.0),  # rim
+    ],
+    "ellipsoid": [
+        ((0, 0, 0), -0.02),
+        ((0.06, 0, 0), 0.0),
+        ((0.07, 0, 0), 0.01),
+        ((0, 0.05, 0), 0.01),
+        ((0, 0, 0.015), -0.005),
+        ((0, 0, -0.03), 0.01),
+    ],
+}
+
+# Points where naive implementations produce NaN gradients.
+SPECIAL = {
+    "halfspace": [(0, 0, 0)],
+    "box": [(0, 0, 0), (0.03, 0, 0), (0.03, 0.02, 0), (0.03, 0.02, 0.01), (0.04, 0.03, 0.01), (0, 0, 0.01)],
+    "sphere": [(0, 0, 0), (0.04, 0, 0)],
+    "capsule": [(0, 0, 0), (0, 0, 0.03), (0, 0, 0.05), (0, 0, 0.1), (0.02, 0, 0.03), (0.02, 0, 0)],
+    "cylinder": [(0, 0, 0), (0, 0, 0.05), (0.025, 0, 0.05), (0.025, 0, 0), (0, 0, 0.07), (0.03, 0, 0.06)],
+    "ellipsoid": [(0, 0, 0), (0.06, 0, 0), (0, 0, 0.02), (0.03, 0.01, 0), (0, 0.03, 0), (0.05, 0, 0), (0.1, 0, 0)],
+}
+
+
+@pytest.mark.parametrize("name", list(PRIMITIVES))
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_known_values(name, dtype):
+    points = torch.tensor([p for p, _ in KNOWN[name]], dtype=dtype)
+    expected = torch.tensor([d for _, d in KNOWN[name]], dtype=dtype)
+    phi = PRIMITIVES[name](points)
+    assert phi.dtype == dtype and phi.shape == expected.shape
+    assert torch.allclose(phi, expected, atol=1e-12 if dtype == F64 else 1e-7, rtol=0)
+
+
+@pytest.mark.parametrize("name", list(PRIMITIVES))
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gradients_finite_at_special_points(name, dtype):
+    points = torch.tensor(SPECIAL[name], dtype=dtype, requires_grad=True)
+    phi = PRIMITIVES[name](points)
+    (grad,) = torch.autograd.grad(phi.sum(), points)
+    assert torch.isfinite(phi).all() and torch.isfinite(grad).all()
+    assert (grad.norm(dim=-1) <= 1 + 1e-5).all()
+
+
+def sample_points(n: int, scale: float, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return scale * torch.randn(n, 3, generator=g, dtype=F64)
+
+
+@pytest.mark.parametrize("name", list(PRIMITIVES))
+def test_exact_distance_property(name):
+    """|grad phi| = 1 and x - phi grad phi lands on the surface (closest point) at generic points."""
+    f = PRIMITIVES[name]
+    x = sample_points(2000, 0.04, 1).requires_grad_()
+    phi = f(x)
+    (grad,) = torch.autograd.grad(phi.sum(), x)
+    assert torch.allclose(grad.norm(dim=-1), torch.ones(len(x), dtype=F64), atol=1e-9)
+    foot = (x - phi.unsqueeze(-1) * grad).detach()
+    assert f(foot).abs().max() < 1e-12
+    # the foot is a closest point: no surface point is nearer than |phi| (checked against random feet)
+    others = foot[torch.randperm(len(foot), generator=torch.Generator().manual_seed(2))]
+    assert (torch.cdist(x.detach(), others).min(dim=1).values >= phi.detach().abs() - 1e-12).all()
+
+
+@pytest.mark.parametrize("name", [n for n in PRIMITIVES if n != "halfspace"])
+def test_gradcheck(name):
+    x = sample_points(40, 0.03, 3).requires_grad_()
+    assert torch.autograd.gradcheck(PRIMITIVES[name], (x,))
+
+
+@pytest.mark.parametrize("name", list(PRIMITIVES))
+def test_batched_shapes_and_float32_agreement(name):
+    f = PRIMITIVES[name]
+    x = sample_points(60, 0.04, 4).reshape(2, 5, 6, 3)
+    phi64 = f(x)
+    assert phi64.shape == (2, 5, 6)
+    phi32 = f(x.float())
+    assert phi32.dtype == torch.float32
+    assert torch.allclose(phi32.double(), phi64, atol=2e-7, rtol=0)
+
+
+@pytest.mark.parametrize("name", [n for n in PRIMITIVES if n != "halfspace"])
+def test_bounding_radius_and_lipschitz(name):
+    f = PRIMITIVES[name]
+    x = sample_points(4000, 0.05, 5)
+    inside = x[f(x) <= 0]
+    assert len(inside) > 100
+    assert inside.norm(dim=-1).max() <= f.bounding_radius
+    y = x + 0.01 * sample_points(4000, 1.0, 6)
+    assert ((f(x) - f(y)).abs() <= f.lipschitz * (x - y).norm(dim=-1) + 1e-12).all()
+    assert sdf.HalfSpace().bounding_radius == math.inf
+
+
+def test_box_and_sphere_relation():
+    cube = sdf.Box((0.02, 0.02, 0.02))
+    x = sample_points(1000, 0.05, 7)
+    # a cube contains its inscribed ball and is contained in its circumscribed ball
+    assert (cube(x) <= sdf.Sphere(0.02)(x) + 1e-15).all()
+    assert (cube(x) >= sdf.Sphere(0.02 * math.sqrt(3))(x) - 1e-15).all()
+
+
+def test_capsule_and_cylinder_relation():
+    x = sample_points(1000, 0.05, 8)
+    capsule, cylinder = sdf.Capsule(0.02, 0.03), sdf.Cylinder(0.02, 0.03)
+    assert (capsule(x) <= cylinder(x) + 1e-15).all()
+    far = x[x[:, 2].abs() < 0.03]
+    assert torch.allclose(capsule(far)[far[:, :2].norm(dim=-1) > 0.02], cylinder(far)[far[:, :2].norm(dim=-1) > 0.02])
+
+
+# ----------------------------------------------------------------------------------------------------
+# Ellipsoid: bound versus a numerical reference
+# ----------------------------------------------------------------------------------------------------
+
+
+def reference_distance(x: np.ndarray, radii: np.ndarray) -> float:
+    """Signed distance by dense sampling of the surface, refined by least squares on its parametrization."""
+    u, v = np.meshgrid(np.linspace(-np.pi / 2, np.pi / 2, 121), np.linspace(-np.pi, np.pi, 241), indexing="ij")
+
+    def surface(angles):
+        a, b = angles
+        return radii * np.array([np.cos(a) * np.cos(b), np.cos(a) * np.sin(b), np.sin(a)])
+
+    grid = radii * np.stack((np.cos(u) * np.cos(v), np.cos(u) * np.sin(v), np.sin(u)), -1)
+    d2 = ((grid - x) ** 2).sum(-1)
+    best = np.inf
+    for k in np.argsort(d2, axis=None)[:4]:  # the few nearest samples seed the refinement
+        i, j = np.unravel_index(k, d2.shape)
+        fit = least_squares(lambda ang: surface(ang) - x, (u[i, j], v[i, j]), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        best = min(best, np.linalg.norm(fit.fun))
+    sign = 1.0 if ((x / radii) ** 2).sum() > 1 else -1.0
+    return sign * best
+
+
+RADII = [(0.06, 0.04, 0.02), (0.12, 0.06, 0.02), (0.02, 0.03, 0.12), (0.05, 0.05, 0.05), (0.02, 0.02, 0.12)]
+
+
+@pytest.mark.parametrize("radii", RADII)
+def test_ellipsoid_error_bound(radii):
+    """Stated bounds: |phi - d| <= 1e-9 m (float64) and <= 1e-7 m (float32, |d| <= 1 cm)."""
+    r = np.array(radii)
+    rng = np.random.default_rng(sum(int(1000 * v) for v in radii))
+    n = 30
+    directions = rng.normal(size=(n, 3))
+    on_surface = r * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    normals = on_surface / r**2
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    band = on_surface + rng.uniform(-0.01, 0.01, size=(n, 1)) * normals
+    deep = rng.uniform(-1, 1, size=(n, 3)) * r / math.sqrt(3)  # inside, down to the centre and medial surface
+    medial = deep * np.array([1.0, 1.0, 1.0]) * (r != r.min())  # exactly on the smallest-axis plane
+    points = np.concatenate((band, deep, medial))
+    d = np.array([reference_distance(x, r) for x in points])
+
+    f = sdf.Ellipsoid(radii)
+    phi64 = f(torch.tensor(points)).numpy()
+    assert np.abs(phi64 - d).max() <= 1e-9
+    assert (np.sign(phi64) == np.sign(d)).all()
+    phi32 = f(torch.tensor(band, dtype=torch.float32)).double().numpy()
+    assert np.abs(phi32 - d[:n]).max() <= 1e-7
+
+
+def test_ellipsoid_zero_level_set_and_sign_exact():
+    f = sdf.Ellipsoid((0.07, 0.03, 0.02))
+    directions = sample_points(5000, 1.0, 9)
+    on = directions / (directions / torch.tensor([0.07, 0.03, 0.02], dtype=F64)).norm(dim=-1, keepdim=True)
+    assert f(on).abs().max() < 1e-12
+    assert (f(on * (1 + 1e-9)) > 0).all() and (f(on * (1 - 1e-9)) < 0).all()
+    x = sample_points(5000, 0.05, 10)
+    g = (x / torch.tensor([0.07, 0.03, 0.02], dtype=F64)).norm(dim=-1)
+    assert torch.equal(f(x) < 0, g < 1)
+
+
+def test_ellipsoid_is_sphere_for_equal_radii():
+    x = sample_points(1000, 0.05, 11)
+    assert torch.allclose(sdf.Ellipsoid((0.03, 0.03, 0.03))(x), sdf.Sphere(0.03)(x), atol=1e-15)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Factory
+# ----------------------------------------------------------------------------------------------------
+
+
+def test_from_spec():
+    assert sdf.from_spec("box", half_extents=[0.1, 0.2, 0.3]) == sdf.Box((0.1, 0.2, 0.3))
+    assert sdf.from_spec("Sphere", radius=0.1) == sdf.Sphere(0.1)
+    assert sdf.from_spec("halfspace") == sdf.HalfSpace()
+    assert isinstance(sdf.from_spec("ellipsoid", radii=(0.06, 0.04, 0.02)), sdf.Ellipsoid)
+    assert isinstance(sdf.from_spec("capsule", radius=0.01, half_length=0.02), sdf.Capsule)
+    assert isinstance(sdf.from_spec("cylinder", radius=0.01, half_length=0.02), sdf.Cylinder)
+    with pytest.raises(ValueError, match="known kinds: halfspace, box, sphere, ellipsoid, capsule, cylinder"):
+        sdf.from_spec("torus", radius=1.0)
+    with pytest.raises(ValueError, match="bad parameters"):
+        sdf.from_spec("sphere", diameter=1.0)
+    with pytest.raises(ValueError, match="positive"):
+        sdf.from_spec("sphere", radius=-1.0)
+    with pytest.raises(ValueError, match="positive"):
+        sdf.Box((0.1, 0.0, 0.1))
