@@ -141,8 +141,9 @@ class Ellipsoid:
     function ``G(t) = Q(t)^(-1/2) - 1``, ``Q(t) = sum_i (r_i x_i / (t + r_i^2))^2`` (linear for a sphere),
     and the signed distance is ``t |x / (t + r^2)|``. The root is bracketed by
     ``max(max_i(r_i |x_i| - r_i^2), |r x| - max(r)^2) <= t <= |r x| - min(r)^2`` and by the sign of
-    ``g - 1``, ``g = |x / r|``. ``SOLVER_STEPS`` safeguarded Halley steps (bisection when a step leaves
-    the bracket) run without gradient; one differentiable Newton step then gives the exact first
+    ``g - 1``, ``g = |x / r|``. From the first-order estimate ``t = g^2 (g - 1) / |x / r^2|^2``,
+    ``SOLVER_STEPS`` safeguarded Halley steps (bisection when a step leaves the bracket, none once
+    ``|G| <= 4 eps``) run without gradient; one differentiable Newton step then gives the exact first
     derivative (implicit function theorem). Deep inside (``t < -min(r)^2 / 2``, depth >= min(r)^2 /
     (2 max(r))), where the root nears the pole ``-min(r)^2`` (the centre, the medial surface), the
     closest point's smallest-radius coordinates are instead taken from the surface equation, which is
@@ -194,13 +195,16 @@ class Ellipsoid:
             hi = norm_c - r2_min
             lo = torch.where(g >= 1, lo.clamp_min(0.0), lo)
             hi = torch.where(g <= 1, hi.clamp_max(0.0), hi)
-            t = lo
+            # Start: the first-order estimate g (g - 1) / |x / r^2| of the distance, converted to t.
+            k1_sq = ((points / r2) ** 2).sum(-1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
+            t = torch.minimum(torch.maximum(g * g * (g - 1) / k1_sq, lo), hi)
             for _ in range(self.SOLVER_STEPS):
                 G, G1, G2 = derivatives(t, r2_min * eps)
                 lo = torch.where(G <= 0, t, lo)
                 hi = torch.where(G >= 0, t, hi)
                 step = t - 2 * G * G1 / (2 * G1 * G1 - G * G2)
-                t = torch.where((step >= lo) & (step <= hi), step, (lo + hi) / 2)
+                step = torch.where((step >= lo) & (step <= hi), step, (lo + hi) / 2)
+                t = torch.where(G.abs() <= 4 * eps, t, step)  # converged: rounding must not restart it
             pole = t < -0.5 * r2_min
             t_reg = torch.where(pole, torch.zeros_like(t), t)
 

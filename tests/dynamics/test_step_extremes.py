@@ -1,0 +1,73 @@
+"""Property tests of the whole step at the extremes: E, K in 1e2..1e8 Pa/m, mu 0..5, h 1e-5..1e-1 s,
+beta 1..1e6 /m, float32 and float64. Either the compiler refuses with the stability bound, or the rollout has
+finite forces and gradients, forces inside the cone and unit quaternions."""
+
+import msgspec
+import pytest
+import torch
+from hypothesis import event, given, settings
+from hypothesis import strategies as st
+
+from hydrosoft.contact.cone import split_normal
+from hydrosoft.dynamics import step
+from hydrosoft.geometry import se3
+from hydrosoft.scene import SceneError, compile_scene
+from hydrosoft.tasks.scenes import task_scene
+
+log_uniform = lambda lo, hi: st.floats(lo, hi).map(lambda e: 10.0**e)  # noqa: E731
+
+
+def small_scene(task, contact, E, K, mu, dt, beta):
+    scene = task_scene(task)
+    bodies = [msgspec.structs.replace(b, E=E, K=K, mu=mu) if b.actuated else b for b in scene.bodies]
+    return msgspec.structs.replace(
+        scene, contact=contact, contact_params={"beta": beta} if contact == "snh" else {}, dt=dt, bodies=bodies,
+        object=msgspec.structs.replace(scene.object, spacing=0.0125), max_substeps=8,
+    )
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    task=st.sampled_from(["pushing", "rolling", "in_hand"]),
+    contact=st.sampled_from(["nh", "snh", "pf", "pff"]),
+    E=log_uniform(2, 8), K=log_uniform(2, 8), mu=st.sampled_from([0.0, 1e-3, 0.5, 5.0]),
+    dt=log_uniform(-5, -1), beta=log_uniform(0, 6), dtype=st.sampled_from([torch.float32, torch.float64]),
+    push=st.sampled_from([0.0, 1e-9, 1e-3, 5e-3]),
+)
+def test_step_is_finite_or_refused_with_the_bound(task, contact, E, K, mu, dt, beta, dtype, push):
+    try:
+        model, state, _ = compile_scene(small_scene(task, contact, E, K, mu, dt, beta), dtype=dtype)
+    except SceneError as err:
+        assert "lambda_max" in str(err)
+        event("refused: unstable")
+        return
+    event("rolled out")
+    u = torch.zeros(1, model.n_bodies, 6, dtype=dtype)
+    u[0, 0, 0], u[0, 0, 5] = push, 10 * push
+    u.requires_grad_(True)
+    for _ in range(3):
+        state = step(model, state, u)
+    assert torch.isfinite(state.forces).all() and torch.isfinite(state.object_pose).all()
+    q_norm = state.object_pose[:, 3:].norm(dim=-1)
+    assert torch.allclose(q_norm, torch.ones_like(q_norm), atol=1e-5 if dtype == torch.float32 else 1e-12)
+    normal = -se3.rotate_vectors(state.object_pose, model.normals).unsqueeze(1)
+    f_n, f_t = split_normal(state.forces.detach().double(), normal.double())
+    assert (f_n >= -1e-6 * f_n.abs().max().clamp_min(1e-30)).all()
+    limit = model.material.mu.double().view(1, -1, 1) * f_n.clamp_min(0)
+    assert (f_t.norm(dim=-1) <= limit * (1 + 1e-4) + 1e-6 * f_n.abs().max().clamp_min(1e-30)).all()
+    (g,) = torch.autograd.grad(state.object_pose.sum() + state.forces.sum(), u)
+    assert torch.isfinite(g).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_grazing_start_exactly_on_the_surface(dtype):
+    """Object resting exactly on the table plane (phi == 0 for the bottom face) and sliding sideways."""
+    scene = task_scene("pushing")
+    scene = msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, pose=[0, 0, 0.025, 1, 0, 0, 0]))
+    model, state, _ = compile_scene(scene, dtype=dtype)
+    u = torch.zeros(1, model.n_bodies, 6, dtype=dtype, requires_grad=True)
+    moved = u + torch.tensor([0.002, 0, 0, 0, 0, 0], dtype=dtype)
+    for _ in range(3):
+        state = step(model, state, moved)
+    (g,) = torch.autograd.grad(state.forces.sum() + state.object_pose.sum(), u)
+    assert torch.isfinite(state.forces).all() and torch.isfinite(g).all()
