@@ -38,11 +38,16 @@ class State(NamedTuple):
     object_pose: ``(B, 7)`` pose of the rigid object (origin at its centre of mass).
     body_poses: ``(B, M, 7)`` poses of the compliant bodies.
     forces: ``(B, M, N, 3)`` force each body applies to each object surface point, N.
+    phi: optional cache ``(B, M, N)`` of the signed distance (m) of each surface point to each body at these
+        poses. ``step`` and ``advance_forces`` fill it, and the next step uses it as ``phi_prev`` instead of
+        evaluating the SDFs again; ``None`` means "compute it". It must describe this state's poses: build a new
+        ``State`` without it (or ``_replace(phi=None)``) after editing the poses.
     """
 
     object_pose: Tensor
     body_poses: Tensor
     forces: Tensor
+    phi: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -157,18 +162,31 @@ def substeps_for(model: Model, max_substeps: int, active: Tensor | None = None) 
     return n
 
 
+def _frame(pose: Tensor) -> tuple[Tensor, Tensor]:
+    """Rotation matrices ``(..., 3, 3)`` and translations ``(..., 3, 1)`` of poses ``(..., 7)``."""
+    return se3.quat_to_matrix(pose[..., 3:]), pose[..., :3].unsqueeze(-1)
+
+
+def _world_points(model: Model, object_pose: Tensor) -> Tensor:
+    """World-frame surface points ``(B, N, 3)`` (m) of the object at ``object_pose (B, 7)``.
+
+    Computed as one ``(B, 3, 3) @ (3, N)`` product, so the result is a transposed view of a ``(B, 3, N)``
+    tensor: each coordinate is contiguous over the points (see ``contact_geometry``).
+    """
+    R, t = _frame(object_pose)
+    return (R @ model.points.mT + t).mT
+
+
 def object_wrench(model: Model, state: State) -> Tensor:
     """Net wrench ``(B, 6)`` (N, N m) of the contact forces and gravity on the object, about its centre of mass."""
-    points = se3.transform_points(state.object_pose, model.points)
-    w = wrench(state.forces.sum(1), points, state.object_pose[:, :3])
+    w = wrench(state.forces.sum(1), _world_points(model, state.object_pose), state.object_pose[:, :3])
     gravity = torch.cat([model.mass * model.gravity, torch.zeros_like(model.gravity)])
     return w + gravity
 
 
 def body_wrenches(model: Model, state: State) -> Tensor:
     """Wrench ``(B, M, 6)`` the object applies to each compliant body, about each body's origin (eq. 11)."""
-    points = se3.transform_points(state.object_pose, model.points).unsqueeze(1)
-    return wrench(-state.forces, points, state.body_poses[..., :3])
+    return wrench(-state.forces, _world_points(model, state.object_pose).unsqueeze(1), state.body_poses[..., :3])
 
 
 def _object_motion(model: Model, state: State, w: Tensor, dt_sub: float) -> Tensor:
@@ -192,18 +210,40 @@ def signed_distances(model: Model, body_points: Tensor) -> Tensor:
     return torch.stack([sdf(body_points[:, m]) for m, sdf in enumerate(model.bodies)], dim=1)
 
 
+def _relative_frame(object_pose: Tensor, body_poses: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The object frame seen from each body: ``x_body = A p_object + c``.
+
+    ``object_pose (B, 7)``, ``body_poses (B, M, 7)`` -> ``A = R_b^T R_o (B, M, 3, 3)``,
+    ``c = R_b^T (t_o - t_b) (B, M, 3, 1)`` (m), and the body rotations ``R_b (B, M, 3, 3)``.
+    """
+    R_o, t_o = _frame(object_pose)
+    R_b, t_b = _frame(body_poses)
+    R_bT = R_b.mT
+    return R_bT @ R_o.unsqueeze(1), R_bT @ (t_o.unsqueeze(1) - t_b), R_b
+
+
 def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses: Tensor) -> ContactStep:
-    """Geometry of the step from ``prev`` to the poses ``object_pose (B, 7)``, ``body_poses (B, M, 7)``."""
-    p0 = se3.transform_points(prev.object_pose, model.points).unsqueeze(1)
-    p1 = se3.transform_points(object_pose, model.points).unsqueeze(1)
-    x0 = se3.transform_points(se3.inverse(prev.body_poses), p0)
-    x1 = se3.transform_points(se3.inverse(body_poses), p1)
-    normal = -se3.rotate_vectors(object_pose, model.normals).unsqueeze(1)
+    """Geometry of the step from ``prev`` to the poses ``object_pose (B, 7)``, ``body_poses (B, M, 7)``.
+
+    Every per-point quantity is an affine map of the object-frame points ``P (3, N)``, so each is one batched
+    ``(3, 3) @ (3, N)`` product of per-pose matrices: body-frame points ``A P + c``, the displacement
+    ``r = R_b1 (x_0 - x_1) = R_b1 (A_0 - A_1) P + R_b1 (c_0 - c_1)`` and the normals ``-R_o1 n``. The results are
+    returned as transposed views ``(..., N, 3)`` of ``(..., 3, N)`` tensors, a layout in which the reductions over
+    the coordinate axis and the SDFs' element-wise work run over contiguous memory (several times faster on CPU,
+    and vectorised over points when compiled). ``phi_prev`` is taken from ``prev.phi`` when it is cached.
+    """
+    P = model.points.mT
+    A1, c1, R_b1 = _relative_frame(object_pose, body_poses)
+    A0, c0, _ = _relative_frame(prev.object_pose, prev.body_poses)
+    phi_prev = prev.phi
+    if phi_prev is None:
+        phi_prev = signed_distances(model, (A0 @ P + c0).mT)
+    R_o1, _ = _frame(object_pose)
     return ContactStep(
-        phi_prev=signed_distances(model, x0),
-        phi_next=signed_distances(model, x1),
-        displacement=se3.rotate_vectors(body_poses, x0 - x1),
-        normal=normal,
+        phi_prev=phi_prev,
+        phi_next=signed_distances(model, (A1 @ P + c1).mT),
+        displacement=((R_b1 @ (A0 - A1)) @ P + R_b1 @ (c0 - c1)).mT,
+        normal=(R_o1 @ -model.normals.mT).mT.unsqueeze(1),
         area=model.areas,
     )
 
@@ -212,10 +252,11 @@ def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: 
     """Move object and bodies kinematically to the given poses and update the forces (step 4 of IV-D).
 
     ``object_pose (B, 7)`` and ``body_poses (B, M, 7)``; used by the step and to replay prescribed motions
-    (force benchmarks, tactile estimation).
+    (force benchmarks, tactile estimation). The returned state caches its signed distances (``State.phi``).
     """
     geometry = contact_geometry(model, state, object_pose, body_poses)
-    return State(object_pose, body_poses, model.contact.step(geometry, state.forces, model.material))
+    forces = model.contact.step(geometry, state.forces, model.material)
+    return State(object_pose, body_poses, forces, geometry.phi_next)
 
 
 def _substep(model: Model, state: State, u: Tensor, dt_sub: float) -> State:

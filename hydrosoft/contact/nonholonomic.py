@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from hydrosoft.contact.base import ContactStep, Material
-from hydrosoft.contact.cone import project_to_cone, split_normal
+from hydrosoft.contact.cone import project_to_cone
 
 
 def inside_fraction(phi_prev: Tensor, phi_next: Tensor) -> Tensor:
@@ -38,16 +38,19 @@ def inside_fraction(phi_prev: Tensor, phi_next: Tensor) -> Tensor:
 
 
 def _accumulate(forces: Tensor, d: Tensor, geometry: ContactStep, material: Material) -> tuple[Tensor, Tensor]:
-    """Eq. 16-19: add ``E A d_n`` and ``K A d_t`` to the split previous force and project onto the cone."""
+    """Eq. 16-19: add ``E A d_n`` and ``K A d_t`` to the split previous force and project onto the cone.
+
+    Written with one tangential split: ``g = F + K A d`` has normal part ``g_n = f_n + K A d_n``, so the new
+    normal force is ``g_n + (E - K) A d_n`` and the new tangential force ``g - g_n n``.
+    """
     normal = geometry.normal
-    d_n, d_t = split_normal(d, normal)
-    f_n, f_t = split_normal(forces, normal)
-    E = material.E.view(1, -1, 1)
-    K = material.K.view(1, -1, 1)
     area = geometry.area
-    f_n = f_n + E * area * d_n
-    f_t = f_t + (K * area).unsqueeze(-1) * d_t
-    return project_to_cone(f_n, f_t, material.mu.view(1, -1, 1))
+    EA = material.E.view(1, -1, 1) * area
+    KA = material.K.view(1, -1, 1) * area
+    g = forces + KA.unsqueeze(-1) * d
+    g_n = (g * normal).sum(-1)
+    f_n = g_n + (EA - KA) * (d * normal).sum(-1)
+    return project_to_cone(f_n, g - g_n.unsqueeze(-1) * normal, material.mu.view(1, -1, 1))
 
 
 @dataclass(frozen=True)

@@ -157,10 +157,15 @@ def _prism(polygon: list[tuple[float, float]], length: float, spacing: float) ->
         edge = q - p
         normal = torch.stack((edge[2], edge.new_zeros(()), -edge[0])) / edge.norm()
         parts.append(_rectangle(p - half * y, edge, length * y, normal, spacing))
+    edges = vertices.roll(-1, 0) - vertices
+    rectangle = len(vertices) == 4 and bool(((edges * edges.roll(-1, 0)).sum(-1).abs() < 1e-15).all())
     for side in (-1.0, 1.0):
-        for k in range(1, len(vertices) - 1):
+        shift = side * half * y
+        if rectangle:  # a grid, as on the sides
+            parts.append(_rectangle(vertices[0] + shift, edges[0], -edges[3], side * y, spacing))
+            continue
+        for k in range(1, len(vertices) - 1):  # a fan of triangles, each split into congruent ones
             a, b, c = vertices[0], vertices[k], vertices[k + 1]
-            shift = side * half * y
             parts.append(_triangle(a + shift, b + shift, c + shift, side * y, spacing))
     return _assemble(parts, area * length, unit_inertia)
 

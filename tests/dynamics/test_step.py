@@ -170,3 +170,30 @@ def test_compile_report_names_what_was_left_out():
     _, _, report = compile_scene(task_scene("in_hand"))
     assert "table" in report.bodies_dropped
     assert "table" in report.summary()
+
+
+def test_float32_dynamics_tracks_float64_over_press_shear_release():
+    """200 quasi-dynamic steps of the pushing scene: press 2 mm, shear 30 mm, release.
+    Stated tolerance: object position within 0.1 mm, net bubble force within 1% of its peak."""
+    traces = {}
+    for dtype in (torch.float64, torch.float32):
+        model, state, _ = compile_scene(task_scene("pushing"), dtype=dtype)
+        bubble = model.body_names.index("bubble")
+        positions, forces = [], []
+        for k in range(200):
+            u = torch.zeros(1, model.n_bodies, 6, dtype=dtype)
+            if k < 20:
+                u[0, bubble, 2] = -1e-4
+            elif k < 170:
+                u[0, bubble, 0] = 2e-4
+            else:
+                u[0, bubble, 2] = 5e-4
+            state = step(model, state, u)
+            positions.append(state.object_pose[0, :3].double())
+            forces.append(state.forces[0, bubble].sum(0).double())
+        traces[dtype] = torch.stack(positions), torch.stack(forces)
+    (p64, f64), (p32, f32) = traces[torch.float64], traces[torch.float32]
+    assert (p64[-1, :2] - p64[0, :2]).norm() > 0.005  # the object really moved
+    assert (f64[-1]).norm() < 1e-9  # released
+    assert (p32 - p64).abs().max() < 1e-4
+    assert (f32 - f64).abs().max() < 0.01 * f64.norm(dim=-1).max()

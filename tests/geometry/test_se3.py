@@ -169,6 +169,24 @@ def test_gradcheck_near_zero(scale):
     assert torch.autograd.gradcheck(se3.so3_log, (pose[3:].detach().requires_grad_(),))
 
 
+@pytest.mark.parametrize("angle", [1e-9, 1e-6, 1e-3, 9e-3, 0.0105, 0.0115, 0.05, 1.0, 3.0])
+def test_exp_log_against_high_precision(angle):
+    """Series and closed forms against 30-digit matrix exponentials (mpmath), either side of the threshold."""
+    mpmath = pytest.importorskip("mpmath")
+    mpmath.mp.dps = 30
+    g = torch.Generator().manual_seed(int(angle * 1e9) % 997)
+    direction = torch.randn(6, generator=g, dtype=F64)
+    xi = torch.cat((direction[:3], angle * direction[3:] / direction[3:].norm()))
+    v, w = [mpmath.mpf(float(c)) for c in xi[:3]], [mpmath.mpf(float(c)) for c in xi[3:]]
+    twist = mpmath.matrix([[0, -w[2], w[1], v[0]], [w[2], 0, -w[0], v[1]], [-w[1], w[0], 0, v[2]], [0, 0, 0, 0]])
+    T = torch.tensor(mpmath.expm(twist).tolist(), dtype=F64)
+    pose = se3.se3_exp(xi)
+    assert torch.allclose(pose[:3], T[:3, 3], atol=1e-15, rtol=0)
+    assert torch.allclose(se3.quat_to_matrix(pose[3:]), T[:3, :3], atol=1e-15, rtol=0)
+    exact_pose = torch.cat((T[:3, 3], se3.matrix_to_quat(T[:3, :3])))
+    assert torch.allclose(se3.se3_log(exact_pose), xi, atol=1e-15, rtol=0)
+
+
 def test_exact_derivatives_at_zero():
     omega = torch.zeros(3, dtype=F64, requires_grad=True)
     jac = torch.autograd.functional.jacobian(se3.so3_exp, omega)

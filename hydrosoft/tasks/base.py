@@ -1,0 +1,155 @@
+"""What a manipulation task is: a scene, the actuated body DOFs and their per-step bounds, a seeded goal sampler,
+the MPC costs for a goal and a success criterion (paper V-D).
+
+Errors are measured in one unit for every task (paper Table III reports mm everywhere): the ADD, the mean
+distance (m) between the object's surface points at a pose and at the goal pose, which covers position and
+orientation at once. The MPC cost uses the same quantity squared (the mean squared point distance), so the
+planner optimizes what the evaluation measures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from hydrosoft.control.costs import hinge_cost, orientation_error, position_error
+from hydrosoft.dynamics import Model, State
+from hydrosoft.geometry import se3
+from hydrosoft.geometry.se3 import safe_norm
+from hydrosoft.scene import Scene
+
+GoalSampler = Callable[[Tensor, torch.Generator], Tensor]
+"""``(initial object pose (7,) float64, generator) -> goal pose (7,) float64``."""
+
+
+def mean_point_distance(points: Tensor, pose: Tensor, goal: Tensor) -> Tensor:
+    """ADD: mean distance (m) between object-frame ``points (N, 3)`` placed at ``pose (..., 7)`` and at ``goal``.
+
+    ``goal`` is ``(7,)`` or broadcasts against ``pose``; returns ``(...)``.
+    """
+    diff = se3.transform_points(pose, points) - se3.transform_points(goal, points)
+    return diff.norm(dim=-1).mean(-1)
+
+
+def mean_squared_point_distance(points: Tensor, pose: Tensor, goal: Tensor) -> Tensor:
+    """Mean squared distance (m^2) between ``points (N, 3)`` at ``pose (B, 7)`` and at ``goal (7,)``: ``(B,)``.
+
+    Smooth everywhere (no square root), the MPC's tracking term.
+    """
+    diff = se3.transform_points(pose, points) - se3.transform_points(goal, points)
+    return diff.square().sum(-1).mean(-1)
+
+
+@dataclass(frozen=True)
+class CostWeights:
+    """Weights of the MPC cost (eq. 21); lengths in m.
+
+    The tracking terms are ``mean squared point distance / scale^2`` (so 1 = ``scale`` of ADD): ``stage`` per
+    step and ``terminal`` at the horizon's end. ``effort`` weighs ``sum((u / bound)^2)`` per step (actions
+    normalized by their per-step bounds). ``drift`` weighs a hinge on how far each actuated body has moved
+    relative to the object since the plan started, beyond ``drift_limit`` m (it keeps the bubble on the
+    object), with a smoothing width of ``drift_width`` m.
+    """
+
+    scale: float = 0.01
+    stage: float = 0.1
+    terminal: float = 1.0
+    effort: float = 1e-3
+    drift: float = 1e4
+    drift_limit: float = 0.015
+    drift_width: float = 0.002
+
+
+@dataclass(frozen=True)
+class Task:
+    """One manipulation task of paper V-D.
+
+    name: task name. scene: its scene (see ``hydrosoft.tasks.scenes``). step_limits: per actuated body name,
+    the largest per-step increment of each of its 6 DOFs ``(dx, dy, dz (m), rx, ry, rz (rad))``: the action
+    bounds are ``-limit <= u <= limit`` (a zero limit fixes that DOF; bodies not listed are not actuated).
+    goal_sampler: the seeded goal distribution (stated in each task module). steps: control steps per episode.
+    success_mm: an episode succeeds when its final ADD is at most this. weights: MPC cost weights.
+    """
+
+    name: str
+    scene: Scene
+    step_limits: dict[str, tuple[float, float, float, float, float, float]]
+    goal_sampler: GoalSampler
+    steps: int
+    success_mm: float = 5.0
+    weights: CostWeights = CostWeights()
+
+    def initial_pose(self) -> Tensor:
+        """The object's initial pose ``(7,)`` (float64) from the scene."""
+        return torch.tensor(self.scene.object.pose, dtype=torch.float64)
+
+    def sample_goal(self, seed: int) -> Tensor:
+        """The goal pose ``(7,)`` (float64) of goal number ``seed``: deterministic per seed."""
+        generator = torch.Generator().manual_seed(seed)
+        return self.goal_sampler(self.initial_pose(), generator)
+
+    def bounds(self, body_names: tuple[str, ...], dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
+        """Per-step action bounds ``(low, high)``, each ``(M, 6)``, for the bodies ``body_names`` in that order."""
+        limits = [self.step_limits.get(name, (0.0,) * 6) for name in body_names]
+        high = torch.tensor(limits, dtype=dtype)
+        return -high, high
+
+    def max_travel(self) -> tuple[float, float]:
+        """Largest object motion per step the actions could cause: ``(m, rad)``.
+
+        The object moves no faster than the bodies drag it: translation up to the largest body translation
+        bound; rotation up to the largest body rotation bound plus that translation over the object's smallest
+        half-extent (rolling). An upper bound, used to tell reachable goals from unreachable ones.
+        """
+        trans = max((math.hypot(*lim[:3]) for lim in self.step_limits.values()), default=0.0)
+        rot = max((math.hypot(*lim[3:]) for lim in self.step_limits.values()), default=0.0)
+        return trans, rot + trans / self.object_radius()
+
+    def object_radius(self) -> float:
+        """The object's smallest half-extent (m), from its shape parameters."""
+        params = self.scene.object.params
+        sizes = [v / 2 for k, v in params.items() if k in ("side", "length", "width", "height")]
+        sizes += [v for k, v in params.items() if k == "radius"]
+        return min(sizes) if sizes else 0.01
+
+    def reachable(self, start: Tensor, goal: Tensor, steps: int) -> bool:
+        """Whether the goal ``(7,)`` is within reach of ``start (7,)`` in ``steps`` steps (``max_travel`` bound)."""
+        trans, rot = self.max_travel()
+        distance = float(position_error(start, goal))
+        angle = float(orientation_error(start, goal))
+        return distance <= steps * trans + 1e-9 and angle <= steps * rot + 1e-9
+
+    def costs(self, model: Model, goal: Tensor) -> tuple[Callable, Callable]:
+        """``(stage_cost(state, u, k) -> (B,), terminal_cost(state) -> (B,))`` for ``goal (7,)`` on ``model``.
+
+        The drift hinge needs the state the plan starts from: it is taken from the first state the stage cost
+        sees at ``k = 0`` (the solver always evaluates ``k = 0`` first in a rollout).
+        """
+        w = self.weights
+        goal = goal.to(model.dtype)
+        points = model.points
+        scale = self.bounds(model.body_names, model.dtype)[1].clamp_min(torch.finfo(model.dtype).eps)
+        actuated = (scale > 10 * torch.finfo(model.dtype).eps).any(-1)
+        start: dict[str, Tensor] = {}
+
+        def offsets(state: State) -> Tensor:
+            return state.body_poses[:, actuated, :3] - state.object_pose[:, None, :3]
+
+        def stage_cost(state: State, u: Tensor, k: int) -> Tensor:
+            if k == 0:
+                start["offset"] = offsets(state).detach()
+            track = mean_squared_point_distance(points, state.object_pose, goal) / w.scale**2
+            effort = ((u / scale) * actuated.view(-1, 1)).square().flatten(1).sum(-1)
+            drift = safe_norm(offsets(state) - start["offset"])
+            return w.stage * track + w.effort * effort + hinge_cost(drift, w.drift_limit, w.drift, width=w.drift_width)
+
+        def terminal_cost(state: State) -> Tensor:
+            track = mean_squared_point_distance(points, state.object_pose, goal) / w.scale**2
+            drift = safe_norm(offsets(state) - start["offset"])
+            return w.terminal * track + hinge_cost(drift, w.drift_limit, w.drift, width=w.drift_width)
+
+        return stage_cost, terminal_cost
