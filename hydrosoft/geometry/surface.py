@@ -83,6 +83,13 @@ class Surface:
         )
 
 
+def _check_positive(**sizes: float) -> None:
+    """ValueError naming the sizes (m) that are not strictly positive."""
+    bad = {name: value for name, value in sizes.items() if not value > 0}
+    if bad:
+        raise ValueError(f"sizes must be positive, got {bad}")
+
+
 def _cells(n: float, spacing: float) -> int:
     """Number of cells of side <= spacing along a length n (m)."""
     if not spacing > 0:
@@ -134,8 +141,6 @@ def _prism(polygon: list[tuple[float, float]], length: float, spacing: float) ->
     x1, z1 = xz.roll(-1, 0).unbind(-1)
     cross = x0 * z1 - x1 * z0
     area = 0.5 * float(cross.sum())
-    if area <= 0:
-        raise ValueError("the prism's cross-section must be counter-clockwise in the x-z plane")
     cx = float(((x0 + x1) * cross).sum()) / (6 * area)
     cz = float(((z0 + z1) * cross).sum()) / (6 * area)
     xz = xz - xz.new_tensor([cx, cz])
@@ -151,13 +156,11 @@ def _prism(polygon: list[tuple[float, float]], length: float, spacing: float) ->
     half = length / 2
     vertices = torch.stack((xz[:, 0], torch.zeros_like(xz[:, 0]), xz[:, 1]), dim=-1)
     y = torch.tensor([0.0, 1.0, 0.0], dtype=_F64)
-    parts = []
-    for k in range(len(vertices)):
-        p, q = vertices[k], vertices[(k + 1) % len(vertices)]
-        edge = q - p
-        normal = torch.stack((edge[2], edge.new_zeros(()), -edge[0])) / edge.norm()
-        parts.append(_rectangle(p - half * y, edge, length * y, normal, spacing))
     edges = vertices.roll(-1, 0) - vertices
+    parts = []
+    for corner, edge in zip(vertices, edges):  # side faces, outward normal = edge turned clockwise in x-z
+        normal = torch.stack((edge[2], edge.new_zeros(()), -edge[0])) / edge.norm()
+        parts.append(_rectangle(corner - half * y, edge, length * y, normal, spacing))
     rectangle = len(vertices) == 4 and bool(((edges * edges.roll(-1, 0)).sum(-1).abs() < 1e-15).all())
     for side in (-1.0, 1.0):
         shift = side * half * y
@@ -173,6 +176,7 @@ def _prism(polygon: list[tuple[float, float]], length: float, spacing: float) ->
 def box(size: tuple[float, float, float] = (0.05, 0.05, 0.05), spacing: float = 0.005) -> Surface:
     """Box of edge lengths ``size = (x, y, z)`` (m), centred, axis-aligned."""
     sx, sy, sz = (float(s) for s in size)
+    _check_positive(x=sx, y=sy, z=sz)
     return _prism([(-sx / 2, -sz / 2), (sx / 2, -sz / 2), (sx / 2, sz / 2), (-sx / 2, sz / 2)], sy, spacing)
 
 
@@ -190,6 +194,7 @@ def cube(side: float = 0.05, spacing: float = 0.005) -> Surface:
 
 def triangle_prism(side: float = 0.05, length: float = 0.05, spacing: float = 0.005) -> Surface:
     """Prism along y (``length`` m) with an equilateral cross-section of edge ``side`` (m), one face at -z."""
+    _check_positive(side=side, length=length)
     height = side * math.sqrt(3) / 2
     return _prism([(-side / 2, 0.0), (side / 2, 0.0), (0.0, height)], length, spacing)
 
@@ -205,6 +210,7 @@ def trapezoid_prism(
 
     ``bottom`` and ``top`` are the widths (along x) of the two parallel faces, ``height`` their distance (m).
     """
+    _check_positive(bottom=bottom, top=top, height=height, length=length)
     return _prism(
         [(-bottom / 2, 0.0), (bottom / 2, 0.0), (top / 2, height), (-top / 2, height)], length, spacing
     )
@@ -216,6 +222,7 @@ def cylinder(radius: float = 0.025, length: float = 0.10, spacing: float = 0.005
     The side is split into arc cells ``radius dtheta dz``; each cap into rings of annulus sectors
     ``dtheta (r1^2 - r0^2) / 2`` (the innermost ring into disc sectors), points at the sector centroids.
     """
+    _check_positive(radius=radius, length=length)
     n_theta, n_z = _cells(2 * math.pi * radius, spacing), _cells(length, spacing)
     theta, z = torch.meshgrid(2 * math.pi * _centres(n_theta), length * (_centres(n_z) - 0.5), indexing="ij")
     radial = torch.stack((theta.cos(), theta.sin(), torch.zeros_like(theta)), dim=-1).reshape(-1, 3)

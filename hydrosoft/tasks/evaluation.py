@@ -14,10 +14,11 @@ sees measurements.
   the planner's points by object-frame nearest neighbour -> ``forces_from_deformation`` (planner areas,
   materials); the first action is applied to the plant.
 
-Episode status: ``reached`` (final ADD <= the task's ``success_mm``), ``not_reached``, ``unreachable`` (the
-goal lies beyond what the action bounds could achieve in the episode, ``Task.reachable``), ``no_finite_plan``
-(a solve had no sample with a finite cost; the rest action was applied) or ``diverged`` (the plant's state
-became non-finite; the episode stops at the last finite state). Errors are always finite.
+Episode status, the first that applies: ``diverged`` (the plant's state became non-finite; the episode stops at
+the last finite state), ``no_finite_plan`` (a solve had no sample with a finite cost; the rest action was
+applied), ``unreachable`` (the goal lies beyond what the action bounds could achieve in the episode's steps,
+``Task.reachable``), ``reached`` (final ADD <= the task's ``success_mm``), ``not_reached``. Errors are always
+finite.
 """
 
 from __future__ import annotations
@@ -292,16 +293,14 @@ def run_episode(
     add, pos, ang = _errors(setup, plant.state.object_pose, goal)
     success = add <= task.success_mm
     start = plant.initial.object_pose[0]
-    if not task.reachable(start, goal, steps):
-        status = "unreachable"
-    elif diverged:
+    if diverged:
         status = "diverged"
-    elif success:
-        status = "reached"
     elif no_finite:
         status = "no_finite_plan"
+    elif not task.reachable(start, goal, steps):
+        status = "unreachable"
     else:
-        status = "not_reached"
+        status = "reached" if success else "not_reached"
     keys = ("solve_s", "rollout_s", "backward_s", "cem_s")
     mean = {key: sum(t[key] for t in timings) / max(len(timings), 1) for key in keys}
     return EpisodeResult(

@@ -74,7 +74,8 @@ def test_quat_to_matrix_is_rotation():
 def test_matrix_to_quat_round_trip_including_half_turns():
     q = random_poses(200, 5)[:, 3:]
     half_turns = torch.tensor(
-        [[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 0.6, 0.8, 0], [1, 0, 0, 0], [0.0, 0.0, 0.6, -0.8]], dtype=F64
+        [[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [0, 0.6, 0.8, 0], [1, 0, 0, 0], [0.0, 0.0, 0.6, -0.8]],
+        dtype=F64,
     )
     q = torch.cat((q, half_turns))
     back = se3.matrix_to_quat(se3.quat_to_matrix(q))
@@ -90,7 +91,8 @@ def test_matrix_to_quat_round_trip_including_half_turns():
 def test_compose_inverse_and_points(a, b):
     x = torch.randn(6, 3, dtype=F64)
     ab = se3.compose(a, b)
-    assert torch.allclose(se3.transform_points(ab, x), se3.transform_points(a, se3.transform_points(b, x)), atol=1e-12)
+    nested = se3.transform_points(a, se3.transform_points(b, x))
+    assert torch.allclose(se3.transform_points(ab, x), nested, atol=1e-12)
     for pose in (se3.compose(a, se3.inverse(a)), se3.compose(se3.inverse(a), a)):
         assert torch.allclose(se3.transform_points(pose, x), x, atol=1e-12)
     assert torch.allclose(ab[3:].norm(), torch.ones((), dtype=F64), atol=1e-12)
@@ -178,7 +180,9 @@ def test_exp_log_against_high_precision(angle):
     direction = torch.randn(6, generator=g, dtype=F64)
     xi = torch.cat((direction[:3], angle * direction[3:] / direction[3:].norm()))
     v, w = [mpmath.mpf(float(c)) for c in xi[:3]], [mpmath.mpf(float(c)) for c in xi[3:]]
-    twist = mpmath.matrix([[0, -w[2], w[1], v[0]], [w[2], 0, -w[0], v[1]], [-w[1], w[0], 0, v[2]], [0, 0, 0, 0]])
+    twist = mpmath.matrix(
+        [[0, -w[2], w[1], v[0]], [w[2], 0, -w[0], v[1]], [-w[1], w[0], 0, v[2]], [0, 0, 0, 0]]
+    )
     T = torch.tensor(mpmath.expm(twist).tolist(), dtype=F64)
     pose = se3.se3_exp(xi)
     assert torch.allclose(pose[:3], T[:3, 3], atol=1e-15, rtol=0)
@@ -257,7 +261,8 @@ def test_se2_round_trip(x, y, theta, z):
     assert pose[2] == z
     assert torch.allclose(se3.se3_to_se2(pose), planar, atol=1e-12)
     R = se3.quat_to_matrix(pose[3:])
-    ref = torch.tensor([[math.cos(theta), -math.sin(theta), 0], [math.sin(theta), math.cos(theta), 0], [0, 0, 1]])
+    c, s = math.cos(theta), math.sin(theta)
+    ref = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1]])
     assert torch.allclose(R, ref.to(F64), atol=1e-12)
     assert torch.allclose(se3.yaw(pose), torch.tensor(theta, dtype=F64), atol=1e-12)
 

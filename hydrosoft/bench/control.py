@@ -1,0 +1,250 @@
+"""``hydrosoft-stack bench control``: open- and closed-loop MPC error per task and planner model (paper Table III,
+simulation rows), and the closed-loop replanning rate.
+
+For each task and planner contact model, ``--goals`` seeded goals (goal ``g`` is ``Task.sample_goal(g)``) are
+run open loop (one solve over the whole episode, then executed) and closed loop (one solve per control step
+from the tactile state estimate) on a finer NH plant (``hydrosoft.tasks.evaluation``). Reported per (task,
+model, loop): the final ADD error in mm (mean and sample std over goals), the mean solve time in ms (and its
+split into rollout, backward and CEM), the success rate (final ADD <= the task's threshold) and the statuses.
+
+Settings. Full (default): planner surface spacing 8.4 mm (216 points on the 5 cm cube, ~200 active), B = 64
+samples, 8 elites, horizon K = 10, G = 2 gradient steps, 4 CEM rounds for the open-loop solve, 10 goals.
+``--quick`` (what CI runs, under 5 minutes on 2 cores): spacing 12.5 mm (96 points), B = 16, 4 elites, K = 6,
+G = 1, 3 open-loop rounds, 1 goal, replanning rate from 3 solves. The replanning rate is always measured with
+the full planner (B = 64, K = 10, G = 2, ~200 points) on closed-loop planar pushing.
+
+Torch runs single-threaded by default (``--threads``): on 2 shared cores the OpenMP intra-op threads stall
+behind other processes (a B = 64 step took 250 ms with 2 threads and 22 ms with 1).
+
+Output: a table laid out like Table III (stdout), or with ``--json`` exactly one JSON document
+``{"rows": [...], "replanning": {...}, "settings": {...}}``; one PNG per task in ``--out`` (final error per goal,
+open vs closed loop, per model); progress on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+TASK_TITLES = {
+    "pushing": "Planar Pushing",
+    "rotation": "Planar Rotation",
+    "rolling": "Rolling",
+    "in_hand": "In-hand Rotation",
+}
+MODEL_TITLES = {"nh": "Non-holonomic", "snh": "Smoothed NH", "pf": "Pressure Field", "pff": "PF Frictionless"}
+FULL = {"spacing": 0.0084, "samples": 64, "elites": 8, "horizon": 10, "grad_steps": 2, "open_loop_iterations": 4,
+        "goals": 10, "rate_solves": 5}
+QUICK = {"spacing": 0.0125, "samples": 16, "elites": 4, "horizon": 6, "grad_steps": 1, "open_loop_iterations": 3,
+         "goals": 1, "rate_solves": 3}
+
+
+def _csv(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Register the benchmark's options on ``parser``."""
+    parser.add_argument("--tasks", type=_csv, default=list(TASK_TITLES), metavar="T1,T2",
+                        help="tasks: pushing,rotation,rolling,in_hand (default all)")
+    parser.add_argument("--models", type=_csv, default=["nh", "pf", "pff"], metavar="M1,M2",
+                        help="planner contact models: nh,snh,pf,pff (default nh,pf,pff)")
+    parser.add_argument("--loops", type=_csv, default=["open", "closed"], metavar="L1,L2",
+                        help="open,closed (default both)")
+    parser.add_argument("--goals", type=int, default=None, help="seeded goals per task (default 10, quick 1)")
+    parser.add_argument("--quick", action="store_true", help="small planner and 1 goal: under 5 minutes on 2 cores")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
+    parser.add_argument("--out", type=Path, default=Path("out/bench-control"), help="folder for the PNGs")
+    parser.add_argument("--plant", default="nh", help="the plant's contact model, or 'same' as the planner (default nh)")
+    parser.add_argument("--steps", type=int, default=None, help="control steps per episode (default: the task's)")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    parser.add_argument("--rate-solves", type=int, default=None,
+                        help="closed-loop pushing solves timed for the replanning rate with the full planner "
+                             "(default 5, quick 3; 0 skips it)")
+
+
+def _log(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _stats(values: list[float]) -> tuple[float, float]:
+    """Mean and sample standard deviation (0 for one value)."""
+    n = len(values)
+    mean = sum(values) / n
+    var = sum((v - mean) ** 2 for v in values) / (n - 1) if n > 1 else 0.0
+    return mean, math.sqrt(var)
+
+
+def _row(task: str, model: str, loop: str, results: list) -> dict:
+    errors = [r.error_mm for r in results]
+    mean, std = _stats(errors)
+    statuses: dict[str, int] = {}
+    for r in results:
+        statuses[r.status] = statuses.get(r.status, 0) + 1
+    per_solve = lambda key: 1e3 * sum(getattr(r, key) for r in results) / len(results)  # noqa: E731
+    return {
+        "task": task, "model": model, "loop": loop,
+        "error_mm_mean": mean, "error_mm_std": std,
+        "solve_ms": per_solve("solve_s"), "rollout_ms": per_solve("rollout_s"),
+        "backward_ms": per_solve("backward_s"), "cem_ms": per_solve("cem_s"),
+        "success_rate": sum(r.success for r in results) / len(results), "goals": len(results),
+        "position_mm_mean": _stats([r.position_mm for r in results])[0],
+        "angle_deg_mean": _stats([r.angle_deg for r in results])[0],
+        "initial_error_mm_mean": _stats([r.initial_error_mm for r in results])[0],
+        "statuses": statuses, "errors_mm": errors,
+    }
+
+
+def replanning_rate(solves: int) -> dict:
+    """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, ~200 points): mean solve time
+    split into rollout / backward / CEM, and the replanning rate (Hz) it allows. The first solve is a warm-up."""
+    import torch
+
+    from hydrosoft.tasks import make_task
+    from hydrosoft.tasks.evaluation import PlannerSettings, estimate_state, prepare
+
+    from hydrosoft.control import CemGd
+    from hydrosoft.dynamics import step
+
+    task = make_task("pushing")
+    settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2)
+    setup = prepare(task, settings)
+    model = setup.planner_model
+    low, high = task.bounds(model.body_names, model.dtype)
+    stage, terminal = task.costs(model, task.sample_goal(0))
+    solver = CemGd(lambda s, u: step(model, s, u), stage, terminal, low, high,
+                   config=settings.config(settings.horizon, 1), dtype=model.dtype)
+    times = []
+    for k in range(solves + 1):
+        tic = time.perf_counter()
+        result = solver.solve(estimate_state(setup, setup.plant.measure()))
+        wall = time.perf_counter() - tic
+        setup.plant.apply(torch.zeros(setup.plant.model.n_bodies, 6, dtype=torch.float64).index_copy(
+            0, setup.body_index, result.action.double()))
+        if k > 0:
+            times.append({**result.timings, "solve_s": wall})
+        _log(f"[rate] solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
+    mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
+    return {
+        "task": "pushing", "samples": 64, "horizon": 10, "grad_steps": 2, "points": model.n_points,
+        "substeps": model.substeps, "solves": solves, "solve_ms": 1e3 * mean["solve_s"],
+        "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
+        "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
+    }
+
+
+def _table(rows: list[dict], models: list[str]) -> str:
+    """Table III layout: one line per task; per model OL mean, std and CL mean, std (mm)."""
+    index = {(r["task"], r["model"], r["loop"]): r for r in rows}
+    tasks = [t for t in TASK_TITLES if any(r["task"] == t for r in rows)]
+    width = 27
+    head1 = f"{'Task':<18}" + "".join(f"| {MODEL_TITLES.get(m, m):^{width - 2}} " for m in models)
+    head2 = f"{'':<18}" + "".join(f"| {'OL Error [mm]':^12}{'CL Error [mm]':^13} " for _ in models)
+    head3 = f"{'':<18}" + "".join(f"| {'Mean':>6}{'Std':>6} {'Mean':>6}{'Std':>6} " for _ in models)
+    lines = [head1, head2, head3, "-" * len(head3)]
+
+    def cell(task: str, model: str, loop: str, key: str) -> str:
+        row = index.get((task, model, loop))
+        return f"{row[key]:>6.3g}" if row else f"{'-':>6}"
+
+    for task in tasks:
+        line = f"{TASK_TITLES[task]:<18}"
+        for m in models:
+            line += (f"| {cell(task, m, 'open', 'error_mm_mean')}{cell(task, m, 'open', 'error_mm_std')} "
+                     f"{cell(task, m, 'closed', 'error_mm_mean')}{cell(task, m, 'closed', 'error_mm_std')} ")
+        lines.append(line)
+    lines += ["", f"{'task':<10}{'model':<6}{'loop':<8}{'solve ms':>9}{'rollout':>9}{'backward':>9}{'cem':>6}"
+                  f"{'success':>9}  statuses"]
+    for r in rows:
+        lines.append(f"{r['task']:<10}{r['model']:<6}{r['loop']:<8}{r['solve_ms']:>9.1f}{r['rollout_ms']:>9.1f}"
+                     f"{r['backward_ms']:>9.1f}{r['cem_ms']:>6.1f}{r['success_rate']:>9.0%}  "
+                     + ", ".join(f"{k} {v}" for k, v in sorted(r["statuses"].items())))
+    return "\n".join(lines)
+
+
+def _plot(rows: list[dict], task: str, out: Path) -> Path:
+    """PNG of the final error per goal, open vs closed loop, one panel per model."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    task_rows = [r for r in rows if r["task"] == task]
+    models = list(dict.fromkeys(r["model"] for r in task_rows))
+    fig, axes = plt.subplots(1, len(models), figsize=(4 * len(models), 3.2), squeeze=False, sharey=True)
+    for ax, model in zip(axes[0], models):
+        for offset, loop in ((-0.2, "open"), (0.2, "closed")):
+            row = next((r for r in task_rows if r["model"] == model and r["loop"] == loop), None)
+            if row:
+                ax.bar([g + offset for g in range(len(row["errors_mm"]))], row["errors_mm"], width=0.4,
+                       label=f"{loop} loop")
+        ax.set_title(MODEL_TITLES.get(model, model))
+        ax.set_xlabel("goal")
+        ax.legend(fontsize=8)
+    axes[0][0].set_ylabel("final ADD error [mm]")
+    fig.suptitle(TASK_TITLES[task])
+    fig.tight_layout()
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{task}.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark; returns the process exit status (2 for a bad option)."""
+    import torch
+
+    from hydrosoft.tasks import TASKS, make_task
+    from hydrosoft.tasks.evaluation import PlannerSettings, PlantSettings, prepare, run_episode
+
+    bad = ([t for t in args.tasks if t not in TASKS] + [m for m in args.models if m not in MODEL_TITLES]
+           + [loop for loop in args.loops if loop not in ("open", "closed")])
+    if bad or args.plant not in (*MODEL_TITLES, "same"):
+        _log(f"bench control: unknown task, model, loop or plant: {', '.join(bad) or args.plant}")
+        return 2
+    torch.set_num_threads(args.threads)
+    preset = QUICK if args.quick else FULL
+    goals = args.goals if args.goals is not None else preset["goals"]
+    rate_solves = args.rate_solves if args.rate_solves is not None else preset["rate_solves"]
+    started = time.perf_counter()
+    rows = []
+    total = len(args.tasks) * len(args.models) * len(args.loops) * goals
+    done = 0
+    for name in args.tasks:
+        task = make_task(name, args.steps)
+        for model in args.models:
+            planner = PlannerSettings(model=model, **{k: preset[k] for k in (
+                "spacing", "samples", "elites", "horizon", "grad_steps", "open_loop_iterations")})
+            setup = prepare(task, planner, PlantSettings(model=model if args.plant == "same" else args.plant))
+            for loop in args.loops:
+                results = []
+                for g in range(goals):
+                    tic = time.perf_counter()
+                    result = run_episode(setup, task.sample_goal(g), loop)
+                    results.append(result)
+                    done += 1
+                    _log(f"[{done}/{total}] {name} {model} {loop} goal {g}: {result.initial_error_mm:.1f} -> "
+                         f"{result.error_mm:.2f} mm ({result.status}), {time.perf_counter() - tic:.1f} s")
+                rows.append(_row(name, model, loop, results))
+    replanning = replanning_rate(rate_solves) if rate_solves > 0 else None
+    pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
+    settings = {**preset, "goals": goals, "quick": args.quick, "plant": args.plant, "threads": args.threads,
+                "steps": {name: make_task(name, args.steps).steps for name in args.tasks},
+                "wall_s": time.perf_counter() - started, "pngs": pngs}
+    if args.json:
+        print(json.dumps({"rows": rows, "replanning": replanning, "settings": settings}))
+    else:
+        print(_table(rows, args.models))
+        if replanning:
+            print(f"\nreplanning rate, closed-loop planar pushing, B={replanning['samples']}, K={replanning['horizon']}, "
+                  f"G={replanning['grad_steps']}, {replanning['points']} points, {replanning['threads']} thread(s): "
+                  f"{replanning['rate_hz']:.2f} Hz ({replanning['solve_ms']:.0f} ms per solve: rollout "
+                  f"{replanning['rollout_ms']:.0f}, backward {replanning['backward_ms']:.0f}, cem "
+                  f"{replanning['cem_ms']:.1f} ms)")
+        print(f"\n{total} episodes in {settings['wall_s']:.0f} s; figures: {', '.join(pngs)}")
+    return 0

@@ -1,0 +1,75 @@
+"""``hydrosoft-stack bench control``: options, the JSON document, the Table III layout, the PNGs, progress."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+import torch
+
+from hydrosoft.bench import control
+
+KEYS = {"task", "model", "loop", "error_mm_mean", "error_mm_std", "solve_ms", "success_rate", "goals"}
+
+
+def parse(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    control.add_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+@pytest.fixture(autouse=True)
+def keep_threads():
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_defaults_are_the_paper_setting():
+    args = parse()
+    assert args.tasks == ["pushing", "rotation", "rolling", "in_hand"]
+    assert args.models == ["nh", "pf", "pff"] and args.loops == ["open", "closed"]
+    assert control.FULL["goals"] == 10 and control.FULL["samples"] == 64
+    assert (control.FULL["horizon"], control.FULL["grad_steps"]) == (10, 2)
+
+
+def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsys):
+    args = parse("--tasks", "pushing,in_hand", "--models", "nh,pff", "--quick", "--steps", "2", "--goals", "2",
+                 "--rate-solves", "1", "--json", "--out", str(tmp_path))
+    assert control.run(args) == 0
+    out, err = capsys.readouterr()
+    document = json.loads(out)
+    rows = document["rows"]
+    assert len(rows) == 2 * 2 * 2
+    assert {(r["task"], r["model"], r["loop"]) for r in rows} == {
+        (t, m, loop) for t in ("pushing", "in_hand") for m in ("nh", "pff") for loop in ("open", "closed")}
+    for row in rows:
+        assert KEYS <= row.keys() and row["goals"] == 2 and len(row["errors_mm"]) == 2
+        assert row["error_mm_mean"] > 0 and row["error_mm_std"] >= 0 and 0 <= row["success_rate"] <= 1
+        assert row["solve_ms"] > 0
+    rate = document["replanning"]
+    assert rate["samples"] == 64 and rate["horizon"] == 10 and rate["grad_steps"] == 2
+    assert 150 <= rate["points"] <= 250 and rate["rate_hz"] > 0
+    assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
+    assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "[8/8] in_hand pff closed goal 1" in err
+
+
+def test_table_is_laid_out_like_table_iii(tmp_path, capsys):
+    args = parse("--tasks", "rotation", "--models", "nh", "--quick", "--steps", "1", "--rate-solves", "0",
+                 "--out", str(tmp_path))
+    assert control.run(args) == 0
+    out = capsys.readouterr().out
+    assert "Non-holonomic" in out and "OL Error [mm]" in out and "CL Error [mm]" in out
+    line = next(line for line in out.splitlines() if line.startswith("Planar Rotation"))
+    assert len(line.split("|")[1].split()) == 4  # OL mean, std, CL mean, std
+    assert "replanning rate" not in out
+
+
+def test_unknown_names_are_refused(tmp_path, capsys):
+    assert control.run(parse("--tasks", "juggling", "--out", str(tmp_path))) == 2
+    assert control.run(parse("--models", "rigid", "--out", str(tmp_path))) == 2
+    assert "juggling" in capsys.readouterr().err
+    assert not tmp_path.exists() or not any(tmp_path.iterdir())

@@ -1,0 +1,112 @@
+"""Task definitions: seeded goals within their stated ranges, action bounds, reachability and costs."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hydrosoft.control.costs import orientation_error, position_error
+from hydrosoft.geometry import se3
+from hydrosoft.scene import compile_scene
+from hydrosoft.tasks import TASKS, make_task
+from hydrosoft.tasks.base import mean_point_distance, mean_squared_point_distance
+
+F64 = torch.float64
+RANGES = {  # task -> (what is measured, low, high), as stated in the task modules' docstrings
+    "pushing": ("position_m", 0.03, 0.08),
+    "rotation": ("angle_deg", 15.0, 45.0),
+    "rolling": ("position_m", 0.02, 0.04),
+    "in_hand": ("angle_deg", 10.0, 30.0),
+}
+
+
+@pytest.mark.parametrize("name", TASKS)
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_goal_sampler_is_deterministic_per_seed_and_within_its_range(name, seed):
+    task = make_task(name)
+    goal = task.sample_goal(seed)
+    assert torch.equal(goal, task.sample_goal(seed))
+    start = task.initial_pose()
+    kind, low, high = RANGES[name]
+    value = float(position_error(start, goal)) if kind == "position_m" else math.degrees(orientation_error(start, goal))
+    assert low - 1e-9 <= value <= high + 1e-9
+    assert abs(float(goal[3:].norm()) - 1) < 1e-12
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_different_seeds_give_different_goals(name):
+    task = make_task(name)
+    goals = torch.stack([task.sample_goal(seed) for seed in range(10)])
+    assert torch.unique(goals, dim=0).shape[0] == 10
+
+
+def test_goal_shapes_match_the_task():
+    start = make_task("pushing").initial_pose()
+    push = make_task("pushing").sample_goal(3)
+    assert torch.allclose(push[2:], start[2:])  # planar translation, same height and yaw
+    rot = make_task("rotation").sample_goal(3)
+    assert torch.allclose(rot[:3], start[:3]) and float(rot[4].abs() + rot[5].abs()) < 1e-12  # yaw only
+    roll_task = make_task("rolling")
+    roll = roll_task.sample_goal(3)
+    d = float(roll[0] - roll_task.initial_pose()[0])
+    turn = float(orientation_error(roll_task.initial_pose(), roll))
+    assert abs(abs(d) / 0.025 - turn) < 1e-9 and abs(float(roll[1])) < 1e-12  # rolled without slipping along x
+    hand_task = make_task("in_hand")
+    hand = hand_task.sample_goal(3)
+    axis = se3.so3_log(se3.quat_multiply(hand[3:], se3.quat_conjugate(hand_task.initial_pose()[3:])))
+    assert torch.allclose(axis[1:], torch.zeros(2, dtype=F64), atol=1e-12)  # about the grasp axis x
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_bounds_follow_the_compiled_bodies(name):
+    task = make_task(name)
+    model, _, _ = compile_scene(task.scene)
+    low, high = task.bounds(model.body_names)
+    assert low.shape == high.shape == (model.n_bodies, 6)
+    assert torch.equal(low, -high) and bool((high >= 0).all())
+    for m, body in enumerate(model.body_names):
+        assert bool((high[m] > 0).any()) == (body in task.step_limits)
+    if name == "in_hand":
+        assert model.body_names == ("bubble_left", "bubble_right")  # the table is pruned
+    if task.scene.planar:
+        assert bool((high[:, 2:5] == 0).all())  # planar tasks actuate x, y, yaw only
+
+
+def test_reachability():
+    task = make_task("pushing")
+    start = task.initial_pose()
+    assert task.reachable(start, task.sample_goal(0), task.steps)
+    far = start.clone()
+    far[0] += 1.0
+    assert not task.reachable(start, far, task.steps)
+    assert not task.reachable(start, task.sample_goal(0), 1)
+
+
+def test_point_distance_is_the_add_and_zero_at_the_goal():
+    points = torch.randn(50, 3, dtype=F64)
+    pose = torch.tensor([0.1, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=F64)
+    goal = se3.identity(dtype=F64)
+    assert abs(float(mean_point_distance(points, pose, goal)) - 0.1) < 1e-12
+    assert abs(float(mean_squared_point_distance(points, pose.unsqueeze(0), goal)[0]) - 0.01) < 1e-12
+    assert float(mean_point_distance(points, goal, goal)) == 0.0
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_costs_are_finite_with_finite_gradients_and_lowest_at_the_goal(name):
+    task = make_task(name)
+    model, state, _ = compile_scene(task.scene)
+    goal = task.sample_goal(0)
+    stage, terminal = task.costs(model, goal)
+    u = torch.zeros(2, model.n_bodies, 6, dtype=F64, requires_grad=True)
+    batch = type(state)(*(t.expand(2, *t.shape[1:]).clone() for t in state[:3]))
+    at_goal = batch._replace(object_pose=torch.stack([batch.object_pose[0], goal]))
+    cost = stage(at_goal, u, 0) + terminal(at_goal)
+    (grad,) = torch.autograd.grad(cost.sum(), u)
+    assert bool(torch.isfinite(cost).all()) and bool(torch.isfinite(grad).all())
+    cost = cost.detach()
+    assert float(cost[1]) < 1e-6 < float(cost[0])
