@@ -11,7 +11,7 @@ import sys
 
 # subcommand -> (module with add_arguments(parser) and run(args) -> int, one-line help)
 BENCHES = {
-    "model": ("hydrosoft.bench.model", "contact-model step speed, memory and force accuracy (issue: model library)"),
+    "model": ("hydrosoft.bench.model", "contact-model step time, throughput, memory and force accuracy per model, dtype, batch and point count"),
     "control": ("hydrosoft.bench.control", "closed/open-loop MPC error per task and model (paper Table III, simulation)"),
     "tradeoff": ("hydrosoft.bench.tradeoff", "solve time against closed-loop error over the planner's knobs"),
 }

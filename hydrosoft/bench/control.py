@@ -3,15 +3,21 @@ simulation rows), and the closed-loop replanning rate.
 
 For each task and planner contact model, ``--goals`` seeded goals (goal ``g`` is ``Task.sample_goal(g)``) are
 run open loop (one solve over the whole episode, then executed) and closed loop (one solve per control step
-from the tactile state estimate) on a finer NH plant (``hydrosoft.tasks.evaluation``). Reported per (task,
+from the tactile state estimate) on a finer NH plant (``hydrosoft.tasks.evaluation``; ``--plant`` picks its contact
+model, ``--pose-noise-mm``, ``--pose-noise-deg``, ``--deformation-noise-mm`` its seeded sensor noise). Reported per (task,
 model, loop): the final ADD error in mm (mean and sample std over goals), the mean solve time in ms (and its
 split into rollout, backward and CEM), the success rate (final ADD <= the task's threshold) and the statuses.
 
 Settings. Full (default): planner surface spacing 8.4 mm (216 points on the 5 cm cube, ~200 active), B = 64
 samples, 8 elites, horizon K = 10, G = 2 gradient steps, 4 CEM rounds for the open-loop solve, 10 goals.
 ``--quick`` (what CI runs, under 5 minutes on 2 cores): spacing 12.5 mm (96 points), B = 16, 4 elites, K = 6,
-G = 1, 3 open-loop rounds, 1 goal, replanning rate from 3 solves. The replanning rate is always measured with
+G = 1, 3 open-loop rounds, 2 goals, replanning rate from 3 solves. The replanning rate is always measured with
 the full planner (B = 64, K = 10, G = 2, ~200 points) on closed-loop planar pushing.
+
+Run times (single thread, 2 shared cores): ``--quick`` 48 episodes in ~3.3 min CPU (4.8 min wall under load);
+the full setting takes about 6 hours: a full-planner closed-loop solve is 2-3.5 s (0.3-0.5 Hz), an episode
+of 20-40 steps 1.5-3.5 min closed loop and 1-2.5 min open loop, times 4 tasks x 3 models x 10 goals x 2 loops.
+Run tasks as separate processes (``--tasks pushing`` ...) to use both cores.
 
 Torch runs single-threaded by default (``--threads``): on 2 shared cores the OpenMP intra-op threads stall
 behind other processes (a B = 64 step took 250 ms with 2 threads and 22 ms with 1).
@@ -40,7 +46,7 @@ MODEL_TITLES = {"nh": "Non-holonomic", "snh": "Smoothed NH", "pf": "Pressure Fie
 FULL = {"spacing": 0.0084, "samples": 64, "elites": 8, "horizon": 10, "grad_steps": 2, "open_loop_iterations": 4,
         "goals": 10, "rate_solves": 5}
 QUICK = {"spacing": 0.0125, "samples": 16, "elites": 4, "horizon": 6, "grad_steps": 1, "open_loop_iterations": 3,
-         "goals": 1, "rate_solves": 3}
+         "goals": 2, "rate_solves": 3}
 
 
 def _csv(text: str) -> list[str]:
@@ -55,13 +61,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="planner contact models: nh,snh,pf,pff (default nh,pf,pff)")
     parser.add_argument("--loops", type=_csv, default=["open", "closed"], metavar="L1,L2",
                         help="open,closed (default both)")
-    parser.add_argument("--goals", type=int, default=None, help="seeded goals per task (default 10, quick 1)")
-    parser.add_argument("--quick", action="store_true", help="small planner and 1 goal: under 5 minutes on 2 cores")
+    parser.add_argument("--goals", type=int, default=None, help="seeded goals per task (default 10, quick 2)")
+    parser.add_argument("--quick", action="store_true", help="small planner and 2 goals: under 5 minutes on 2 cores")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
     parser.add_argument("--out", type=Path, default=Path("out/bench-control"), help="folder for the PNGs")
     parser.add_argument("--plant", default="nh", help="the plant's contact model, or 'same' as the planner (default nh)")
     parser.add_argument("--steps", type=int, default=None, help="control steps per episode (default: the task's)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    parser.add_argument("--pose-noise-mm", type=float, default=0.0,
+                        help="std of the observed object position noise, mm per axis (default 0)")
+    parser.add_argument("--pose-noise-deg", type=float, default=0.0,
+                        help="std of the observed object orientation noise, deg per axis (default 0)")
+    parser.add_argument("--deformation-noise-mm", type=float, default=0.0,
+                        help="std of the observed membrane deformation noise at contact, mm per axis (default 0)")
     parser.add_argument("--rate-solves", type=int, default=None,
                         help="closed-loop pushing solves timed for the replanning rate with the full planner "
                              "(default 5, quick 3; 0 skips it)")
@@ -143,7 +155,7 @@ def _table(rows: list[dict], models: list[str]) -> str:
     tasks = [t for t in TASK_TITLES if any(r["task"] == t for r in rows)]
     width = 27
     head1 = f"{'Task':<18}" + "".join(f"| {MODEL_TITLES.get(m, m):^{width - 2}} " for m in models)
-    head2 = f"{'':<18}" + "".join(f"| {'OL Error [mm]':^12}{'CL Error [mm]':^13} " for _ in models)
+    head2 = f"{'':<18}" + "".join(f"| {'OL Error [mm]':^12} {'CL Error [mm]':^12} " for _ in models)
     head3 = f"{'':<18}" + "".join(f"| {'Mean':>6}{'Std':>6} {'Mean':>6}{'Std':>6} " for _ in models)
     lines = [head1, head2, head3, "-" * len(head3)]
 
@@ -182,6 +194,7 @@ def _plot(rows: list[dict], task: str, out: Path) -> Path:
             if row:
                 ax.bar([g + offset for g in range(len(row["errors_mm"]))], row["errors_mm"], width=0.4,
                        label=f"{loop} loop")
+        ax.set_xticks(range(max((len(r["errors_mm"]) for r in task_rows), default=0)))
         ax.set_title(MODEL_TITLES.get(model, model))
         ax.set_xlabel("goal")
         ax.legend(fontsize=8)
@@ -220,7 +233,10 @@ def run(args: argparse.Namespace) -> int:
         for model in args.models:
             planner = PlannerSettings(model=model, **{k: preset[k] for k in (
                 "spacing", "samples", "elites", "horizon", "grad_steps", "open_loop_iterations")})
-            setup = prepare(task, planner, PlantSettings(model=model if args.plant == "same" else args.plant))
+            plant = PlantSettings(
+                model=model if args.plant == "same" else args.plant, pose_noise_m=args.pose_noise_mm / 1e3,
+                pose_noise_rad=math.radians(args.pose_noise_deg), deformation_noise_m=args.deformation_noise_mm / 1e3)
+            setup = prepare(task, planner, plant)
             for loop in args.loops:
                 results = []
                 for g in range(goals):
@@ -234,6 +250,8 @@ def run(args: argparse.Namespace) -> int:
     replanning = replanning_rate(rate_solves) if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "quick": args.quick, "plant": args.plant, "threads": args.threads,
+                "noise": {"pose_mm": args.pose_noise_mm, "pose_deg": args.pose_noise_deg,
+                          "deformation_mm": args.deformation_noise_mm},
                 "steps": {name: make_task(name, args.steps).steps for name in args.tasks},
                 "wall_s": time.perf_counter() - started, "pngs": pngs}
     if args.json:

@@ -147,7 +147,9 @@ class Ellipsoid:
     * From the first-order estimate ``t = g^2 (g - 1) / |x / r^2|^2``, safeguarded Halley steps
       (bisection when a step leaves the bracket) run without gradient until every point has
       ``|G| <= 4 eps`` or a bracket of relative width ``4 eps``: about 6 steps for most points, up to
-      ~24 next to the medial surface, at most ``MAX_SOLVER_STEPS``.
+      ~24 next to the medial surface, at most ``MAX_SOLVER_STEPS``. Under ``torch.compile`` the loop is a
+      ``torch.while_loop``, so that it is captured in one graph (a Python ``break`` on a tensor would split
+      it); eager, the same step function runs in a Python loop.
     * One differentiable Newton step from the root then gives the exact first derivative (implicit
       function theorem).
     * Deep inside (``t < -min(r)^2 / 2``, depth >= ``min(r)^2 / (2 max(r))``), where the root nears
@@ -205,16 +207,28 @@ class Ellipsoid:
             # Start: the first-order estimate g (g - 1) / |x / r^2| of the distance, converted to t.
             k1_sq = ((points / r2) ** 2).sum(-1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny)
             t = torch.minimum(torch.maximum(g * g * (g - 1) / k1_sq, lo), hi)
-            for _ in range(self.MAX_SOLVER_STEPS):
+
+            def unconverged(k: Tensor, t: Tensor, lo: Tensor, hi: Tensor, busy: Tensor) -> Tensor:
+                return busy & (k < self.MAX_SOLVER_STEPS)
+
+            def halley(k: Tensor, t: Tensor, lo: Tensor, hi: Tensor, busy: Tensor) -> tuple[Tensor, ...]:
                 G, G1, G2 = derivatives(t, r2_min * eps)
                 lo = torch.where(G <= 0, t, lo)
                 hi = torch.where(G >= 0, t, hi)
                 done = (G.abs() <= 4 * eps) | (hi - lo <= 4 * eps * (t.abs() + r2_min))
-                if bool(done.all()):
-                    break
                 step = t - 2 * G * G1 / (2 * G1 * G1 - G * G2)
                 step = torch.where((step >= lo) & (step <= hi), step, (lo + hi) / 2)
-                t = torch.where(done, t, step)  # converged points stay: rounding must not restart them
+                # converged points stay: rounding must not restart them
+                return k + 1, torch.where(done, t, step), lo, hi, ~done.all()
+
+            carry = (torch.zeros((), dtype=torch.int64, device=points.device), t, lo, hi,
+                     torch.ones((), dtype=torch.bool, device=points.device))
+            if torch.compiler.is_compiling():
+                carry = torch.while_loop(unconverged, halley, carry)
+            else:  # eager torch.while_loop would trace the loop with dynamo on every new shape
+                while unconverged(*carry):
+                    carry = halley(*carry)
+            t = carry[1]
             pole = t < -0.5 * r2_min
             t_reg = torch.where(pole, torch.zeros_like(t), t)
 
@@ -236,6 +250,13 @@ class Ellipsoid:
         return torch.where(pole, phi_pole, phi_reg).squeeze(-1)
 
 
+def _mesh(**params):
+    """``MeshSDF.from_spec(path, resolution, padding)`` of :mod:`hydrosoft.geometry.mesh_sdf`, imported on use."""
+    from hydrosoft.geometry.mesh_sdf import MeshSDF
+
+    return MeshSDF.from_spec(**params)
+
+
 _KINDS = {
     "halfspace": HalfSpace,
     "box": Box,
@@ -243,11 +264,12 @@ _KINDS = {
     "ellipsoid": Ellipsoid,
     "capsule": Capsule,
     "cylinder": Cylinder,
+    "mesh": _mesh,
 }
 
 
 def from_spec(kind: str, **params):
-    """The SDF named ``kind`` (one of halfspace, box, sphere, ellipsoid, capsule, cylinder) built from params.
+    """The SDF named ``kind`` (one of halfspace, box, sphere, ellipsoid, capsule, cylinder, mesh) built from params.
 
     Raises ValueError for an unknown kind (listing the known ones) or invalid parameters.
     """

@@ -50,7 +50,8 @@ class PlannerSettings:
 
     model: contact model (``nh``, ``snh``, ``pf``, ``pff``). spacing: object surface spacing (m), None for the
     scene's. samples B, elites M, horizon K, grad_steps G, cem_iterations per closed-loop solve;
-    open_loop_iterations: CEM rounds of the single open-loop solve. lr, init_std, min_std: fractions of the
+    open_loop_iterations: CEM rounds of the single open-loop solve. substep_factor: sub-steps per compiled sub-step
+    (a finer integration step ``dt / (substeps * factor)`` within each control step). lr, init_std, min_std: fractions of the
     action half-range (``CemGdConfig``). dtype: the planner's float type. seed: the solver's seed.
     """
 
@@ -62,6 +63,7 @@ class PlannerSettings:
     grad_steps: int = 2
     cem_iterations: int = 1
     open_loop_iterations: int = 4
+    substep_factor: int = 1
     lr: float = 0.1
     init_std: float = 0.5
     min_std: float = 0.05
@@ -167,8 +169,9 @@ class Setup:
     """A task compiled for evaluation: planner model, plant, and the maps between their points and bodies.
 
     point_index ``(N_planner,)``: nearest plant point of each planner point (object frame, normals weighted so
-    faces do not mix). body_index ``(M_planner,)``: plant body of each planner body. plant_body_index
-    ``(M_planner,)`` as a list for scattering actions. metric_points ``(N, 3)``: where the ADD is measured.
+    faces do not mix). body_index ``(M_planner,)``: plant body of each planner body (by name), which maps
+    measurements to the planner and actions to the plant. metric_points ``(N, 3)``: object-frame points (5 mm
+    spacing, the same for every setting) on which the ADD error is measured.
     """
 
     task: Task
@@ -184,6 +187,7 @@ def prepare(task: Task, planner: PlannerSettings = PlannerSettings(), plant: Pla
     """Compile the planner's model and the plant for ``task``."""
     spacing = planner.spacing or task.scene.object.spacing
     model, _, _ = compile_scene(with_contact(task.scene, planner.model, spacing), dtype=planner.dtype)
+    model = replace(model, substeps=model.substeps * planner.substep_factor)
     world = Plant(task.scene, plant, spacing)
     weight = spacing
     source = torch.cat([world.model.points, weight * world.model.normals], -1)

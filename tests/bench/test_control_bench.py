@@ -54,7 +54,7 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
     assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
     assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "[8/8] in_hand pff closed goal 1" in err
+    assert "[16/16] in_hand pff closed goal 1" in err
 
 
 def test_table_is_laid_out_like_table_iii(tmp_path, capsys):

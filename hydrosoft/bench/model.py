@@ -1,0 +1,510 @@
+"""``hydrosoft-stack bench model``: step speed, memory and force accuracy of the four contact models.
+
+Three sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
+"pruning": [...]}``, otherwise as tables. Progress goes to stderr.
+
+``rows``: one quasi-dynamic step (``dynamics.step``) of the planar pushing scene, a Soft Bubble (ellipsoid) pressed
+5 mm into a cube resting on the table (half-space): ``M = 2`` bodies, the cube's surface discretised to about
+``points`` points, all kept (``compile_scene(prune=False)``, so ``N`` is what was asked for), for each contact
+model (nh, snh, pf, pff), dtype (float32, float64), batch ``B`` and point count ``N``. The step is timed in
+steady state: from a state whose signed distances are cached (every step of a rollout after the first), with one
+contact update per step (``substeps = 1``) and a random sub-millimetre bubble motion per sample.
+
+- ``step_ms``: forward step under ``no_grad``; ``step_backward_ms``: forward plus backward of
+  ``sum(object_pose) + sum(forces)`` of the next state with respect to the controls. Both are the best, over
+  several repeats, of the mean time of a loop of steps; the variants of one (model, B, N) are timed interleaved.
+- ``point_updates_per_s``: ``B * M * N`` per forward step.
+- ``peak_mem_mb`` / ``peak_mem_backward_mb``: peak of the live torch tensor storage allocated during one
+  forward step / one forward plus backward, above what existed before (``config.memory_method``).
+- ``speedup_vs_eager_f64``: the step time of the same model in eager float64 at the same B and N, timed in
+  the same run, divided by this row's step time.
+- ``mode``: ``eager``, or ``compiled`` with ``--compile`` (``dynamics.CompiledStep``; ``compile_s`` is the
+  wall time of its first forward and first backward call, compilation included).
+
+``accuracy``: the net force of the bubble on the object along a prescribed press-and-shear path replayed with
+``dynamics.advance_forces`` (object held, bubble lowered from 1 mm above contact to 3 mm indentation, dragged
+6 mm along x, lifted off again), for coarser settings against the reference (exact NH, float64, the finest
+surface and the most path steps): coarser surface spacing, fewer path steps, float32, smoothed NH for each
+beta, and the path-independent PF / PFF. ``force_rel_error = max_k |F_k - F_ref,k|_2 / max_k |F_ref,k|_2`` over
+the path samples the setting shares with the reference (``F``: the 3-vector net force in N); ``step_ms`` is the
+mean time of one ``advance_forces`` step (B = 1) along the path.
+
+``pruning``: step time of the compiled task scenes (pushing, rotation, rolling, in-hand) with pruning (the
+default) and without (``prune=False``), float32, and the largest difference of the net contact force after
+the timed step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import sys
+import time
+import weakref
+from typing import Any, Callable
+
+FULL_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,16,64,256", "points": "100,500,2000"}
+QUICK_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,16", "points": "100"}
+
+# Accuracy path (metres): gap above contact at the start and end, indentation, shear travel.
+GAP, DEPTH, SHEAR = 0.001, 0.003, 0.006
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``hydrosoft-stack bench model``."""
+    parser.add_argument("--json", action="store_true", help="print one JSON document instead of tables")
+    parser.add_argument("--quick", action="store_true",
+                        help="small grid and short paths (about a minute on 2 CPU cores)")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device to run on (default cpu)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default: torch's own choice); reported in config")
+    parser.add_argument("--compile", action="store_true",
+                        help="also time the torch.compile'd step (dynamics.CompiledStep); compiling takes minutes")
+    parser.add_argument("--models", default=None, help="comma list of contact models (default nh,snh,pf,pff)")
+    parser.add_argument("--dtypes", default=None, help="comma list: float32,float64 (float64 is always timed)")
+    parser.add_argument("--batches", default=None, help="comma list of batch sizes (default 1,16,64,256)")
+    parser.add_argument("--points", default=None, help="comma list of surface point counts (default 100,500,2000)")
+    parser.add_argument("--sections", default="rows,accuracy,pruning",
+                        help="comma list of sections to run (default rows,accuracy,pruning)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark described by ``args`` (see ``add_arguments``); returns the exit status."""
+    import torch
+
+    if args.device == "cuda" and not torch.cuda.is_available():
+        print("bench model: --device cuda but no CUDA device is available", file=sys.stderr)
+        return 2
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    grid = dict(QUICK_GRID if args.quick else FULL_GRID)
+    for key in grid:
+        if getattr(args, key, None):
+            grid[key] = getattr(args, key)
+    sections = set(args.sections.split(","))
+    bench = _Bench(torch.device(args.device), quick=args.quick)
+    doc: dict[str, Any] = {"config": bench.config(grid, args.compile), "rows": [], "accuracy": [], "pruning": []}
+    if "rows" in sections:
+        doc["rows"] = bench.rows(
+            models=grid["models"].split(","),
+            dtypes=grid["dtypes"].split(","),
+            batches=[int(b) for b in grid["batches"].split(",")],
+            points=[int(n) for n in grid["points"].split(",")],
+            compiled=args.compile,
+        )
+    if "accuracy" in sections:
+        doc["accuracy"] = bench.accuracy()
+    if "pruning" in sections:
+        doc["pruning"] = bench.pruning()
+    if args.json:
+        print(json.dumps(doc, indent=1))
+    else:
+        _print_tables(doc)
+    return 0
+
+
+def _progress(text: str) -> None:
+    print(f"[bench model] {text}", file=sys.stderr, flush=True)
+
+
+class _PeakLiveMemory:
+    """Peak bytes of live torch tensor storage created inside the ``with`` block (any device).
+
+    A ``TorchDispatchMode`` sees every tensor an operator returns; each storage is counted once while any tensor
+    that uses it is alive (released by weakref finalizers). CPU tensors bypass ``tracemalloc``, hence this.
+    """
+
+    def __new__(cls):
+        from torch.utils._python_dispatch import TorchDispatchMode
+        from torch.utils._pytree import tree_flatten
+
+        class Mode(TorchDispatchMode):
+            def __init__(self):
+                super().__init__()
+                self.live: dict[int, list[int]] = {}
+                self.current = 0
+                self.peak = 0
+
+            def _release(self, key: int) -> None:
+                entry = self.live.get(key)
+                if entry is not None:
+                    entry[1] -= 1
+                    if entry[1] == 0:
+                        self.current -= entry[0]
+                        del self.live[key]
+
+            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+                import torch
+
+                out = func(*args, **(kwargs or {}))
+                for t in tree_flatten(out)[0]:
+                    if isinstance(t, torch.Tensor):
+                        storage = t.untyped_storage()
+                        key = storage.data_ptr()
+                        if key == 0:
+                            continue
+                        if key in self.live:
+                            self.live[key][1] += 1
+                        else:
+                            self.live[key] = [storage.nbytes(), 1]
+                            self.current += storage.nbytes()
+                            self.peak = max(self.peak, self.current)
+                        weakref.finalize(t, self._release, key)
+                return out
+
+        return Mode()
+
+
+class _Bench:
+    """Builds the benchmark models and times them on one device."""
+
+    def __init__(self, device, quick: bool) -> None:
+        import torch
+
+        self.torch = torch
+        self.device = device
+        self.quick = quick
+        self.min_repeat_s = 0.01 if quick else 0.05
+        self.repeats = 3 if quick else 5
+        self._scenes: dict[tuple, tuple] = {}
+
+    # ------------------------------------------------------------------------------------------------------
+    # infrastructure
+
+    def config(self, grid: dict[str, str], compiled: bool) -> dict[str, Any]:
+        torch = self.torch
+        return {
+            "device": str(self.device),
+            "threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+            "quick": self.quick,
+            "grid": grid,
+            "compile": compiled,
+            "scene": "pushing task scene: bubble ellipsoid (6 x 4.5 x 3 cm) 5 mm into a 5 cm cube on the table "
+                     "half-space, M = 2 bodies, prune=False, substeps = 1",
+            "timing_method": f"best of {self.repeats} repeats of the mean over a loop of >= {self.min_repeat_s} s, "
+                             "variants of one configuration interleaved",
+            "memory_method": "torch.cuda.max_memory_allocated above the start" if self.device.type == "cuda"
+            else "peak live torch tensor storage seen by a TorchDispatchMode (weakref-tracked), above the start",
+        }
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            self.torch.cuda.synchronize(self.device)
+
+    def _interleaved(self, fns: dict[str, Callable[[], Any]]) -> dict[str, float]:
+        """Seconds per call of each function: best of ``repeats`` loops, the functions interleaved per repeat."""
+        loops = {}
+        for name, fn in fns.items():
+            self._sync()
+            tic = time.perf_counter()
+            fn()
+            self._sync()
+            once = max(time.perf_counter() - tic, 1e-6)
+            loops[name] = max(1, math.ceil(self.min_repeat_s / once))
+        best = {name: math.inf for name in fns}
+        for _ in range(self.repeats):
+            for name, fn in fns.items():
+                self._sync()
+                tic = time.perf_counter()
+                for _ in range(loops[name]):
+                    fn()
+                self._sync()
+                best[name] = min(best[name], (time.perf_counter() - tic) / loops[name])
+        return best
+
+    def _peak_mb(self, fn: Callable[[], Any]) -> float:
+        torch = self.torch
+        if self.device.type == "cuda":
+            self._sync()
+            start = torch.cuda.memory_allocated(self.device)
+            torch.cuda.reset_peak_memory_stats(self.device)
+            fn()
+            self._sync()
+            return (torch.cuda.max_memory_allocated(self.device) - start) / 1e6
+        mode = _PeakLiveMemory()
+        with mode:
+            fn()
+        return mode.peak / 1e6
+
+    def _scene(self, task: str, contact: str = "nh", points: int | None = None, prune: bool = True,
+               params: dict | None = None):
+        """``(model, state, report)`` of a task scene in float64 on the device, cached."""
+        import msgspec
+
+        from hydrosoft.scene import compile_scene
+        from hydrosoft.tasks.scenes import task_scene
+
+        key = (task, contact, points, prune, tuple(sorted((params or {}).items())))
+        if key not in self._scenes:
+            scene = task_scene(task)
+            scene = msgspec.structs.replace(scene, contact=contact, contact_params=params or {})
+            if points is not None:
+                side = scene.object.params["side"]
+                spacing = side * math.sqrt(6.0 / points)  # the cube's area over the point count
+                scene = msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, spacing=spacing))
+            self._scenes[key] = compile_scene(scene, device=self.device, prune=prune)
+        return self._scenes[key]
+
+    @staticmethod
+    def _cast(model, state, dtype):
+        from hydrosoft.dynamics import State
+
+        return model.to(dtype=dtype), State(*(t.to(dtype) for t in state[:3]))
+
+    def _controls(self, model, batch: int, seed: int = 0):
+        """Random controls ``(B, M, 6)``: sub-millimetre moves and a few mrad of yaw of the first actuated body."""
+        torch = self.torch
+        g = torch.Generator().manual_seed(seed)
+        u = torch.zeros(batch, model.n_bodies, 6, dtype=torch.float64)
+        moved = int(model.actuated.argmax())
+        scale = torch.tensor([5e-4, 5e-4, 1e-4], dtype=torch.float64)
+        u[:, moved, :3] = torch.randn(batch, 3, generator=g, dtype=torch.float64) * scale
+        u[:, moved, 5] = 5e-3 * torch.randn(batch, generator=g, dtype=torch.float64)
+        return u.to(dtype=model.dtype, device=self.device)
+
+    def _batched(self, model, state, batch: int, u=None):
+        """Steady-state batch: ``state`` (B = 1) repeated, stepped once under ``u`` (so phi is cached), and ``u``."""
+        torch = self.torch
+        from hydrosoft.dynamics import State, step
+
+        state = State(
+            state.object_pose.expand(batch, -1).contiguous(),
+            state.body_poses.expand(batch, -1, -1).contiguous(),
+            state.forces.expand(batch, -1, -1, -1).contiguous(),
+        )
+        u = self._controls(model, batch) if u is None else u
+        with torch.no_grad():
+            state = step(model, state, u)
+        return state, u
+
+    # ------------------------------------------------------------------------------------------------------
+    # sections
+
+    def rows(self, models: list[str], dtypes: list[str], batches: list[int], points: list[int],
+             compiled: bool) -> list[dict]:
+        torch = self.torch
+        from dataclasses import replace
+
+        from hydrosoft.dynamics import CompiledStep, step
+
+        dtype_of = {"float32": torch.float32, "float64": torch.float64}
+        timed_dtypes = list(dict.fromkeys([*dtypes, "float64"]))
+        out = []
+        for contact in models:
+            for n_points in points:
+                model64, state64, _ = self._scene("pushing", contact, n_points, prune=False)
+                model64 = replace(model64, substeps=1)
+                variants = {}
+                for name in timed_dtypes:
+                    model, state = self._cast(model64, state64, dtype_of[name])
+                    variants[(name, "eager")] = (model, functools.partial(step, model))
+                    if compiled:
+                        variants[(name, "compiled")] = (model, CompiledStep(model))
+                for batch in batches:
+                    out.extend(self._time_config(contact, n_points, batch, variants, dtypes))
+        return out
+
+    def _time_config(self, contact: str, n_points: int, batch: int, variants: dict, dtypes: list[str]) -> list[dict]:
+        torch = self.torch
+        fns, prepared, compile_s = {}, {}, {}
+        for key, (model, stepper) in variants.items():
+            state, u = self._batched(model, self._state_for(model, contact, n_points), batch)
+            prepared[key] = (model, stepper, state, u)
+
+            def forward(stepper=stepper, state=state, u=u):
+                with torch.no_grad():
+                    return stepper(state, u)
+
+            def backward(stepper=stepper, state=state, u=u):
+                leaf = u.detach().requires_grad_(True)
+                nxt = stepper(state, leaf)
+                (nxt.object_pose.sum() + nxt.forces.sum()).backward()
+
+            if key[1] == "compiled":
+                tic = time.perf_counter()
+                forward()
+                backward()
+                self._sync()
+                compile_s[key] = time.perf_counter() - tic
+            fns[key + ("forward",)] = forward
+            fns[key + ("backward",)] = backward
+        n_real = next(iter(prepared.values()))[0].n_points
+        _progress(f"rows: {contact} B={batch} N={n_real} ({', '.join('/'.join(k) for k in variants)})")
+        times = self._interleaved(fns)
+        reference = times[("float64", "eager", "forward")]
+        rows = []
+        for key, (model, stepper, state, u) in prepared.items():
+            if key[0] not in dtypes:
+                continue
+            forward, backward = fns[key + ("forward",)], fns[key + ("backward",)]
+            seconds = times[key + ("forward",)]
+            row = {
+                "model": contact,
+                "dtype": key[0],
+                "mode": key[1],
+                "batch": batch,
+                "points": model.n_points,
+                "bodies": model.n_bodies,
+                "step_ms": 1e3 * seconds,
+                "step_backward_ms": 1e3 * times[key + ("backward",)],
+                "point_updates_per_s": batch * model.n_bodies * model.n_points / seconds,
+                "peak_mem_mb": self._peak_mb(forward),
+                "peak_mem_backward_mb": self._peak_mb(backward),
+                "speedup_vs_eager_f64": reference / seconds,
+            }
+            if key in compile_s:
+                row["compile_s"] = compile_s[key]
+                row["compiled_ok"] = stepper.compiled
+            rows.append(row)
+        return rows
+
+    def _state_for(self, model, contact: str, n_points: int):
+        """The compiled scene's initial state (B = 1) cast to ``model``'s dtype."""
+        state = self._scene("pushing", contact, n_points, prune=False)[1]
+        return self._cast(model, state, model.dtype)[1]
+
+    def _path(self, model, path_steps: int):
+        """Net bubble force ``(path_steps + 1, 3)`` (N, float64) along the press-shear-release path."""
+        torch = self.torch
+        from hydrosoft.dynamics import State, advance_forces
+
+        _, scene_state, _ = self._scene("pushing")
+        bubble = model.body_names.index("bubble")
+        rest = scene_state.body_poses.to(model.dtype)  # bubble pressed 5 mm into the cube's top face
+        quarter = path_steps // 4
+        s = torch.arange(path_steps + 1, dtype=model.dtype, device=self.device)
+        press = (s / quarter).clamp(max=1.0) - ((s - 3 * quarter) / quarter).clamp(min=0.0)
+        shear = ((s - quarter) / (2 * quarter)).clamp(0.0, 1.0)
+        lift = 0.005 + GAP - (GAP + DEPTH) * press  # bubble height above its scene pose, m
+        body_poses = rest.expand(path_steps + 1, -1, -1).clone()
+        body_poses[:, bubble, 0] += SHEAR * shear
+        body_poses[:, bubble, 2] += lift
+        object_pose = scene_state.object_pose.to(model.dtype)
+        state = State(object_pose, body_poses[:1], torch.zeros(1, model.n_bodies, model.n_points, 3,
+                                                                dtype=model.dtype, device=self.device))
+        forces = [state.forces[0, bubble].sum(0)]
+        self._sync()
+        tic = time.perf_counter()
+        with torch.no_grad():
+            for k in range(1, path_steps + 1):
+                state = advance_forces(model, state, object_pose, body_poses[k:k + 1])
+                forces.append(state.forces[0, bubble].sum(0))
+        self._sync()
+        seconds = (time.perf_counter() - tic) / path_steps
+        return torch.stack(forces).double().cpu(), seconds
+
+    def accuracy(self) -> list[dict]:
+        torch = self.torch
+
+        ref_points, ref_steps = (500, 60) if self.quick else (4000, 240)
+        coarser_points = (100,) if self.quick else (2000, 500, 100)
+        fewer_steps = (20, 12) if self.quick else (120, 60, 24)
+        betas = (1e2, 1e4, 1e6) if self.quick else (1e2, 1e3, 1e4, 1e5, 1e6)
+        settings = [("reference: nh float64", "nh", {}, ref_points, ref_steps, torch.float64)]
+        settings += [(f"spacing: {n} points", "nh", {}, n, ref_steps, torch.float64) for n in coarser_points]
+        settings += [(f"time step: {k} path steps", "nh", {}, ref_points, k, torch.float64) for k in fewer_steps]
+        settings += [("float32", "nh", {}, ref_points, ref_steps, torch.float32)]
+        settings += [(f"smoothed nh: beta {b:.0e}/m", "snh", {"beta": b}, ref_points, ref_steps, torch.float64)
+                     for b in betas]
+        settings += [(f"model: {m}", m, {}, ref_points, ref_steps, torch.float64) for m in ("pf", "pff")]
+        reference = None
+        out = []
+        for label, contact, params, n_points, path_steps, dtype in settings:
+            _progress(f"accuracy: {label}")
+            model64, _, _ = self._scene("pushing", contact, n_points, prune=True, params=params)
+            model = model64.to(dtype=dtype)
+            forces, seconds = self._path(model, path_steps)
+            if reference is None:
+                reference = forces
+            stride = ref_steps // path_steps
+            ref = reference[::stride]
+            error = float((forces - ref).norm(dim=-1).max() / ref.norm(dim=-1).max())
+            out.append({
+                "setting": label,
+                "model": contact,
+                "beta": params.get("beta"),
+                "dtype": str(dtype).removeprefix("torch."),
+                "points": model.n_points,
+                "path_steps": path_steps,
+                "force_rel_error": error,
+                "peak_force_n": float(forces.norm(dim=-1).max()),
+                "step_ms": 1e3 * seconds,
+            })
+        return out
+
+    def pruning(self) -> list[dict]:
+        torch = self.torch
+        from hydrosoft.dynamics import step
+        from hydrosoft.tasks.scenes import TASK_SCENES
+
+        batch = 8 if self.quick else 64
+        out = []
+        for task in TASK_SCENES:
+            _progress(f"pruning: {task}")
+            pruned, s_pruned, report = self._scene(task, prune=True)
+            full, s_full, full_report = self._scene(task, prune=False)
+            pruned, s_pruned = self._cast(pruned, s_pruned, torch.float32)
+            full, s_full = self._cast(full, s_full, torch.float32)
+            u_pruned = self._controls(pruned, batch)
+            u_full = torch.zeros(batch, full.n_bodies, 6, dtype=full.dtype, device=self.device)
+            for m, name in enumerate(pruned.body_names):
+                u_full[:, full.body_names.index(name)] = u_pruned[:, m]
+            s_pruned, _ = self._batched(pruned, s_pruned, batch, u_pruned)
+            s_full, _ = self._batched(full, s_full, batch, u_full)
+
+            def run_pruned():
+                with torch.no_grad():
+                    return step(pruned, s_pruned, u_pruned)
+
+            def run_full():
+                with torch.no_grad():
+                    return step(full, s_full, u_full)
+
+            times = self._interleaved({"pruned": run_pruned, "full": run_full})
+            diff = (run_pruned().forces.sum((1, 2)) - run_full().forces.sum((1, 2))).abs().max()
+            out.append({
+                "task": task,
+                "dtype": "float32",
+                "batch": batch,
+                "points_full": full.n_points,
+                "points_pruned": pruned.n_points,
+                "bodies_full": full.n_bodies,
+                "bodies_pruned": pruned.n_bodies,
+                "substeps": pruned.substeps,
+                "step_ms_full": 1e3 * times["full"],
+                "step_ms_pruned": 1e3 * times["pruned"],
+                "speedup": times["full"] / times["pruned"],
+                "net_force_max_diff_n": float(diff),
+            })
+        return out
+
+
+def _print_tables(doc: dict) -> None:
+    cfg = doc["config"]
+    print(f"device {cfg['device']}, {cfg['threads']} threads, torch {cfg['torch']}; {cfg['scene']}")
+    print(f"timing: {cfg['timing_method']}; memory: {cfg['memory_method']}")
+    if doc["rows"]:
+        print("\nstep speed and memory")
+        print(f"{'model':>5} {'dtype':>7} {'mode':>8} {'B':>4} {'N':>5} {'step ms':>9} {'fwd+bwd ms':>10} "
+              f"{'M upd/s':>8} {'mem MB':>7} {'bwd MB':>7} {'vs f64':>6}")
+        for r in doc["rows"]:
+            print(f"{r['model']:>5} {r['dtype']:>7} {r['mode']:>8} {r['batch']:>4} {r['points']:>5} "
+                  f"{r['step_ms']:>9.3f} {r['step_backward_ms']:>10.3f} {r['point_updates_per_s'] / 1e6:>8.2f} "
+                  f"{r['peak_mem_mb']:>7.2f} {r['peak_mem_backward_mb']:>7.2f} {r['speedup_vs_eager_f64']:>6.2f}")
+    if doc["accuracy"]:
+        print("\nforce accuracy on press 3 mm, shear 6 mm, release (max |F - F_ref| / max |F_ref|)")
+        print(f"{'setting':>32} {'N':>5} {'steps':>5} {'rel error':>10} {'peak N':>8} {'step ms':>8}")
+        for r in doc["accuracy"]:
+            print(f"{r['setting']:>32} {r['points']:>5} {r['path_steps']:>5} {r['force_rel_error']:>10.2e} "
+                  f"{r['peak_force_n']:>8.3f} {r['step_ms']:>8.3f}")
+    if doc["pruning"]:
+        print("\npruning (float32 eager step)")
+        print(f"{'task':>9} {'B':>3} {'N full':>6} {'N kept':>6} {'bodies':>6} {'full ms':>8} {'pruned ms':>9} "
+              f"{'speedup':>7} {'max dF N':>9}")
+        for r in doc["pruning"]:
+            print(f"{r['task']:>9} {r['batch']:>3} {r['points_full']:>6} {r['points_pruned']:>6} "
+                  f"{r['bodies_pruned']}/{r['bodies_full']:<4} {r['step_ms_full']:>8.3f} {r['step_ms_pruned']:>9.3f} "
+                  f"{r['speedup']:>7.2f} {r['net_force_max_diff_n']:>9.2e}")

@@ -1,0 +1,138 @@
+"""``hydrosoft-stack bench tradeoff``: solve time against closed-loop error over the planner's knobs.
+
+From a base planner (the ``bench control --quick`` one: spacing 12.5 mm, B = 16, 4 elites, K = 6, G = 1, exact
+NH, float64, one integration sub-step per compiled sub-step), one knob at a time is swept:
+
+- ``samples`` B: 8, 16, 32, 64;  ``grad_steps`` G: 0, 1, 2;  ``horizon`` K: 4, 6, 10;
+- ``spacing`` (m): 0.0167, 0.0125, 0.0084;  ``dt``: the planner's integration step as a fraction of the
+  compiled one, 1 or 1/2 (``substep_factor`` 1, 2);  ``dtype``: float64, float32;  ``model``: nh, snh (smoothed).
+
+Every setting runs goal 0 of a fixed small task set closed loop on the finer NH plant (default planar pushing
+and planar rotation, ``--quick``: planar rotation only, with fewer values). Reported per setting: the mean
+solve time (ms) and the mean final ADD error (mm) over the task set; the Pareto front (no other setting is both
+faster and more accurate) is marked. Output: a table (or ``--json``: one JSON document ``{"points": [...],
+"pareto": [...]}``), a PNG ``tradeoff.png`` in ``--out``, progress on stderr. Runs single-threaded by default
+(``--threads``; see ``bench control``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+BASE = {"spacing": 0.0125, "samples": 16, "elites": 4, "horizon": 6, "grad_steps": 1}
+SWEEP = {
+    "samples": [8, 16, 32, 64],
+    "grad_steps": [0, 1, 2],
+    "horizon": [4, 6, 10],
+    "spacing": [0.0167, 0.0125, 0.0084],
+    "dt": [1, 2],
+    "dtype": ["float64", "float32"],
+    "model": ["nh", "snh"],
+}
+QUICK_SWEEP = {"samples": [8, 16], "grad_steps": [0, 1], "dtype": ["float64", "float32"], "model": ["nh", "snh"]}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Register the benchmark's options on ``parser``."""
+    parser.add_argument("--tasks", default="pushing,rotation", help="task set (default pushing,rotation)")
+    parser.add_argument("--quick", action="store_true", help="planar rotation only and fewer values (CI)")
+    parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
+    parser.add_argument("--out", type=Path, default=Path("out/bench-tradeoff"), help="folder for the PNG")
+    parser.add_argument("--steps", type=int, default=None, help="control steps per episode (default: the task's)")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+
+
+def _settings(knob: str, value):
+    """PlannerSettings with ``knob`` set to ``value`` on top of BASE."""
+    import torch
+
+    from hydrosoft.tasks.evaluation import PlannerSettings
+
+    fields = dict(BASE)
+    if knob == "dt":
+        fields["substep_factor"] = value
+    elif knob == "dtype":
+        fields["dtype"] = getattr(torch, value)
+    else:
+        fields[knob] = value
+    return PlannerSettings(**fields)
+
+
+def pareto(points: list[dict]) -> list[dict]:
+    """The settings no other one beats on both solve time and error (ties kept), fastest first."""
+    front = [p for p in points if not any(
+        q["solve_ms"] <= p["solve_ms"] and q["error_mm"] <= p["error_mm"]
+        and (q["solve_ms"] < p["solve_ms"] or q["error_mm"] < p["error_mm"]) for q in points)]
+    return sorted(front, key=lambda p: p["solve_ms"])
+
+
+def _plot(points: list[dict], front: list[dict], out: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for p in points:
+        ax.scatter(p["solve_ms"], p["error_mm"], color="tab:blue" if p in front else "tab:gray")
+        ax.annotate(p["label"], (p["solve_ms"], p["error_mm"]), fontsize=7)
+    ax.plot([p["solve_ms"] for p in front], [p["error_mm"] for p in front], color="tab:blue", lw=1)
+    ax.set_xlabel("mean solve time [ms]")
+    ax.set_ylabel("closed-loop final ADD error [mm]")
+    ax.set_title("planner trade-off (Pareto front in blue)")
+    fig.tight_layout()
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "tradeoff.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the sweep; returns the process exit status (2 for an unknown task)."""
+    import torch
+
+    from hydrosoft.tasks import TASKS, make_task
+    from hydrosoft.tasks.evaluation import prepare, run_episode
+
+    names = ["rotation"] if args.quick else [t.strip() for t in args.tasks.split(",") if t.strip()]
+    if not names or any(t not in TASKS for t in names):
+        print(f"bench tradeoff: unknown task in {args.tasks!r}; known: {', '.join(TASKS)}", file=sys.stderr)
+        return 2
+    torch.set_num_threads(args.threads)
+    sweep = QUICK_SWEEP if args.quick else SWEEP
+    runs = [(knob, value) for knob, values in sweep.items() for value in values]
+    seen, points = set(), []
+    for i, (knob, value) in enumerate(runs, 1):
+        settings = _settings(knob, value)
+        if settings in seen:
+            continue
+        seen.add(settings)
+        errors, solve = [], []
+        for name in names:
+            task = make_task(name, args.steps)
+            tic = time.perf_counter()
+            result = run_episode(prepare(task, settings), task.sample_goal(0), "closed")
+            errors.append(result.error_mm)
+            solve.append(result.solve_s)
+            print(f"[{i}/{len(runs)}] {knob}={value} {name}: {result.error_mm:.2f} mm, "
+                  f"{1e3 * result.solve_s:.0f} ms per solve, {time.perf_counter() - tic:.1f} s", file=sys.stderr,
+                  flush=True)
+        points.append({"knob": knob, "value": value, "label": f"{knob}={value}",
+                       "solve_ms": 1e3 * sum(solve) / len(solve), "error_mm": sum(errors) / len(errors)})
+    front = pareto(points)
+    png = _plot(points, front, args.out)
+    if args.json:
+        print(json.dumps({"tasks": names, "base": BASE, "points": points, "pareto": [p["label"] for p in front],
+                          "png": str(png)}))
+    else:
+        print(f"tasks {', '.join(names)}, goal 0, closed loop; base {BASE}")
+        print(f"{'setting':<20}{'solve ms':>10}{'error mm':>10}  pareto")
+        for p in sorted(points, key=lambda p: p["solve_ms"]):
+            print(f"{p['label']:<20}{p['solve_ms']:>10.1f}{p['error_mm']:>10.2f}  {'*' if p in front else ''}")
+        print(f"figure: {png}")
+    return 0

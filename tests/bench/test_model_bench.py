@@ -1,0 +1,76 @@
+"""The model benchmark runs (quick grid) and emits the documented schema with finite, positive figures.
+
+No timing assertions: timings depend on the machine and its load.
+"""
+
+import argparse
+import json
+import math
+
+import pytest
+
+from hydrosoft.bench import model as bench_model
+
+ROW_FIELDS = {"model", "dtype", "batch", "points", "step_ms", "step_backward_ms", "point_updates_per_s",
+              "peak_mem_mb", "speedup_vs_eager_f64"}
+ACCURACY_FIELDS = {"setting", "force_rel_error", "step_ms"}
+PRUNING_FIELDS = {"task", "step_ms_full", "step_ms_pruned", "points_full", "points_pruned"}
+
+
+@pytest.fixture(scope="module")
+def quick_args():
+    parser = argparse.ArgumentParser()
+    bench_model.add_arguments(parser)
+    args = parser.parse_args(["--quick", "--json", "--batches", "1,4", "--threads", "1"])
+    return args
+
+
+def _run(args, capsys):
+    assert bench_model.run(args) == 0
+    out = capsys.readouterr().out
+    return json.loads(out)
+
+
+def test_quick_bench_json_schema_and_values(quick_args, capsys):
+    doc = _run(quick_args, capsys)
+    assert set(doc) == {"config", "rows", "accuracy", "pruning"}
+    assert doc["config"]["threads"] == 1 and doc["config"]["memory_method"]
+
+    rows = doc["rows"]
+    assert {(r["model"], r["dtype"], r["batch"]) for r in rows} == {
+        (m, d, b) for m in ("nh", "snh", "pf", "pff") for d in ("float32", "float64") for b in (1, 4)}
+    for r in rows:
+        assert ROW_FIELDS <= set(r)
+        assert r["mode"] == "eager" and r["bodies"] == 2
+        for key in ("step_ms", "step_backward_ms", "point_updates_per_s", "peak_mem_mb", "speedup_vs_eager_f64"):
+            assert math.isfinite(r[key]) and r[key] > 0, (key, r)
+        if r["dtype"] == "float64":
+            assert r["speedup_vs_eager_f64"] == 1.0
+
+    accuracy = doc["accuracy"]
+    assert accuracy[0]["setting"].startswith("reference") and accuracy[0]["force_rel_error"] == 0.0
+    assert any(r["model"] == "snh" for r in accuracy) and any(r["dtype"] == "float32" for r in accuracy)
+    for r in accuracy:
+        assert ACCURACY_FIELDS <= set(r)
+        assert math.isfinite(r["force_rel_error"]) and r["force_rel_error"] >= 0
+        assert math.isfinite(r["step_ms"]) and r["step_ms"] > 0
+        assert r["peak_force_n"] > 0
+    # the float32 replay agrees with the float64 reference to far better than 1% (the stated float32 tolerance)
+    assert next(r for r in accuracy if r["setting"] == "float32")["force_rel_error"] < 1e-2
+
+    pruning = doc["pruning"]
+    assert {r["task"] for r in pruning} == {"pushing", "rotation", "rolling", "in_hand"}
+    for r in pruning:
+        assert PRUNING_FIELDS <= set(r)
+        assert r["step_ms_full"] > 0 and r["step_ms_pruned"] > 0
+        assert 0 < r["points_pruned"] <= r["points_full"]
+
+
+def test_tables_without_json(capsys):
+    parser = argparse.ArgumentParser()
+    bench_model.add_arguments(parser)
+    args = parser.parse_args(["--quick", "--models", "nh", "--batches", "1", "--sections", "rows,pruning"])
+    assert bench_model.run(args) == 0
+    out = capsys.readouterr().out
+    assert "step speed and memory" in out and "pruning" in out
+    assert not out.lstrip().startswith("{")

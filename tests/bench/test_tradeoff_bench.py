@@ -1,0 +1,48 @@
+"""``hydrosoft-stack bench tradeoff``: the sweep runs, the Pareto front is right, one JSON document and a PNG."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+import torch
+
+from hydrosoft.bench import tradeoff
+
+
+def parse(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    tradeoff.add_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+@pytest.fixture(autouse=True)
+def keep_threads():
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_pareto_front_keeps_only_undominated_settings():
+    points = [{"label": "a", "solve_ms": 1, "error_mm": 5}, {"label": "b", "solve_ms": 2, "error_mm": 2},
+              {"label": "c", "solve_ms": 3, "error_mm": 3}, {"label": "d", "solve_ms": 4, "error_mm": 1},
+              {"label": "e", "solve_ms": 1, "error_mm": 6}]
+    assert [p["label"] for p in tradeoff.pareto(points)] == ["a", "b", "d"]
+
+
+def test_quick_sweep_prints_one_json_document_and_a_png(tmp_path, capsys):
+    assert tradeoff.run(parse("--quick", "--steps", "1", "--json", "--out", str(tmp_path))) == 0
+    out, err = capsys.readouterr()
+    document = json.loads(out)
+    labels = {p["label"] for p in document["points"]}
+    assert {"samples=8", "grad_steps=0", "dtype=float32", "model=snh"} <= labels
+    assert len(labels) == len(document["points"])  # the base setting is run once
+    assert set(document["pareto"]) <= labels and document["pareto"]
+    assert all(p["solve_ms"] > 0 and p["error_mm"] > 0 for p in document["points"])
+    assert (tmp_path / "tradeoff.png").read_bytes()[:4] == b"\x89PNG"
+    assert "rotation" in err
+
+
+def test_unknown_task_is_refused(tmp_path):
+    assert tradeoff.run(parse("--tasks", "juggling", "--out", str(tmp_path))) == 2

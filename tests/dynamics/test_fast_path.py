@@ -1,0 +1,125 @@
+"""The fast step: cached signed distances, the matrix form of the contact geometry and wrenches, and the
+torch.compile'd step (dynamics.CompiledStep) against the eager step."""
+
+import warnings
+
+import msgspec
+import pytest
+import torch
+
+from hydrosoft.contact import wrench
+from hydrosoft.dynamics import CompiledStep, State, advance_forces, contact_geometry, signed_distances, step
+from hydrosoft.geometry import se3
+from hydrosoft.scene import compile_scene
+from hydrosoft.tasks.scenes import task_scene
+
+
+def pushing(dtype=torch.float64, spacing=None, batch=3):
+    """The pushing scene with a batch of distinct random bubble motions (bubble pressed into the cube)."""
+    scene = task_scene("pushing")
+    if spacing is not None:
+        scene = msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, spacing=spacing))
+    model, state, _ = compile_scene(scene, dtype=dtype)
+    state = State(state.object_pose.expand(batch, -1), state.body_poses.expand(batch, -1, -1),
+                  state.forces.expand(batch, -1, -1, -1))
+    g = torch.Generator().manual_seed(1)
+    u = torch.zeros(batch, model.n_bodies, 6, dtype=torch.float64)
+    u[:, 0, :3] = 1e-3 * torch.randn(batch, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.2])
+    u[:, 0, 5] = 0.02 * torch.randn(batch, generator=g, dtype=torch.float64)
+    return model, state, u.to(dtype)
+
+
+def test_cached_phi_gives_identical_rollout():
+    model, state, u = pushing()
+    cached, uncached = state, state
+    for _ in range(6):
+        cached = step(model, cached, u)
+        uncached = step(model, uncached, u)._replace(phi=None)
+        assert cached.phi is not None and cached.phi.shape == (3, model.n_bodies, model.n_points)
+    assert torch.equal(cached.forces, uncached.forces)
+    assert torch.equal(cached.object_pose, uncached.object_pose)
+
+
+def test_cached_phi_is_the_signed_distance_of_the_state():
+    model, state, u = pushing()
+    nxt = step(model, state, u)
+    points = se3.transform_points(nxt.object_pose, model.points).unsqueeze(1)
+    local = se3.transform_points(se3.inverse(nxt.body_poses), points)
+    assert torch.allclose(nxt.phi, signed_distances(model, local), rtol=0, atol=1e-15)
+
+
+def test_contact_geometry_matches_quaternion_formulas():
+    """The matrix form equals the per-point quaternion transforms of eq. 14-15 to rounding (float64)."""
+    model, state, u = pushing()
+    prev = step(model, state, u)._replace(phi=None)
+    object_pose = se3.retract(prev.object_pose, torch.tensor([2e-4, -1e-4, 0, 0, 0, 0.01], dtype=torch.float64))
+    body_poses = se3.retract(prev.body_poses, u)
+    geometry = contact_geometry(model, prev, object_pose, body_poses)
+    p0 = se3.transform_points(prev.object_pose, model.points).unsqueeze(1)
+    p1 = se3.transform_points(object_pose, model.points).unsqueeze(1)
+    x0 = se3.transform_points(se3.inverse(prev.body_poses), p0)
+    x1 = se3.transform_points(se3.inverse(body_poses), p1)
+    assert torch.allclose(geometry.phi_prev, signed_distances(model, x0), rtol=0, atol=1e-15)
+    assert torch.allclose(geometry.phi_next, signed_distances(model, x1), rtol=0, atol=1e-15)
+    assert torch.allclose(geometry.displacement, se3.rotate_vectors(body_poses, x0 - x1), rtol=0, atol=1e-16)
+    normal = -se3.rotate_vectors(object_pose, model.normals).unsqueeze(1)
+    assert torch.allclose(geometry.normal, normal, rtol=0, atol=1e-15)
+
+
+def test_wrench_matches_cross_products():
+    g = torch.Generator().manual_seed(2)
+    forces = torch.randn(4, 2, 50, 3, generator=g, dtype=torch.float64)
+    points = torch.randn(4, 1, 50, 3, generator=g, dtype=torch.float64)
+    about = torch.randn(4, 2, 3, generator=g, dtype=torch.float64)
+    lever = (points - about.unsqueeze(-2)).expand_as(forces)
+    expected = torch.cat([forces.sum(-2), torch.linalg.cross(lever, forces, dim=-1).sum(-2)], dim=-1)
+    assert torch.allclose(wrench(forces, points, about), expected, rtol=0, atol=1e-12)
+
+
+def test_advance_forces_fills_the_cache_and_keeps_the_positional_fields():
+    model, state, u = pushing()
+    nxt = advance_forces(model, state, state.object_pose, se3.retract(state.body_poses, u))
+    object_pose, body_poses, forces = nxt[:3]
+    assert torch.equal(object_pose, state.object_pose) and nxt.phi is not None
+    assert State(object_pose, body_poses, forces).phi is None
+
+
+def test_compiled_step_falls_back_to_eager_when_compilation_fails():
+    def broken_backend(graph, example_inputs):
+        raise RuntimeError("no compiler here")
+
+    model, state, u = pushing(batch=1)
+    fast = CompiledStep(model, backend=broken_backend)
+    with pytest.warns(RuntimeWarning, match="running eager"):
+        out = fast(state, u)
+    assert not fast.compiled and "no compiler here" in fast.fallback_reason
+    expected = step(model, state, u)
+    assert torch.equal(out.forces, expected.forces)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fast(state, u)  # warns once only
+
+
+@pytest.mark.slow
+def test_compiled_step_matches_eager():
+    """Inductor, float32 (the fast path), one graph (fullgraph: the ellipsoid's solver loop included). Stated
+    tolerance: forces within 1e-5 of the largest force, poses within 1e-6 m, signed distances within 1e-7 m,
+    gradients within 1e-4 of the largest gradient entry. (About a minute: most of it compiling.)"""
+    model, state, u = pushing(torch.float32, spacing=0.0125, batch=2)
+    state = step(model, state, u)
+    fast = CompiledStep(model, fullgraph=True)
+    with torch.no_grad():
+        eager, compiled = step(model, state, u), fast(state, u)
+    assert fast.compiled
+    assert (compiled.forces - eager.forces).abs().max() <= 1e-5 * eager.forces.abs().max()
+    assert torch.allclose(compiled.object_pose, eager.object_pose, rtol=0, atol=1e-6)
+    assert torch.allclose(compiled.phi, eager.phi, rtol=0, atol=1e-7)
+
+    grads = []
+    for fn in (lambda s, v: step(model, s, v), fast):
+        leaf = u.detach().requires_grad_(True)
+        out = fn(state, leaf)
+        (g,) = torch.autograd.grad(out.forces.sum() + out.object_pose[:, :3].sum(), leaf)
+        grads.append(g)
+    assert fast.compiled
+    assert (grads[1] - grads[0]).abs().max() <= 1e-4 * grads[0].abs().max()

@@ -1,0 +1,47 @@
+"""The hydrosoft-stack command line: help texts and the demo."""
+
+import subprocess
+import sys
+
+import pytest
+
+from hydrosoft.services.cli import main
+
+
+def test_help_lists_every_command(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    for command in ("demo", "bench"):
+        assert command in out
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    out = capsys.readouterr().out
+    for bench in ("model", "control", "tradeoff"):
+        assert bench in out
+
+
+def test_no_command_prints_help(capsys):
+    assert main([]) == 0
+    assert "usage: hydrosoft-stack" in capsys.readouterr().out
+
+
+def test_demo_pushes_the_cube_forward(capsys):
+    assert main(["demo", "--steps", "6", "--speed", "3"]) == 0
+    out = capsys.readouterr().out
+    last = [line for line in out.splitlines() if line.strip().startswith("6 ")][0].split()
+    assert float(last[1]) == pytest.approx(18.0)  # bubble x in mm
+    assert 0.5 < float(last[2]) < 18.0  # the object followed, with slip
+
+
+def test_unknown_model_is_rejected_with_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["demo", "--model", "rigid"])
+    assert exit_info.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_console_script_entry_point_runs():
+    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.cli", "--help"], capture_output=True, text=True)
+    assert result.returncode == 0 and "hydrosoft-stack" in result.stdout
