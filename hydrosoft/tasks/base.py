@@ -26,6 +26,16 @@ GoalSampler = Callable[[Tensor, torch.Generator], Tensor]
 """``(initial object pose (7,) float64, generator) -> goal pose (7,) float64``."""
 
 
+def rotated_goal(start: Tensor, generator: torch.Generator, axis: int, degrees: tuple[float, float]) -> Tensor:
+    """Goal ``(7,)``: ``start (7,)`` rotated about world axis ``axis`` (0 x, 1 y, 2 z) through its own centre by
+    an angle drawn uniformly from ``degrees = (low, high)`` with a random sign."""
+    magnitude, sign = torch.rand(2, generator=generator, dtype=torch.float64)
+    angle = math.radians(degrees[0]) + math.radians(degrees[1] - degrees[0]) * magnitude
+    delta = torch.zeros(6, dtype=torch.float64)
+    delta[3 + axis] = torch.where(sign < 0.5, -angle, angle)
+    return se3.retract(start, delta)
+
+
 def mean_point_distance(points: Tensor, pose: Tensor, goal: Tensor) -> Tensor:
     """ADD: mean distance (m) between object-frame ``points (N, 3)`` placed at ``pose (..., 7)`` and at ``goal``.
 

@@ -12,8 +12,7 @@ import math
 import torch
 from torch import Tensor
 
-from hydrosoft.geometry import se3
-from hydrosoft.tasks.base import Task
+from hydrosoft.tasks.base import Task, rotated_goal
 from hydrosoft.tasks.scenes import task_scene
 
 STEP_RAD = math.radians(4.0)  # rad per control step
@@ -23,12 +22,7 @@ ANGLE_DEG = (15.0, 45.0)
 
 def sample_goal(start: Tensor, generator: torch.Generator) -> Tensor:
     """Goal ``(7,)``: ``start (7,)`` yawed by +-(15-45) degrees about its own centre."""
-    magnitude, sign = torch.rand(2, generator=generator, dtype=torch.float64)
-    angle = math.radians(ANGLE_DEG[0]) + math.radians(ANGLE_DEG[1] - ANGLE_DEG[0]) * magnitude
-    angle = torch.where(sign < 0.5, -angle, angle)
-    delta = torch.zeros(6, dtype=torch.float64)
-    delta[5] = angle
-    return se3.retract(start, delta)
+    return rotated_goal(start, generator, axis=2, degrees=ANGLE_DEG)
 
 
 def make_task(steps: int = 30) -> Task:

@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 
-import pytest
-import torch
 
 from hydrosoft.bench import tradeoff
 
@@ -15,13 +13,6 @@ def parse(*argv: str) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     tradeoff.add_arguments(parser)
     return parser.parse_args(list(argv))
-
-
-@pytest.fixture(autouse=True)
-def keep_threads():
-    threads = torch.get_num_threads()
-    yield
-    torch.set_num_threads(threads)
 
 
 def test_pareto_front_keeps_only_undominated_settings():
