@@ -103,7 +103,7 @@ class Model:
     def device(self) -> torch.device:
         return self.points.device
 
-    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "Model":
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> Model:
         """The same model with its float tensors cast to ``dtype`` and moved to ``device``."""
 
         def cast(t: Tensor) -> Tensor:
@@ -318,7 +318,7 @@ class CompiledStep:
         if self.fallback_reason is None:
             try:
                 return self._compiled(state, u)
-            except Exception as err:  # a compiler failure; a genuine error is raised again by the eager step
+            except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager step
                 self.fallback_reason = f"{type(err).__name__}: {err}"
                 warnings.warn(f"torch.compile of the step failed, running eager: {self.fallback_reason}",
                               RuntimeWarning, stacklevel=2)

@@ -15,7 +15,8 @@ contact update per step (``substeps = 1``) and a random sub-millimetre bubble mo
   several repeats, of the mean time of a loop of steps; the variants of one (model, B, N) are timed interleaved.
 - ``point_updates_per_s``: ``B * M * N`` per forward step.
 - ``peak_mem_mb`` / ``peak_mem_backward_mb``: peak of the live torch tensor storage allocated during one
-  forward step / one forward plus backward, above what existed before (``config.memory_method``).
+  forward step / one forward plus backward, above what existed before (``config.memory_method``; on CPU
+  ``null`` for compiled rows).
 - ``speedup_vs_eager_f64``: the step time of the same model in eager float64 at the same B and N, timed in
   the same run, divided by this row's step time.
 - ``mode``: ``eager``, or ``compiled`` with ``--compile`` (``dynamics.CompiledStep``; ``compile_s`` is the
@@ -43,10 +44,11 @@ import math
 import sys
 import time
 import weakref
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 FULL_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,16,64,256", "points": "100,500,2000"}
-QUICK_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,16", "points": "100"}
+QUICK_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,64", "points": "100,500"}
 
 # Accuracy path (metres): gap above contact at the start and end, indentation, shear travel.
 GAP, DEPTH, SHEAR = 0.001, 0.003, 0.006
@@ -187,7 +189,8 @@ class _Bench:
             "timing_method": f"best of {self.repeats} repeats of the mean over a loop of >= {self.min_repeat_s} s, "
                              "variants of one configuration interleaved",
             "memory_method": "torch.cuda.max_memory_allocated above the start" if self.device.type == "cuda"
-            else "peak live torch tensor storage seen by a TorchDispatchMode (weakref-tracked), above the start",
+            else "peak live torch tensor storage seen by a TorchDispatchMode (weakref-tracked), above the start; "
+                 "null for compiled rows (under that mode dynamo would skip the compiled frame)",
         }
 
     def _sync(self) -> None:
@@ -290,16 +293,17 @@ class _Bench:
 
         from hydrosoft.dynamics import CompiledStep, step
 
+        if compiled:  # every model, dtype and grad mode is its own compiled graph of the same `step` code
+            torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
         dtype_of = {"float32": torch.float32, "float64": torch.float64}
         timed_dtypes = list(dict.fromkeys([*dtypes, "float64"]))
         out = []
         for contact in models:
             for n_points in points:
-                model64, state64, _ = self._scene("pushing", contact, n_points, prune=False)
-                model64 = replace(model64, substeps=1)
+                model64 = replace(self._scene("pushing", contact, n_points, prune=False)[0], substeps=1)
                 variants = {}
                 for name in timed_dtypes:
-                    model, state = self._cast(model64, state64, dtype_of[name])
+                    model = model64.to(dtype=dtype_of[name])
                     variants[(name, "eager")] = (model, functools.partial(step, model))
                     if compiled:
                         variants[(name, "compiled")] = (model, CompiledStep(model))
@@ -340,6 +344,8 @@ class _Bench:
             if key[0] not in dtypes:
                 continue
             forward, backward = fns[key + ("forward",)], fns[key + ("backward",)]
+            # Under the CPU tracking mode dynamo would give up on the compiled frame and run it eagerly for good.
+            untracked = key[1] == "compiled" and self.device.type != "cuda"
             seconds = times[key + ("forward",)]
             row = {
                 "model": contact,
@@ -351,8 +357,8 @@ class _Bench:
                 "step_ms": 1e3 * seconds,
                 "step_backward_ms": 1e3 * times[key + ("backward",)],
                 "point_updates_per_s": batch * model.n_bodies * model.n_points / seconds,
-                "peak_mem_mb": self._peak_mb(forward),
-                "peak_mem_backward_mb": self._peak_mb(backward),
+                "peak_mem_mb": None if untracked else self._peak_mb(forward),
+                "peak_mem_backward_mb": None if untracked else self._peak_mb(backward),
                 "speedup_vs_eager_f64": reference / seconds,
             }
             if key in compile_s:
@@ -444,8 +450,8 @@ class _Bench:
         out = []
         for task in TASK_SCENES:
             _progress(f"pruning: {task}")
-            pruned, s_pruned, report = self._scene(task, prune=True)
-            full, s_full, full_report = self._scene(task, prune=False)
+            pruned, s_pruned, _ = self._scene(task, prune=True)
+            full, s_full, _ = self._scene(task, prune=False)
             pruned, s_pruned = self._cast(pruned, s_pruned, torch.float32)
             full, s_full = self._cast(full, s_full, torch.float32)
             u_pruned = self._controls(pruned, batch)
@@ -455,13 +461,13 @@ class _Bench:
             s_pruned, _ = self._batched(pruned, s_pruned, batch, u_pruned)
             s_full, _ = self._batched(full, s_full, batch, u_full)
 
-            def run_pruned():
+            def run_pruned(model=pruned, state=s_pruned, u=u_pruned):
                 with torch.no_grad():
-                    return step(pruned, s_pruned, u_pruned)
+                    return step(model, state, u)
 
-            def run_full():
+            def run_full(model=full, state=s_full, u=u_full):
                 with torch.no_grad():
-                    return step(full, s_full, u_full)
+                    return step(model, state, u)
 
             times = self._interleaved({"pruned": run_pruned, "full": run_full})
             diff = (run_pruned().forces.sum((1, 2)) - run_full().forces.sum((1, 2))).abs().max()
@@ -493,7 +499,7 @@ def _print_tables(doc: dict) -> None:
         for r in doc["rows"]:
             print(f"{r['model']:>5} {r['dtype']:>7} {r['mode']:>8} {r['batch']:>4} {r['points']:>5} "
                   f"{r['step_ms']:>9.3f} {r['step_backward_ms']:>10.3f} {r['point_updates_per_s'] / 1e6:>8.2f} "
-                  f"{r['peak_mem_mb']:>7.2f} {r['peak_mem_backward_mb']:>7.2f} {r['speedup_vs_eager_f64']:>6.2f}")
+                  f"{_mb(r['peak_mem_mb']):>7} {_mb(r['peak_mem_backward_mb']):>7} {r['speedup_vs_eager_f64']:>6.2f}")
     if doc["accuracy"]:
         print("\nforce accuracy on press 3 mm, shear 6 mm, release (max |F - F_ref| / max |F_ref|)")
         print(f"{'setting':>32} {'N':>5} {'steps':>5} {'rel error':>10} {'peak N':>8} {'step ms':>8}")
@@ -508,3 +514,7 @@ def _print_tables(doc: dict) -> None:
             print(f"{r['task']:>9} {r['batch']:>3} {r['points_full']:>6} {r['points_pruned']:>6} "
                   f"{r['bodies_pruned']}/{r['bodies_full']:<4} {r['step_ms_full']:>8.3f} {r['step_ms_pruned']:>9.3f} "
                   f"{r['speedup']:>7.2f} {r['net_force_max_diff_n']:>9.2e}")
+
+
+def _mb(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"

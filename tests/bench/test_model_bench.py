@@ -21,7 +21,7 @@ PRUNING_FIELDS = {"task", "step_ms_full", "step_ms_pruned", "points_full", "poin
 def quick_args():
     parser = argparse.ArgumentParser()
     bench_model.add_arguments(parser)
-    args = parser.parse_args(["--quick", "--json", "--batches", "1,4", "--threads", "1"])
+    args = parser.parse_args(["--quick", "--json", "--batches", "1,4", "--points", "100", "--threads", "1"])
     return args
 
 
@@ -69,7 +69,8 @@ def test_quick_bench_json_schema_and_values(quick_args, capsys):
 def test_tables_without_json(capsys):
     parser = argparse.ArgumentParser()
     bench_model.add_arguments(parser)
-    args = parser.parse_args(["--quick", "--models", "nh", "--batches", "1", "--sections", "rows,pruning"])
+    args = parser.parse_args(
+        ["--quick", "--models", "nh", "--batches", "1", "--points", "100", "--sections", "rows,pruning"])
     assert bench_model.run(args) == 0
     out = capsys.readouterr().out
     assert "step speed and memory" in out and "pruning" in out

@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from hydrosoft.contact import wrench
-from hydrosoft.dynamics import CompiledStep, State, advance_forces, contact_geometry, signed_distances, step
+from hydrosoft.dynamics import (
+    CompiledStep,
+    State,
+    advance_forces,
+    contact_geometry,
+    signed_distances,
+    step,
+)
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
 from hydrosoft.tasks.scenes import task_scene

@@ -8,7 +8,7 @@ import torch
 
 from hydrosoft.contact import Material, make
 from hydrosoft.contact.cone import split_normal
-from hydrosoft.dynamics import Model, State, advance_forces, body_wrenches, object_wrench, press_in, rollout, step
+from hydrosoft.dynamics import Model, State, advance_forces, body_wrenches, object_wrench, press_in, step
 from hydrosoft.geometry import sdf, se3, surface
 from hydrosoft.scene import SceneError, compile_scene
 from hydrosoft.tasks.scenes import TASK_SCENES, task_scene
