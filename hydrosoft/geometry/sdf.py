@@ -87,8 +87,8 @@ class Box:
 
 
 @dataclass(frozen=True)
-class Capsule:
-    """Points within ``radius`` (m) of the z-axis segment ``|z| <= half_length`` (m), exact."""
+class _AboutZ:
+    """A solid of revolution about the z axis with a ``radius`` and a ``half_length`` along z (m)."""
 
     radius: float
     half_length: float
@@ -98,6 +98,11 @@ class Capsule:
         r, h = _positive("radius and half_length", self.radius, self.half_length)
         object.__setattr__(self, "radius", r)
         object.__setattr__(self, "half_length", h)
+
+
+@dataclass(frozen=True)
+class Capsule(_AboutZ):
+    """Points within ``radius`` (m) of the z-axis segment ``|z| <= half_length`` (m), exact."""
 
     @property
     def bounding_radius(self) -> float:
@@ -110,17 +115,8 @@ class Capsule:
 
 
 @dataclass(frozen=True)
-class Cylinder:
+class Cylinder(_AboutZ):
     """Solid cylinder of ``radius`` (m) about the z axis, flat caps at ``z = ±half_length`` (m), exact."""
-
-    radius: float
-    half_length: float
-    lipschitz = 1.0
-
-    def __post_init__(self):
-        r, h = _positive("radius and half_length", self.radius, self.half_length)
-        object.__setattr__(self, "radius", r)
-        object.__setattr__(self, "half_length", h)
 
     @property
     def bounding_radius(self) -> float:
