@@ -12,7 +12,17 @@ Settings. Full (default): planner surface spacing 8.4 mm (216 points on the 5 cm
 samples, 8 elites, horizon K = 10, G = 2 gradient steps, 4 CEM rounds for the open-loop solve, 10 goals.
 ``--quick`` (what CI runs, under 5 minutes on 2 cores): spacing 12.5 mm (96 points), B = 16, 4 elites, K = 6,
 G = 1, 3 open-loop rounds, 2 goals, replanning rate from 3 solves. The replanning rate is always measured with
-the full planner (B = 64, K = 10, G = 2, ~200 points) on closed-loop planar pushing.
+the full planner (B = 64, K = 10, G = 2, 180 active points, 4 sub-steps) on closed-loop planar pushing: the first
+solve is reported apart (``first_solve_ms``: a warm-up, and with ``--compile`` the compilation unless an episode
+planner of the same shapes compiled the step before), then the mean of the timed solves (``solve_ms``,
+``rate_hz``) and its rollout / backward / CEM split.
+
+``--compile`` (``PlannerSettings.compile``) runs the planner's step through ``torch.compile`` (inductor, C++
+wrapper): the first solve of each new planner shape compiles four step graphs (with and without gradients, each
+for a rollout's first step and for the later ones) and the backward graphs, 3-6 minutes on one thread for the
+full pushing planner; after that a full-planner solve takes ~0.5 s instead of ~1.9 s (1 thread; 2 threads gain
+~5%). With ``--compile`` each task and model first runs an untimed one-step closed-loop episode that compiles
+its planner, so the reported solve times are steady-state ones.
 
 Run times (single thread, 2 shared cores): ``--quick`` 48 episodes in ~3.3 min CPU (4.8 min wall under load);
 the full setting takes about 6 hours: a full-planner closed-loop solve is 2-3.5 s (0.3-0.5 Hz), an episode
@@ -74,6 +84,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="std of the observed object orientation noise, deg per axis (default 0)")
     parser.add_argument("--deformation-noise-mm", type=float, default=0.0,
                         help="std of the observed membrane deformation noise at contact, mm per axis (default 0)")
+    parser.add_argument("--compile", action="store_true",
+                        help="planner step through torch.compile (PlannerSettings.compile): the first solve of "
+                             "each task and model compiles, about a minute per signature pair on a CPU")
     parser.add_argument("--rate-solves", type=int, default=None,
                         help="closed-loop pushing solves timed for the replanning rate with the full planner "
                              "(default 5, quick 3; 0 skips it)")
@@ -111,40 +124,44 @@ def _row(task: str, model: str, loop: str, results: list) -> dict:
     }
 
 
-def replanning_rate(solves: int) -> dict:
-    """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, ~200 points): mean solve time
-    split into rollout / backward / CEM, and the replanning rate (Hz) it allows. The first solve is a warm-up."""
+def replanning_rate(solves: int, compile: bool = False) -> dict:
+    """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, ~180 points): the first solve
+    (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the mean of
+    ``solves`` timed solves (``solve_ms``, ms) split into rollout / backward / CEM, and the replanning rate
+    (Hz) it allows."""
     import torch
 
+    from hydrosoft.control import CemGd
     from hydrosoft.tasks import make_task
     from hydrosoft.tasks.evaluation import PlannerSettings, estimate_state, prepare
 
-    from hydrosoft.control import CemGd
-    from hydrosoft.dynamics import step
-
     task = make_task("pushing")
-    settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2)
+    settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
+                               compile=compile)
     setup = prepare(task, settings)
     model = setup.planner_model
     low, high = task.bounds(model.body_names, model.dtype)
     stage, terminal = task.costs(model, task.sample_goal(0))
-    solver = CemGd(lambda s, u: step(model, s, u), stage, terminal, low, high,
+    solver = CemGd(setup.dynamics, stage, terminal, low, high,
                    config=settings.config(settings.horizon, 1), dtype=model.dtype)
-    times = []
+    first_s, times = 0.0, []
     for k in range(solves + 1):
         tic = time.perf_counter()
         result = solver.solve(estimate_state(setup, setup.plant.measure()))
         wall = time.perf_counter() - tic
         setup.plant.apply(torch.zeros(setup.plant.model.n_bodies, 6, dtype=torch.float64).index_copy(
             0, setup.body_index, result.action.double()))
-        if k > 0:
+        if k == 0:
+            first_s = wall
+        else:
             times.append({**result.timings, "solve_s": wall})
         _log(f"[rate] solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
+    compiled = getattr(setup.dynamics, "compiled", False)
     return {
         "task": "pushing", "samples": 64, "horizon": 10, "grad_steps": 2, "points": model.n_points,
-        "substeps": model.substeps, "solves": solves, "solve_ms": 1e3 * mean["solve_s"],
-        "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
+        "substeps": model.substeps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
+        "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
     }
 
@@ -221,6 +238,8 @@ def run(args: argparse.Namespace) -> int:
         _log(f"bench control: unknown task, model, loop or plant: {', '.join(bad) or args.plant}")
         return 2
     torch.set_num_threads(args.threads)
+    if args.compile:  # each planner shape, dtype and grad mode is its own compiled graph of the same `step` code
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     preset = QUICK if args.quick else FULL
     goals = args.goals if args.goals is not None else preset["goals"]
     rate_solves = args.rate_solves if args.rate_solves is not None else preset["rate_solves"]
@@ -231,12 +250,14 @@ def run(args: argparse.Namespace) -> int:
     for name in args.tasks:
         task = make_task(name, args.steps)
         for model in args.models:
-            planner = PlannerSettings(model=model, **{k: preset[k] for k in (
+            planner = PlannerSettings(model=model, compile=args.compile, **{k: preset[k] for k in (
                 "spacing", "samples", "elites", "horizon", "grad_steps", "open_loop_iterations")})
             plant = PlantSettings(
                 model=model if args.plant == "same" else args.plant, pose_noise_m=args.pose_noise_mm / 1e3,
                 pose_noise_rad=math.radians(args.pose_noise_deg), deformation_noise_m=args.deformation_noise_mm / 1e3)
             setup = prepare(task, planner, plant)
+            if args.compile:  # compile outside the timed episodes: a one-step closed-loop warm-up
+                run_episode(setup, task.sample_goal(0), "closed", steps=1)
             for loop in args.loops:
                 results = []
                 for g in range(goals):
@@ -247,9 +268,10 @@ def run(args: argparse.Namespace) -> int:
                     _log(f"[{done}/{total}] {name} {model} {loop} goal {g}: {result.initial_error_mm:.1f} -> "
                          f"{result.error_mm:.2f} mm ({result.status}), {time.perf_counter() - tic:.1f} s")
                 rows.append(_row(name, model, loop, results))
-    replanning = replanning_rate(rate_solves) if rate_solves > 0 else None
+    replanning = replanning_rate(rate_solves, args.compile) if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "quick": args.quick, "plant": args.plant, "threads": args.threads,
+                "compile": args.compile,
                 "noise": {"pose_mm": args.pose_noise_mm, "pose_deg": args.pose_noise_deg,
                           "deformation_mm": args.deformation_noise_mm},
                 "steps": {name: make_task(name, args.steps).steps for name in args.tasks},
@@ -259,10 +281,13 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(_table(rows, args.models))
         if replanning:
-            print(f"\nreplanning rate, closed-loop planar pushing, B={replanning['samples']}, K={replanning['horizon']}, "
-                  f"G={replanning['grad_steps']}, {replanning['points']} points, {replanning['threads']} thread(s): "
-                  f"{replanning['rate_hz']:.2f} Hz ({replanning['solve_ms']:.0f} ms per solve: rollout "
-                  f"{replanning['rollout_ms']:.0f}, backward {replanning['backward_ms']:.0f}, cem "
-                  f"{replanning['cem_ms']:.1f} ms)")
+            r = replanning
+            mode = "compiled" if r["compiled"] else "eager"
+            compiling = ", compiling the step unless a planner of the same shapes did before" if r["compiled"] else ""
+            print(f"\nreplanning rate, closed-loop planar pushing, B={r['samples']}, K={r['horizon']}, "
+                  f"G={r['grad_steps']}, {r['points']} points, {r['substeps']} sub-steps, {r['threads']} thread(s), "
+                  f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
+                  f"{r['rollout_ms']:.0f}, backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first solve "
+                  f"{r['first_solve_ms'] / 1e3:.1f} s{compiling})")
         print(f"\n{total} episodes in {settings['wall_s']:.0f} s; figures: {', '.join(pngs)}")
     return 0

@@ -12,7 +12,9 @@ and planar rotation, ``--quick``: planar rotation only, with fewer values). Repo
 solve time (ms) and the mean final ADD error (mm) over the task set; the Pareto front (no other setting is both
 faster and more accurate) is marked. Output: a table (or ``--json``: one JSON document ``{"points": [...],
 "pareto": [...]}``), a PNG ``tradeoff.png`` in ``--out``, progress on stderr. Runs single-threaded by default
-(``--threads``; see ``bench control``).
+(``--threads``; see ``bench control``). ``--compile`` runs every setting's planner step through ``torch.compile``
+(``PlannerSettings.compile``); each setting is compiled by a one-step warm-up episode first (about a minute per
+setting on a CPU), so the reported solve times are steady-state ones.
 """
 
 from __future__ import annotations
@@ -44,15 +46,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/bench-tradeoff"), help="folder for the PNG")
     parser.add_argument("--steps", type=int, default=None, help="control steps per episode (default: the task's)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    parser.add_argument("--compile", action="store_true",
+                        help="planner step through torch.compile, compiled by an untimed one-step warm-up per setting")
 
 
-def _settings(knob: str, value):
-    """PlannerSettings with ``knob`` set to ``value`` on top of BASE."""
+def _settings(knob: str, value, compile: bool = False):
+    """PlannerSettings with ``knob`` set to ``value`` on top of BASE (and ``compile``)."""
     import torch
 
     from hydrosoft.tasks.evaluation import PlannerSettings
 
-    fields = dict(BASE)
+    fields = dict(BASE, compile=compile)
     if knob == "dt":
         fields["substep_factor"] = value
     elif knob == "dtype":
@@ -104,11 +108,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"bench tradeoff: unknown task in {args.tasks!r}; known: {', '.join(TASKS)}", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
+    if args.compile:  # each planner shape, dtype and grad mode is its own compiled graph of the same `step` code
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     sweep = QUICK_SWEEP if args.quick else SWEEP
     runs = [(knob, value) for knob, values in sweep.items() for value in values]
     seen, points = set(), []
     for i, (knob, value) in enumerate(runs, 1):
-        settings = _settings(knob, value)
+        settings = _settings(knob, value, args.compile)
         if settings in seen:
             continue
         seen.add(settings)
@@ -116,7 +122,10 @@ def run(args: argparse.Namespace) -> int:
         for name in names:
             task = make_task(name, args.steps)
             tic = time.perf_counter()
-            result = run_episode(prepare(task, settings), task.sample_goal(0), "closed")
+            setup = prepare(task, settings)
+            if args.compile:
+                run_episode(setup, task.sample_goal(0), "closed", steps=1)
+            result = run_episode(setup, task.sample_goal(0), "closed")
             errors.append(result.error_mm)
             solve.append(result.solve_s)
             print(f"[{i}/{len(runs)}] {knob}={value} {name}: {result.error_mm:.2f} mm, "

@@ -23,6 +23,7 @@ finite.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -34,7 +35,7 @@ from torch import Tensor
 
 from hydrosoft.control import CemGd, CemGdConfig
 from hydrosoft.control.costs import orientation_error, position_error
-from hydrosoft.dynamics import Model, State, step
+from hydrosoft.dynamics import CompiledStep, Model, State, step
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, build_surface, compile_scene
 from hydrosoft.tactile import deformation_from_forces, forces_from_deformation, nearest_indices, resample
@@ -53,6 +54,12 @@ class PlannerSettings:
     open_loop_iterations: CEM rounds of the single open-loop solve. substep_factor: sub-steps per compiled sub-step
     (a finer integration step ``dt / (substeps * factor)`` within each control step). lr, init_std, min_std: fractions of the
     action half-range (``CemGdConfig``). dtype: the planner's float type. seed: the solver's seed.
+    compile: run the planner's step through ``dynamics.CompiledStep`` (``torch.compile``, eager fallback with a
+    warning). ``prepare`` builds one instance per setup, shared by every solver made from it, so each input
+    signature compiles once: the first solve pays for the four a CEM-GD solve uses (gradient-enabled and no-grad
+    rollouts, each with a first step from the measured state and later steps from the step's own outputs, which
+    differ in strides, cached signed distances and ``requires_grad``), minutes on a CPU for the full pushing
+    planner.
     """
 
     model: str = "nh"
@@ -69,6 +76,7 @@ class PlannerSettings:
     min_std: float = 0.05
     dtype: torch.dtype = torch.float64
     seed: int = 0
+    compile: bool = False
 
     def config(self, horizon: int, iterations: int) -> CemGdConfig:
         """The solver configuration for a plan of ``horizon`` steps and ``iterations`` CEM rounds."""
@@ -171,20 +179,33 @@ class Setup:
     point_index ``(N_planner,)``: nearest plant point of each planner point (object frame, normals weighted so
     faces do not mix). body_index ``(M_planner,)``: plant body of each planner body (by name), which maps
     measurements to the planner and actions to the plant. metric_points ``(N, 3)``: object-frame points (5 mm
-    spacing, the same for every setting) on which the ADD error is measured.
+    spacing, the same for every setting) on which the ADD error is measured. dynamics: the planner's step
+    ``(state, u) -> state`` on planner_model, a ``CompiledStep`` when ``planner.compile`` is set (one per setup,
+    shared by every solve on it, so it compiles once).
     """
 
     task: Task
     planner: PlannerSettings
     planner_model: Model
+    dynamics: Callable[[State, Tensor], State]
     plant: Plant
     point_index: Tensor
     body_index: Tensor
     metric_points: Tensor
 
 
-def prepare(task: Task, planner: PlannerSettings = PlannerSettings(), plant: PlantSettings = PlantSettings()) -> Setup:
-    """Compile the planner's model and the plant for ``task``."""
+def prepare(
+    task: Task,
+    planner: PlannerSettings = PlannerSettings(),
+    plant: PlantSettings = PlantSettings(),
+    compile_options: dict | None = None,
+) -> Setup:
+    """Compile the planner's model and the plant for ``task``.
+
+    ``compile_options`` go to ``CompiledStep`` (``torch.compile`` options, e.g. ``backend="eager"``) when
+    ``planner.compile`` is set, on top of ``dynamic=False``: the planner's shapes are fixed per setup, and static
+    kernels are the fast ones (inductor with its C++ wrapper by default).
+    """
     spacing = planner.spacing or task.scene.object.spacing
     model, _, _ = compile_scene(with_contact(task.scene, planner.model, spacing), dtype=planner.dtype)
     model = replace(model, substeps=model.substeps * planner.substep_factor)
@@ -197,7 +218,11 @@ def prepare(task: Task, planner: PlannerSettings = PlannerSettings(), plant: Pla
         raise ValueError(f"the plant has no body {missing} that the planner moves")
     body_index = torch.tensor([world.model.body_names.index(name) for name in model.body_names])
     metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
-    return Setup(task, planner, model, world, nearest_indices(source, target), body_index, metric)
+    if planner.compile:
+        dynamics = CompiledStep(model, **{"dynamic": False, **(compile_options or {})})
+    else:
+        dynamics = functools.partial(step, model)
+    return Setup(task, planner, model, dynamics, world, nearest_indices(source, target), body_index, metric)
 
 
 def estimate_state(setup: Setup, measurement: Measurement) -> State:
@@ -268,7 +293,7 @@ def run_episode(
     horizon, iterations = (steps, planner.open_loop_iterations) if loop == "open" else (
         planner.horizon, planner.cem_iterations)
     solver = CemGd(
-        lambda state, u: step(model, state, u), stage, terminal, low, high,
+        setup.dynamics, stage, terminal, low, high,
         config=planner.config(horizon, iterations), dtype=model.dtype,
     )
     start_error = _errors(setup, plant.state.object_pose, goal)[0]

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 
+import torch
 
 from hydrosoft.bench import control
+from hydrosoft.dynamics import CompiledStep
+from hydrosoft.tasks import evaluation
 
 KEYS = {"task", "model", "loop", "error_mm_mean", "error_mm_std", "solve_ms", "success_rate", "goals"}
 
@@ -43,6 +47,7 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
     assert rate["samples"] == 64 and rate["horizon"] == 10 and rate["grad_steps"] == 2
     assert 150 <= rate["points"] <= 250 and rate["rate_hz"] > 0
     assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"]
+    assert rate["compiled"] is False and rate["first_solve_ms"] > 0 and document["settings"]["compile"] is False
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
     assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "[16/16] in_hand pff closed goal 1" in err
@@ -64,3 +69,17 @@ def test_unknown_names_are_refused(tmp_path, capsys):
     assert control.run(parse("--models", "rigid", "--out", str(tmp_path))) == 2
     assert "juggling" in capsys.readouterr().err
     assert not tmp_path.exists() or not any(tmp_path.iterdir())
+
+
+def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp_path, capsys, monkeypatch):
+    """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes)."""
+    monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend="eager"))
+    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", torch._dynamo.config.recompile_limit)
+    args = parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--quick", "--steps", "1", "--goals",
+                 "1", "--rate-solves", "1", "--compile", "--out", str(tmp_path))
+    try:
+        assert control.run(args) == 0
+    finally:
+        torch._dynamo.reset()
+    out = capsys.readouterr().out
+    assert "sub-steps, 1 thread(s), compiled:" in out and "compiling the step" in out

@@ -35,5 +35,10 @@ def test_quick_sweep_prints_one_json_document_and_a_png(tmp_path, capsys):
     assert "rotation" in err
 
 
+def test_compile_option_compiles_every_setting():
+    assert not parse().compile and tradeoff._settings("samples", 8, parse("--compile").compile).compile
+    assert tradeoff._settings("dtype", "float32").compile is False
+
+
 def test_unknown_task_is_refused(tmp_path):
     assert tradeoff.run(parse("--tasks", "juggling", "--out", str(tmp_path))) == 2
