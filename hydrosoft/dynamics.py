@@ -275,19 +275,30 @@ def _substep(model: Model, state: State, u: Tensor, dt_sub: float) -> State:
     return advance_forces(model, state, object_pose, body_poses)
 
 
-def step(model: Model, state: State, u: Tensor) -> State:
-    """One quasi-dynamic step of length ``model.dt``: ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
+def _substep_of(model: Model):
+    """The sub-step of ``model`` as a function ``(state, u_sub) -> state`` (``model`` and ``h / n`` bound)."""
+    return functools.partial(_substep, model, dt_sub=model.dt / model.substeps)
+
+
+def _integrate(model: Model, state: State, u: Tensor, substep) -> State:
+    """``model.substeps`` applications of ``substep(state, u / n)``: one step of length ``model.dt``."""
     n = model.substeps
-    if n == 1:
-        return _substep(model, state, u, model.dt)
-    u_sub = u / n
+    u_sub = u if n == 1 else u / n
     for _ in range(n):
-        state = _substep(model, state, u_sub, model.dt / n)
+        state = substep(state, u_sub)
     return state
 
 
+def step(model: Model, state: State, u: Tensor) -> State:
+    """One quasi-dynamic step of length ``model.dt``: ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
+    return _integrate(model, state, u, _substep_of(model))
+
+
 class CompiledStep:
-    """``step(model, state, u)`` compiled with ``torch.compile`` (inductor), with an eager fallback.
+    """``step(model, state, u)`` with its sub-step compiled by ``torch.compile`` (inductor), and an eager fallback.
+
+    Only one sub-step is compiled and the sub-step loop stays in Python, so the graphs stay small whatever
+    ``model.substeps`` is (compiling the whole step put every sub-step into each graph: minutes to compile).
 
     ``CompiledStep(model, **options)(state, u)`` returns what ``step(model, state, u)`` returns, within float
     rounding (the compiled kernels reassociate sums: about 1e-7 relative in float32, 1e-15 in float64). The
@@ -306,7 +317,7 @@ class CompiledStep:
         self.fallback_reason: str | None = None
         if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
             options["options"] = {"cpp_wrapper": True}
-        self._compiled = torch.compile(functools.partial(step, model), **options)
+        self._compiled = torch.compile(_substep_of(model), **options)
 
     @property
     def compiled(self) -> bool:
@@ -317,7 +328,7 @@ class CompiledStep:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
         if self.fallback_reason is None:
             try:
-                return self._compiled(state, u)
+                return _integrate(self.model, state, u, self._compiled)
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager step
                 self.fallback_reason = f"{type(err).__name__}: {err}"
                 warnings.warn(f"torch.compile of the step failed, running eager: {self.fallback_reason}",
