@@ -18,10 +18,10 @@ planner of the same shapes compiled the step before), then the mean of the timed
 ``rate_hz``) and its rollout / backward / CEM split.
 
 ``--compile`` (``PlannerSettings.compile``) runs the planner's step through ``torch.compile`` (inductor, C++
-wrapper): the first solve of each new planner shape compiles four step graphs (with and without gradients, each
-for a rollout's first step and for the later ones) and the backward graphs, 3-6 minutes on one thread for the
-full pushing planner; after that a full-planner solve takes ~0.5 s instead of ~1.9 s (1 thread; 2 threads gain
-~5%). With ``--compile`` each task and model first runs an untimed one-step closed-loop episode that compiles
+wrapper): the first solve of each new planner shape compiles four sub-step graphs (with and without gradients,
+each for a rollout's first step and for the later ones) and the backward graphs, about two minutes on one
+thread for the full pushing planner (131 s for a whole one-goal, two-step rate run); after that a full-planner
+solve takes ~0.54 s instead of ~2 s (1 thread; 2 threads gain ~5%). With ``--compile`` each task and model first runs an untimed one-step closed-loop episode that compiles
 its planner, so the reported solve times are steady-state ones.
 
 Run times (single thread, 2 shared cores): ``--quick`` 48 episodes in ~3.3 min CPU (4.8 min wall under load);

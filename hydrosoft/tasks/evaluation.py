@@ -58,8 +58,8 @@ class PlannerSettings:
     warning). ``prepare`` builds one instance per setup, shared by every solver made from it, so each input
     signature compiles once: the first solve pays for the four a CEM-GD solve uses (gradient-enabled and no-grad
     rollouts, each with a first step from the measured state and later steps from the step's own outputs, which
-    differ in strides, cached signed distances and ``requires_grad``), minutes on a CPU for the full pushing
-    planner.
+    differ in strides, cached signed distances and ``requires_grad``); ``CompiledStep`` compiles one sub-step, so
+    this is about two minutes on one CPU thread for the full pushing planner.
     """
 
     model: str = "nh"
