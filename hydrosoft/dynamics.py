@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
+import types
 import warnings
 from dataclasses import dataclass, replace
 from typing import NamedTuple
@@ -47,8 +48,8 @@ class State(NamedTuple):
     object_pose: ``(B, 7)`` pose of the rigid object (origin at its centre of mass).
     body_poses: ``(B, M, 7)`` poses of the compliant bodies.
     forces: ``(B, M, N, 3)`` force each body applies to each object surface point, N.
-    phi: optional cache ``(B, M, N)`` of the signed distance (m) of each surface point to each body at these
-        poses. ``step`` and ``advance_forces`` fill it, and the next step uses it as ``phi_prev`` instead of
+    phi: optional cache ``(B, P)`` of the signed distances (m) at these poses of the points each body can touch,
+        body after body (``touchable_points``; ``P = M N`` when the model was not pruned per body). ``step`` and ``advance_forces`` fill it, and the next step uses it as ``phi_prev`` instead of
         evaluating the SDFs again; ``None`` means "compute it". It must describe this state's poses: build a new
         ``State`` without it (or ``_replace(phi=None)``) after editing the poses.
     """
@@ -69,6 +70,8 @@ class Model:
     mass (kg), inertia ``(3, 3)`` (kg m^2, object frame, about the centre of mass), gravity ``(3,)`` m/s^2.
     dt: step h (s); epsilon: the quasi-dynamic damping time (s); substeps: sub-steps per step.
     planar: the object moves in (x, y, yaw) only, its height and tilt held.
+    touchable: per body, the indices ``(N_m,)`` of the points it can touch (per-body pruning by the scene
+    compiler: a point out of a body's reach is never evaluated against it); ``()`` means every point for every body.
     """
 
     points: Tensor
@@ -86,6 +89,7 @@ class Model:
     epsilon: float
     planar: bool
     substeps: int = 1
+    touchable: tuple[Tensor, ...] = ()
 
     @property
     def n_points(self) -> int:
@@ -118,6 +122,7 @@ class Model:
             actuated=cast(self.actuated),
             inertia=cast(self.inertia),
             gravity=cast(self.gravity),
+            touchable=tuple(cast(t) for t in self.touchable),
         )
 
 
@@ -232,40 +237,71 @@ def _relative_frame(object_pose: Tensor, body_poses: Tensor) -> tuple[Tensor, Te
     return R_bT @ R_o.unsqueeze(1), R_bT @ (t_o.unsqueeze(1) - t_b), R_b, R_o
 
 
-def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses: Tensor) -> ContactStep:
+def touchable_points(model: Model) -> tuple[Tensor | None, ...]:
+    """Per body, the indices ``(N_m,)`` of the surface points it can touch, or None for all ``N`` points."""
+    return model.touchable if model.touchable else (None,) * model.n_bodies
+
+
+def _cached_phi(model: Model, phi: Tensor) -> list[Tensor]:
+    """``State.phi (B, P)`` split into the per-body ``(B, N_m)`` signed distances (body order)."""
+    sizes = [model.n_points if index is None else index.numel() for index in touchable_points(model)]
+    return list(phi.split(sizes, dim=-1))
+
+
+def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses: Tensor) -> list[ContactStep]:
     """Geometry of the step from ``prev`` to the poses ``object_pose (B, 7)``, ``body_poses (B, M, 7)``.
 
-    Every per-point quantity is an affine map of the object-frame points ``P (3, N)``, so each is one batched
-    ``(3, 3) @ (3, N)`` product of per-pose matrices: body-frame points ``A P + c``, the displacement
-    ``r = R_b1 (x_0 - x_1) = R_b1 (A_0 - A_1) P + R_b1 (c_0 - c_1)`` and the normals ``-R_o1 n``. The results are
-    returned as transposed views ``(..., N, 3)`` of ``(..., 3, N)`` tensors, a layout in which the reductions over
-    the coordinate axis and the SDFs' element-wise work run over contiguous memory (several times faster on CPU,
-    and vectorised over points when compiled). ``phi_prev`` is taken from ``prev.phi`` when it is cached.
+    One ``ContactStep`` per body ``m``, over the ``N_m`` points it can touch (``touchable_points``; all ``N`` when
+    the model was not pruned per body): ``phi_prev, phi_next (B, 1, N_m)``, ``displacement`` and ``normal
+    (B, 1, N_m, 3)``, ``area (N_m,)``. Every per-point quantity is an affine map of the object-frame points
+    ``P (3, N_m)``, so each is one batched ``(3, 3) @ (3, N_m)`` product of per-pose matrices: body-frame points
+    ``A P + c``, the displacement ``r = R_b1 (x_0 - x_1) = R_b1 (A_0 - A_1) P + R_b1 (c_0 - c_1)`` and the normals
+    ``-R_o1 n``. The results are transposed views ``(..., N_m, 3)`` of ``(..., 3, N_m)`` tensors, a layout in which
+    the reductions over the coordinate axis and the SDFs' element-wise work run over contiguous memory (several
+    times faster on CPU, and vectorised over points when compiled). ``phi_prev`` is taken from ``prev.phi`` when
+    it is cached.
     """
-    P = model.points.mT
     A1, c1, R_b1, R_o1 = _relative_frame(object_pose, body_poses)
     A0, c0, _, _ = _relative_frame(prev.object_pose, prev.body_poses)
-    phi_prev = prev.phi
-    if phi_prev is None:
-        phi_prev = signed_distances(model, (A0 @ P + c0).mT)
-    return ContactStep(
-        phi_prev=phi_prev,
-        phi_next=signed_distances(model, (A1 @ P + c1).mT),
-        displacement=((R_b1 @ (A0 - A1)) @ P + R_b1 @ (c0 - c1)).mT,
-        normal=(R_o1 @ -model.normals.mT).mT.unsqueeze(1),
-        area=model.areas,
-    )
+    cached = None if prev.phi is None else _cached_phi(model, prev.phi)
+    geometries = []
+    for m, (sdf, index) in enumerate(zip(model.bodies, touchable_points(model))):
+        points, normals, areas = model.points, model.normals, model.areas
+        if index is not None:
+            points, normals, areas = points[index], normals[index], areas[index]
+        P = points.mT
+        phi_prev = sdf((A0[:, m] @ P + c0[:, m]).mT) if cached is None else cached[m]
+        geometries.append(ContactStep(
+            phi_prev=phi_prev.unsqueeze(1),
+            phi_next=sdf((A1[:, m] @ P + c1[:, m]).mT).unsqueeze(1),
+            displacement=((R_b1[:, m] @ (A0[:, m] - A1[:, m])) @ P + R_b1[:, m] @ (c0[:, m] - c1[:, m])).mT.unsqueeze(1),
+            normal=(R_o1 @ -normals.mT).mT.unsqueeze(1),
+            area=areas,
+        ))
+    return geometries
 
 
 def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: Tensor) -> State:
     """Move object and bodies kinematically to the given poses and update the forces (step 4 of IV-D).
 
     ``object_pose (B, 7)`` and ``body_poses (B, M, 7)``; used by the step and to replay prescribed motions
-    (force benchmarks, tactile estimation). The returned state caches its signed distances (``State.phi``).
+    (force benchmarks, tactile estimation). Each body's forces are updated on the points it can touch
+    (``touchable_points``) and stay zero elsewhere. The returned state caches its signed distances (``State.phi``).
     """
-    geometry = contact_geometry(model, state, object_pose, body_poses)
-    forces = model.contact.step(geometry, state.forces, model.material)
-    return State(object_pose, body_poses, forces, geometry.phi_next)
+    n = model.n_points
+    forces, phis = [], []
+    geometries = contact_geometry(model, state, object_pose, body_poses)
+    for m, (geometry, index) in enumerate(zip(geometries, touchable_points(model))):
+        material = Material(*(t[m:m + 1] for t in model.material))
+        previous = state.forces[:, m:m + 1]
+        if index is not None:
+            previous = previous[:, :, index]
+        f = model.contact.step(geometry, previous, material)
+        if index is not None:
+            f = f.new_zeros(f.shape[0], 1, n, 3).index_copy(2, index, f)
+        forces.append(f)
+        phis.append(geometry.phi_next[:, 0])
+    return State(object_pose, body_poses, torch.cat(forces, dim=1), torch.cat(phis, dim=-1))
 
 
 def _substep(model: Model, state: State, u: Tensor, dt_sub: float) -> State:
@@ -294,6 +330,26 @@ def step(model: Model, state: State, u: Tensor) -> State:
     return _integrate(model, state, u, _substep_of(model))
 
 
+def _bound_substep(model: Model):
+    """The sub-step of ``model`` as a plain function ``(state, u_sub) -> state``."""
+    substep = _substep_of(model)
+
+    def compiled_substep(state: State, u: Tensor) -> State:
+        return substep(state, u)
+
+    return compiled_substep
+
+
+def _private_copy(fn):
+    """``fn`` with a code object of its own.
+
+    Dynamo keeps compiled graphs, and counts recompilations against ``torch._dynamo.config.recompile_limit``
+    (8), per code object. Every ``CompiledStep`` would otherwise compile the same code: the third model
+    compiled in a process (4 signatures each) would pass the limit and silently run eager.
+    """
+    return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+
+
 class CompiledStep:
     """``step(model, state, u)`` with its sub-step compiled by ``torch.compile`` (inductor), and an eager fallback.
 
@@ -308,8 +364,11 @@ class CompiledStep:
     With the default inductor backend and no ``mode``/``options`` given, inductor's C++ wrapper is used
     (``options={"cpp_wrapper": True}``): it launches the kernels from C++ instead of Python, which halves a
     batch-1 step (0.27 -> 0.14 ms measured on the pushing scene) for a few more seconds of compilation.
-    If compilation fails (no C++ compiler, an unsupported platform), it warns once and runs the eager ``step``
-    from then on; ``fallback_reason`` then says why. Nothing in the library requires it.
+    If compilation fails (no C++ compiler, an unsupported platform, more than dynamo's ``recompile_limit`` of 8
+    input signatures on one instance), it warns once and runs the eager ``step`` from then on;
+    ``fallback_reason`` then says why: dynamo's own fallback past its limit would be silent. Each instance
+    compiles a private copy of the sub-step's code, so any number of instances (one per model) stay compiled.
+    Nothing in the library requires it.
     """
 
     def __init__(self, model: Model, **options) -> None:
@@ -317,7 +376,7 @@ class CompiledStep:
         self.fallback_reason: str | None = None
         if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
             options["options"] = {"cpp_wrapper": True}
-        self._compiled = torch.compile(_substep_of(model), **options)
+        self._compiled = torch.compile(_private_copy(_bound_substep(model)), **options)
 
     @property
     def compiled(self) -> bool:
@@ -328,7 +387,8 @@ class CompiledStep:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
         if self.fallback_reason is None:
             try:
-                return _integrate(self.model, state, u, self._compiled)
+                with torch._dynamo.config.patch(fail_on_recompile_limit_hit=True):
+                    return _integrate(self.model, state, u, self._compiled)
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager step
                 self.fallback_reason = f"{type(err).__name__}: {err}"
                 warnings.warn(f"torch.compile of the step failed, running eager: {self.fallback_reason}",

@@ -180,13 +180,15 @@ class CompileReport:
     bodies_dropped: tuple[str, ...]
     points_total: int
     points_kept: int
+    pairs_kept: int
     substeps: int
 
     def summary(self) -> str:
         dropped = f"; dropped bodies out of reach: {', '.join(self.bodies_dropped)}" if self.bodies_dropped else ""
         return (
             f"{'planar SE(2)' if self.planar else 'spatial SE(3)'} model, bodies {', '.join(self.bodies_kept)}"
-            f"{dropped}; {self.points_kept}/{self.points_total} surface points active; "
+            f"{dropped}; {self.points_kept}/{self.points_total} surface points active, {self.pairs_kept} "
+            f"point-body pairs of {self.points_kept * len(self.bodies_kept)}; "
             f"{self.substeps} sub-step(s) per step"
         )
 
@@ -223,6 +225,9 @@ def compile_scene(
 ) -> tuple[Model, State, CompileReport]:
     """Compile a scene into ``(model, initial state with B = 1, report)``.
 
+    Pruning (``prune=True``) keeps only what the scene can use within ``reach``: bodies that can reach the
+    object, surface points within reach of some body, and, per body, only the points within its reach
+    (``Model.touchable``; the pushing scene's bubble and table share none of their 96 and 84 points).
     ``prune=False`` keeps every body and point (the full model, for checking what pruning changes). The
     initial forces are those of pressing each body straight into its initial pose (``press_in``).
     """
@@ -253,10 +258,13 @@ def compile_scene(
         )
     active = torch.stack(near)
     index = active.any(0).nonzero().squeeze(-1)
-    if prune and index.numel() == 0:
+    if prune and index.numel() == 0:  # nothing within reach: keep everything, the bodies may still be brought in
         index = torch.arange(surface.n_points)
+        active = torch.ones_like(active)
     surface = surface.subset(index)
     touching = torch.stack(touching)[:, index]
+    near = active[:, index]
+    touchable = () if bool(near.all()) else tuple(row.nonzero().squeeze(-1) for row in near)
 
     specs = [spec for spec, _ in kept]
     material = Material(
@@ -279,6 +287,7 @@ def compile_scene(
         dt=scene.dt,
         epsilon=scene.epsilon,
         planar=scene.planar,
+        touchable=touchable,
     )
     try:
         n_sub = substeps_for(model, scene.max_substeps, touching)
@@ -294,6 +303,7 @@ def compile_scene(
         bodies_dropped=tuple(dropped),
         points_total=int(world_points.shape[0]),
         points_kept=int(index.numel()),
+        pairs_kept=int(near.sum()),
         substeps=n_sub,
     )
     return model, state, report

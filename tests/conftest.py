@@ -23,3 +23,11 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def fresh_dynamo():
+    """Start and end the test with empty dynamo caches and counters (the test counts graphs, or adds many)."""
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()

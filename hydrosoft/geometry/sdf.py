@@ -165,11 +165,15 @@ class Ellipsoid:
     """
 
     radii: tuple[float, float, float]
+    solver_steps: int | None = None
     lipschitz = 1.0
     MAX_SOLVER_STEPS = 32  # most points converge in ~6; the slowest, next to the medial surface, in ~24
 
     def __post_init__(self):
         object.__setattr__(self, "radii", _positive("radii", *self.radii))
+        if self.solver_steps is not None and not 0 <= int(self.solver_steps) <= self.MAX_SOLVER_STEPS:
+            raise ValueError(f"solver_steps must be None (solve to convergence) or 0..{self.MAX_SOLVER_STEPS}, "
+                             f"got {self.solver_steps}")
 
     @property
     def bounding_radius(self) -> float:
@@ -219,7 +223,10 @@ class Ellipsoid:
 
             carry = (torch.zeros((), dtype=torch.int64, device=points.device), t, lo, hi,
                      torch.ones((), dtype=torch.bool, device=points.device))
-            if torch.compiler.is_compiling():
+            if self.solver_steps is not None:  # fixed count: no convergence test, one fused loop when compiled
+                for _ in range(self.solver_steps):
+                    carry = halley(*carry)
+            elif torch.compiler.is_compiling():
                 carry = torch.while_loop(unconverged, halley, carry)
             else:  # eager torch.while_loop would trace the loop with dynamo on every new shape
                 while unconverged(*carry):

@@ -2,6 +2,7 @@
 torch.compile'd step (dynamics.CompiledStep) against the eager step."""
 
 import warnings
+from dataclasses import replace
 
 import msgspec
 import pytest
@@ -15,6 +16,7 @@ from hydrosoft.dynamics import (
     contact_geometry,
     signed_distances,
     step,
+    touchable_points,
 )
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
@@ -42,9 +44,21 @@ def test_cached_phi_gives_identical_rollout():
     for _ in range(6):
         cached = step(model, cached, u)
         uncached = step(model, uncached, u)._replace(phi=None)
-        assert cached.phi is not None and cached.phi.shape == (3, model.n_bodies, model.n_points)
+        assert cached.phi is not None and cached.phi.shape == (3, sum(map(len, model.touchable)))
     assert torch.equal(cached.forces, uncached.forces)
     assert torch.equal(cached.object_pose, uncached.object_pose)
+
+
+def pairs(model, dense):
+    """The ``(B, P)`` per-body touchable entries of a dense ``(B, M, N)`` tensor, body after body."""
+    return torch.cat([dense[:, m, index] for m, index in enumerate(touchable_points(model))], dim=-1)
+
+
+def test_the_pushing_scene_is_pruned_per_body():
+    """Bubble and table touch disjoint point sets (top and bottom of the cube): half the point-body pairs."""
+    model, _, _ = pushing()
+    bubble, table = (set(index.tolist()) for index in model.touchable)
+    assert bubble and table and not bubble & table and len(bubble | table) == model.n_points
 
 
 def test_cached_phi_is_the_signed_distance_of_the_state():
@@ -52,7 +66,18 @@ def test_cached_phi_is_the_signed_distance_of_the_state():
     nxt = step(model, state, u)
     points = se3.transform_points(nxt.object_pose, model.points).unsqueeze(1)
     local = se3.transform_points(se3.inverse(nxt.body_poses), points)
-    assert torch.allclose(nxt.phi, signed_distances(model, local), rtol=0, atol=1e-15)
+    assert torch.allclose(nxt.phi, pairs(model, signed_distances(model, local)), rtol=0, atol=1e-15)
+
+
+def test_forces_stay_zero_on_points_a_body_cannot_touch():
+    model, state, u = pushing()
+    for _ in range(3):
+        state = step(model, state, u)
+    for m, index in enumerate(model.touchable):
+        outside = torch.ones(model.n_points, dtype=torch.bool)
+        outside[index] = False
+        assert state.forces[:, m, outside].abs().max() == 0
+        assert state.forces[:, m, index].abs().max() > 0
 
 
 def test_contact_geometry_matches_quaternion_formulas():
@@ -61,16 +86,21 @@ def test_contact_geometry_matches_quaternion_formulas():
     prev = step(model, state, u)._replace(phi=None)
     object_pose = se3.retract(prev.object_pose, torch.tensor([2e-4, -1e-4, 0, 0, 0, 0.01], dtype=torch.float64))
     body_poses = se3.retract(prev.body_poses, u)
-    geometry = contact_geometry(model, prev, object_pose, body_poses)
+    geometries = contact_geometry(model, prev, object_pose, body_poses)
     p0 = se3.transform_points(prev.object_pose, model.points).unsqueeze(1)
     p1 = se3.transform_points(object_pose, model.points).unsqueeze(1)
     x0 = se3.transform_points(se3.inverse(prev.body_poses), p0)
     x1 = se3.transform_points(se3.inverse(body_poses), p1)
-    assert torch.allclose(geometry.phi_prev, signed_distances(model, x0), rtol=0, atol=1e-15)
-    assert torch.allclose(geometry.phi_next, signed_distances(model, x1), rtol=0, atol=1e-15)
-    assert torch.allclose(geometry.displacement, se3.rotate_vectors(body_poses, x0 - x1), rtol=0, atol=1e-16)
-    normal = -se3.rotate_vectors(object_pose, model.normals).unsqueeze(1)
-    assert torch.allclose(geometry.normal, normal, rtol=0, atol=1e-15)
+    phi0, phi1 = signed_distances(model, x0), signed_distances(model, x1)
+    displacement = se3.rotate_vectors(body_poses, x0 - x1)
+    normal = -se3.rotate_vectors(object_pose, model.normals)
+    assert len(geometries) == model.n_bodies
+    for m, (geometry, index) in enumerate(zip(geometries, model.touchable)):
+        assert torch.allclose(geometry.phi_prev[:, 0], phi0[:, m, index], rtol=0, atol=1e-15)
+        assert torch.allclose(geometry.phi_next[:, 0], phi1[:, m, index], rtol=0, atol=1e-15)
+        assert torch.allclose(geometry.displacement[:, 0], displacement[:, m, index], rtol=0, atol=1e-16)
+        assert torch.allclose(geometry.normal[:, 0], normal[:, index], rtol=0, atol=1e-15)
+        assert torch.equal(geometry.area, model.areas[index])
 
 
 def test_wrench_matches_cross_products():
@@ -130,3 +160,29 @@ def test_compiled_step_matches_eager():
         grads.append(g)
     assert fast.compiled
     assert (grads[1] - grads[0]).abs().max() <= 1e-4 * grads[0].abs().max()
+
+
+def test_many_compiled_steps_in_one_process_all_stay_compiled(fresh_dynamo):
+    """Dynamo's recompile limit (8 per code object) must not silently turn later instances eager: four models
+    with two signatures each (16 graphs) all run compiled (backend="eager": dynamo's capture, no code generation)."""
+    model, state, u = pushing(batch=1)
+    counters = torch._dynamo.utils.counters
+    for k in range(4):
+        fast = CompiledStep(replace(model, dt=model.dt * (1 + k / 10)), backend="eager")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            first = fast(state, u)
+            fast(first, u)  # cached phi: a second signature
+        assert fast.compiled
+    assert counters["stats"]["unique_graphs"] >= 8
+
+
+def test_a_compiled_step_past_the_recompile_limit_says_so(fresh_dynamo):
+    """Past dynamo's limit the step falls back to eager with a warning instead of silently."""
+    model, state, u = pushing(batch=1)
+    fast = CompiledStep(model, backend="eager", dynamic=False)
+    with pytest.warns(RuntimeWarning, match="recompile"):
+        for batch in range(1, 12):
+            expanded = State(*(t.expand(batch, *t.shape[1:]) for t in state[:3]))
+            fast(expanded, u.expand(batch, -1, -1))
+    assert not fast.compiled and "recompile" in fast.fallback_reason.lower()

@@ -15,13 +15,6 @@ from hydrosoft.tasks import make_task
 from hydrosoft.tasks.evaluation import prepare, run_episode
 
 
-@pytest.fixture
-def fresh_dynamo():
-    """Drop the graphs this test adds to the shared ``step`` cache, so they count against no later test's limit."""
-    yield
-    torch._dynamo.reset()
-
-
 def test_the_default_planner_steps_eagerly():
     setup = prepare(make_task("pushing"), quick_planner(samples=4, horizon=2))
     assert isinstance(setup.dynamics, functools.partial) and setup.dynamics.args == (setup.planner_model,)
