@@ -238,8 +238,6 @@ def run(args: argparse.Namespace) -> int:
         _log(f"bench control: unknown task, model, loop or plant: {', '.join(bad) or args.plant}")
         return 2
     torch.set_num_threads(args.threads)
-    if args.compile:  # each planner shape, dtype and grad mode is its own compiled graph of the same `step` code
-        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     preset = QUICK if args.quick else FULL
     goals = args.goals if args.goals is not None else preset["goals"]
     rate_solves = args.rate_solves if args.rate_solves is not None else preset["rate_solves"]

@@ -5,12 +5,15 @@ NH, float64, one integration sub-step per compiled sub-step), one knob at a time
 
 - ``samples`` B: 8, 16, 32, 64;  ``grad_steps`` G: 0, 1, 2;  ``horizon`` K: 4, 6, 10;
 - ``spacing`` (m): 0.0167, 0.0125, 0.0084;  ``dt``: the planner's integration step as a fraction of the
-  compiled one, 1 or 1/2 (``substep_factor`` 1, 2);  ``dtype``: float64, float32;  ``model``: nh, snh (smoothed).
+  compiled one, 1 or 1/2 (``substep_factor`` 1, 2);  ``dtype``: float64, float32;  ``model``: nh, snh (smoothed);
+  ``sdf_solver_steps``: the bubble ellipsoid solved to convergence or in 2 fixed steps.
 
-Every setting runs goal 0 of a fixed small task set closed loop on the finer NH plant (default planar pushing
-and planar rotation, ``--quick``: planar rotation only, with fewer values). Reported per setting: the mean
-solve time (ms) and the mean final ADD error (mm) over the task set; the Pareto front (no other setting is both
-faster and more accurate) is marked. Output: a table (or ``--json``: one JSON document ``{"points": [...],
+Every setting runs goals ``0 .. --goals - 1`` (default 5) of a fixed small task set closed loop on the finer NH
+plant (default planar pushing and planar rotation, ``--quick``: planar rotation, goal 0, fewer values). Reported
+per setting: the mean solve time (ms) and the mean and standard error of the final ADD error (mm) over all its
+episodes; the Pareto front (no other setting is both faster and more accurate on the mean) is marked. One goal
+per setting is too noisy to rank settings: run several, and read differences smaller than the standard errors
+as ties. Tasks can run as separate processes (``--tasks pushing`` ...) to use both cores. Output: a table (or ``--json``: one JSON document ``{"points": [...],
 "pareto": [...]}``), a PNG ``tradeoff.png`` in ``--out``, progress on stderr. Runs single-threaded by default
 (``--threads``; see ``bench control``). ``--compile`` runs every setting's planner step through ``torch.compile``
 (``PlannerSettings.compile``); each setting is compiled by a one-step warm-up episode first (about a minute per
@@ -34,6 +37,7 @@ SWEEP = {
     "dt": [1, 2],
     "dtype": ["float64", "float32"],
     "model": ["nh", "snh"],
+    "sdf_solver_steps": [None, 2],
 }
 QUICK_SWEEP = {"samples": [8, 16], "grad_steps": [0, 1], "dtype": ["float64", "float32"], "model": ["nh", "snh"]}
 
@@ -44,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="planar rotation only and fewer values (CI)")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
     parser.add_argument("--out", type=Path, default=Path("out/bench-tradeoff"), help="folder for the PNG")
+    parser.add_argument("--goals", type=int, default=None, help="seeded goals per task and setting (default 5, quick 1)")
     parser.add_argument("--steps", type=int, default=None, help="control steps per episode (default: the task's)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--compile", action="store_true",
@@ -108,9 +113,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"bench tradeoff: unknown task in {args.tasks!r}; known: {', '.join(TASKS)}", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
-    if args.compile:  # each planner shape, dtype and grad mode is its own compiled graph of the same `step` code
-        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     sweep = QUICK_SWEEP if args.quick else SWEEP
+    goals = args.goals if args.goals is not None else (1 if args.quick else 5)
     runs = [(knob, value) for knob, values in sweep.items() for value in values]
     seen, points = set(), []
     for i, (knob, value) in enumerate(runs, 1):
@@ -125,23 +129,28 @@ def run(args: argparse.Namespace) -> int:
             setup = prepare(task, settings)
             if args.compile:
                 run_episode(setup, task.sample_goal(0), "closed", steps=1)
-            result = run_episode(setup, task.sample_goal(0), "closed")
-            errors.append(result.error_mm)
-            solve.append(result.solve_s)
-            print(f"[{i}/{len(runs)}] {knob}={value} {name}: {result.error_mm:.2f} mm, "
-                  f"{1e3 * result.solve_s:.0f} ms per solve, {time.perf_counter() - tic:.1f} s", file=sys.stderr,
-                  flush=True)
-        points.append({"knob": knob, "value": value, "label": f"{knob}={value}",
-                       "solve_ms": 1e3 * sum(solve) / len(solve), "error_mm": sum(errors) / len(errors)})
+            for goal in range(goals):
+                result = run_episode(setup, task.sample_goal(goal), "closed")
+                errors.append(result.error_mm)
+                solve.append(result.solve_s)
+            print(f"[{i}/{len(runs)}] {knob}={value} {name}: {sum(errors[-goals:]) / goals:.2f} mm over {goals} "
+                  f"goal(s), {1e3 * sum(solve[-goals:]) / goals:.0f} ms per solve, {time.perf_counter() - tic:.1f} s",
+                  file=sys.stderr, flush=True)
+        mean = sum(errors) / len(errors)
+        spread = (sum((e - mean) ** 2 for e in errors) / (len(errors) - 1)) ** 0.5 if len(errors) > 1 else 0.0
+        points.append({"knob": knob, "value": value, "label": f"{knob}={value}", "episodes": len(errors),
+                       "solve_ms": 1e3 * sum(solve) / len(solve), "error_mm": mean,
+                       "error_mm_sem": spread / len(errors) ** 0.5})
     front = pareto(points)
     png = _plot(points, front, args.out)
     if args.json:
-        print(json.dumps({"tasks": names, "base": BASE, "points": points, "pareto": [p["label"] for p in front],
+        print(json.dumps({"tasks": names, "goals": goals, "base": BASE, "points": points, "pareto": [p["label"] for p in front],
                           "png": str(png)}))
     else:
-        print(f"tasks {', '.join(names)}, goal 0, closed loop; base {BASE}")
-        print(f"{'setting':<20}{'solve ms':>10}{'error mm':>10}  pareto")
+        print(f"tasks {', '.join(names)}, goals 0..{goals - 1}, closed loop; base {BASE}")
+        print(f"{'setting':<24}{'solve ms':>10}{'error mm':>10}{'+-sem':>8}  pareto")
         for p in sorted(points, key=lambda p: p["solve_ms"]):
-            print(f"{p['label']:<20}{p['solve_ms']:>10.1f}{p['error_mm']:>10.2f}  {'*' if p in front else ''}")
+            print(f"{p['label']:<24}{p['solve_ms']:>10.1f}{p['error_mm']:>10.2f}{p['error_mm_sem']:>8.2f}  "
+                  f"{'*' if p in front else ''}")
         print(f"figure: {png}")
     return 0

@@ -42,3 +42,20 @@ def test_compile_option_compiles_every_setting():
 
 def test_unknown_task_is_refused(tmp_path):
     assert tradeoff.run(parse("--tasks", "juggling", "--out", str(tmp_path))) == 2
+
+
+def test_goals_option_averages_every_setting_over_that_many_goals(tmp_path, capsys):
+    assert tradeoff.run(parse("--quick", "--goals", "2", "--steps", "1", "--json", "--out", str(tmp_path))) == 0
+    document = json.loads(capsys.readouterr().out)
+    assert document["goals"] == 2
+    assert all(p["episodes"] == 2 and p["error_mm_sem"] >= 0 for p in document["points"])
+
+
+def test_the_solver_steps_knob_reaches_the_planner_bodies():
+    from hydrosoft.tasks import make_task
+    from hydrosoft.tasks.evaluation import prepare
+
+    settings = tradeoff._settings("sdf_solver_steps", 2)
+    setup = prepare(make_task("pushing"), settings)
+    assert setup.planner_model.bodies[0].solver_steps == 2
+    assert setup.plant.model.bodies[0].solver_steps is None  # the plant keeps the converged solve

@@ -274,3 +274,40 @@ def test_from_spec():
         sdf.from_spec("sphere", radius=-1.0)
     with pytest.raises(ValueError, match="positive"):
         sdf.Box((0.1, 0.0, 0.1))
+
+
+def _bubble_band(width: float, count: int = 20000) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points within ``width`` m of the Soft Bubble ellipsoid's surface and their converged signed distances."""
+    radii = (0.06, 0.045, 0.03)
+    g = torch.Generator().manual_seed(3)
+    direction = torch.nn.functional.normalize(torch.randn(count, 3, generator=g, dtype=torch.float64), dim=-1)
+    surface = direction / (direction / torch.tensor(radii, dtype=torch.float64)).norm(dim=-1, keepdim=True)
+    scale = 1 + (2 * torch.rand(count, 1, generator=g, dtype=torch.float64) - 1) * width / min(radii)
+    points = surface * scale
+    exact = sdf.Ellipsoid(radii)(points)
+    keep = exact.abs() <= width
+    return points[keep], exact[keep]
+
+
+@pytest.mark.parametrize("steps, width, bound", [(2, 0.01, 1e-15), (2, 0.02, 1e-4), (3, 0.02, 1e-6)])
+def test_ellipsoid_fixed_solver_steps_are_exact_near_the_surface(steps, width, bound):
+    points, exact = _bubble_band(width)
+    assert len(points) > 10000
+    fixed = sdf.Ellipsoid((0.06, 0.045, 0.03), solver_steps=steps)(points)
+    assert (fixed - exact).abs().max() <= bound
+    assert torch.equal(fixed > 0, exact > 0)
+
+
+def test_ellipsoid_fixed_solver_steps_fewer_is_less_accurate_and_gradients_stay_finite():
+    points, exact = _bubble_band(0.02)
+    errors = [(sdf.Ellipsoid((0.06, 0.045, 0.03), solver_steps=n)(points) - exact).abs().max() for n in (0, 1, 2)]
+    assert errors[0] > errors[1] > errors[2]
+    x = points[:500].clone().requires_grad_(True)
+    sdf.Ellipsoid((0.06, 0.045, 0.03), solver_steps=1)(x).sum().backward()
+    assert torch.isfinite(x.grad).all()
+
+
+@pytest.mark.parametrize("steps", [-1, 33])
+def test_ellipsoid_rejects_out_of_range_solver_steps(steps):
+    with pytest.raises(ValueError, match="solver_steps"):
+        sdf.Ellipsoid((0.06, 0.045, 0.03), solver_steps=steps)
