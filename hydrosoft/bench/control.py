@@ -33,7 +33,7 @@ Torch runs single-threaded by default (``--threads``): on 2 shared cores the Ope
 behind other processes (a B = 64 step took 250 ms with 2 threads and 22 ms with 1).
 
 Output: a table laid out like Table III (stdout), or with ``--json`` exactly one JSON document
-``{"rows": [...], "replanning": {...}, "settings": {...}}``; one PNG per task in ``--out`` (final error per goal,
+``{"rows": [...], "replanning": [{...} per --rate-dtypes] or null, "settings": {...}}``; one PNG per task in ``--out`` (final error per goal,
 open vs closed loop, per model); progress on stderr.
 """
 
@@ -90,6 +90,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-solves", type=int, default=None,
                         help="closed-loop pushing solves timed for the replanning rate with the full planner "
                              "(default 5, quick 3; 0 skips it)")
+    parser.add_argument("--rate-dtypes", type=_csv, default=["float64", "float32"], metavar="D1,D2",
+                        help="planner float types whose replanning rate is measured, in one run so that their "
+                             "ratio holds (default float64,float32; the episodes plan in float64)")
 
 
 def _log(text: str) -> None:
@@ -124,11 +127,11 @@ def _row(task: str, model: str, loop: str, results: list) -> dict:
     }
 
 
-def replanning_rate(solves: int, compile: bool = False) -> dict:
-    """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, ~180 points): the first solve
-    (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the mean of
-    ``solves`` timed solves (``solve_ms``, ms) split into rollout / backward / CEM, and the replanning rate
-    (Hz) it allows."""
+def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") -> dict:
+    """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, ~180 points) in ``dtype``: the
+    first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the
+    mean of ``solves`` timed solves (``solve_ms``, ms) split into rollout / backward / CEM, and the replanning
+    rate (Hz) it allows."""
     import torch
 
     from hydrosoft.control import CemGd
@@ -137,7 +140,7 @@ def replanning_rate(solves: int, compile: bool = False) -> dict:
 
     task = make_task("pushing")
     settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
-                               compile=compile)
+                               compile=compile, dtype=getattr(torch, dtype))
     setup = prepare(task, settings)
     model = setup.planner_model
     low, high = task.bounds(model.body_names, model.dtype)
@@ -155,11 +158,11 @@ def replanning_rate(solves: int, compile: bool = False) -> dict:
             first_s = wall
         else:
             times.append({**result.timings, "solve_s": wall})
-        _log(f"[rate] solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
+        _log(f"[rate] {dtype} solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
     compiled = getattr(setup.dynamics, "compiled", False)
     return {
-        "task": "pushing", "samples": 64, "horizon": 10, "grad_steps": 2, "points": model.n_points,
+        "task": "pushing", "dtype": dtype, "samples": 64, "horizon": 10, "grad_steps": 2, "points": model.n_points,
         "substeps": model.substeps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
@@ -233,9 +236,10 @@ def run(args: argparse.Namespace) -> int:
     from hydrosoft.tasks.evaluation import PlannerSettings, PlantSettings, prepare, run_episode
 
     bad = ([t for t in args.tasks if t not in TASKS] + [m for m in args.models if m not in MODEL_TITLES]
-           + [loop for loop in args.loops if loop not in ("open", "closed")])
+           + [loop for loop in args.loops if loop not in ("open", "closed")]
+           + [d for d in args.rate_dtypes if d not in ("float64", "float32")])
     if bad or args.plant not in (*MODEL_TITLES, "same"):
-        _log(f"bench control: unknown task, model, loop or plant: {', '.join(bad) or args.plant}")
+        _log(f"bench control: unknown task, model, loop, rate dtype or plant: {', '.join(bad) or args.plant}")
         return 2
     torch.set_num_threads(args.threads)
     preset = QUICK if args.quick else FULL
@@ -266,7 +270,8 @@ def run(args: argparse.Namespace) -> int:
                     _log(f"[{done}/{total}] {name} {model} {loop} goal {g}: {result.initial_error_mm:.1f} -> "
                          f"{result.error_mm:.2f} mm ({result.status}), {time.perf_counter() - tic:.1f} s")
                 rows.append(_row(name, model, loop, results))
-    replanning = replanning_rate(rate_solves, args.compile) if rate_solves > 0 else None
+    replanning = [replanning_rate(rate_solves, args.compile, dtype) for dtype in args.rate_dtypes
+                  ] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "quick": args.quick, "plant": args.plant, "threads": args.threads,
                 "compile": args.compile,
@@ -278,11 +283,10 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"rows": rows, "replanning": replanning, "settings": settings}))
     else:
         print(_table(rows, args.models))
-        if replanning:
-            r = replanning
+        for r in replanning or []:
             mode = "compiled" if r["compiled"] else "eager"
             compiling = ", compiling the step unless a planner of the same shapes did before" if r["compiled"] else ""
-            print(f"\nreplanning rate, closed-loop planar pushing, B={r['samples']}, K={r['horizon']}, "
+            print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
                   f"G={r['grad_steps']}, {r['points']} points, {r['substeps']} sub-steps, {r['threads']} thread(s), "
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f}, backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first solve "

@@ -293,7 +293,7 @@ class _Bench:
 
         from hydrosoft.dynamics import CompiledStep, step
 
-        if compiled:  # every model, dtype and grad mode is its own compiled graph of the same `step` code
+        if compiled:  # one CompiledStep per model and dtype compiles every batch size and grad mode: > 8 graphs
             torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
         dtype_of = {"float32": torch.float32, "float64": torch.float64}
         timed_dtypes = list(dict.fromkeys([*dtypes, "float64"]))

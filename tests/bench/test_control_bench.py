@@ -43,11 +43,13 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
         assert KEYS <= row.keys() and row["goals"] == 2 and len(row["errors_mm"]) == 2
         assert row["error_mm_mean"] > 0 and row["error_mm_std"] >= 0 and 0 <= row["success_rate"] <= 1
         assert row["solve_ms"] > 0
-    rate = document["replanning"]
-    assert rate["samples"] == 64 and rate["horizon"] == 10 and rate["grad_steps"] == 2
-    assert 150 <= rate["points"] <= 250 and rate["rate_hz"] > 0
-    assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"]
-    assert rate["compiled"] is False and rate["first_solve_ms"] > 0 and document["settings"]["compile"] is False
+    assert [rate["dtype"] for rate in document["replanning"]] == ["float64", "float32"]
+    for rate in document["replanning"]:
+        assert rate["samples"] == 64 and rate["horizon"] == 10 and rate["grad_steps"] == 2
+        assert 150 <= rate["points"] <= 250 and rate["rate_hz"] > 0
+        assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"]
+        assert rate["compiled"] is False and rate["first_solve_ms"] > 0
+    assert document["settings"]["compile"] is False
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
     assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "[16/16] in_hand pff closed goal 1" in err
@@ -67,6 +69,7 @@ def test_table_is_laid_out_like_table_iii(tmp_path, capsys):
 def test_unknown_names_are_refused(tmp_path, capsys):
     assert control.run(parse("--tasks", "juggling", "--out", str(tmp_path))) == 2
     assert control.run(parse("--models", "rigid", "--out", str(tmp_path))) == 2
+    assert control.run(parse("--rate-dtypes", "float16", "--out", str(tmp_path))) == 2
     assert "juggling" in capsys.readouterr().err
     assert not tmp_path.exists() or not any(tmp_path.iterdir())
 
@@ -74,12 +77,11 @@ def test_unknown_names_are_refused(tmp_path, capsys):
 def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp_path, capsys, monkeypatch):
     """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes)."""
     monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend="eager"))
-    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", torch._dynamo.config.recompile_limit)
     args = parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--quick", "--steps", "1", "--goals",
-                 "1", "--rate-solves", "1", "--compile", "--out", str(tmp_path))
+                 "1", "--rate-solves", "1", "--rate-dtypes", "float32", "--compile", "--out", str(tmp_path))
     try:
         assert control.run(args) == 0
     finally:
         torch._dynamo.reset()
     out = capsys.readouterr().out
-    assert "sub-steps, 1 thread(s), compiled:" in out and "compiling the step" in out
+    assert "float32" in out and "sub-steps, 1 thread(s), compiled:" in out and "compiling the step" in out
