@@ -220,6 +220,14 @@ def _check_planar(scene: Scene) -> None:
         raise SceneError("planar: the object must be upright (its pose may only rotate about z)")
 
 
+def fixed_contact_set(scene: Scene, spec: BodySpec, sdf) -> bool:
+    """True when no motion can change which object points touch this body: in a planar scene the object's height
+    and tilt are held, so its points keep their distances to an unactuated horizontal half-space (the table).
+    Such a body is given exactly the points in contact at the start, for pruning and the stability bound."""
+    qx, qy = spec.pose[4:6]
+    return scene.planar and not spec.actuated and isinstance(sdf, sdfs.HalfSpace) and abs(qx) + abs(qy) <= 1e-12
+
+
 def compile_scene(
     scene: Scene, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu", prune: bool = True
 ) -> tuple[Model, State, CompileReport]:
@@ -227,7 +235,11 @@ def compile_scene(
 
     Pruning (``prune=True``) keeps only what the scene can use within ``reach``: bodies that can reach the
     object, surface points within reach of some body, and, per body, only the points within its reach
-    (``Model.touchable``; the pushing scene's bubble and table share none of their 96 and 84 points).
+    (``Model.touchable``). A body whose contact set no motion can change (``fixed_contact_set``: the table of a
+    planar scene) keeps exactly the points in contact at the start, with or without pruning: the stability bound
+    then counts only those, instead of every point within ``stability_margin`` (the pushing cube's lowest side
+    rows, whose horizontal normals would add the table's stiffness E to the planar bound and quadruple the
+    sub-steps).
     ``prune=False`` keeps every body and point (the full model, for checking what pruning changes). The
     initial forces are those of pressing each body straight into its initial pose (``press_in``).
     """
@@ -249,8 +261,10 @@ def compile_scene(
             dropped.append(spec.name)
             continue
         kept.append((spec, sdf))
-        near.append(phi <= scene.reach * sdf.lipschitz if prune else torch.ones_like(phi, dtype=torch.bool))
-        touching.append(phi <= scene.stability_margin)
+        fixed = fixed_contact_set(scene, spec, sdf)
+        reach, margin = (0.0, 0.0) if fixed else (scene.reach * sdf.lipschitz, scene.stability_margin)
+        near.append(phi <= reach if prune else torch.ones_like(phi, dtype=torch.bool))
+        touching.append(phi <= margin)
     if not kept:
         raise SceneError(
             f"no compliant body can reach the object within reach = {scene.reach} m: "

@@ -4,6 +4,8 @@ import msgspec
 import pytest
 import torch
 
+from hydrosoft.dynamics import substeps_for
+from hydrosoft.geometry import se3
 from hydrosoft.scene import SceneError, compile_scene, load_scene, parse_scene
 from hydrosoft.tasks.scenes import TASK_SCENES, task_scene
 
@@ -95,3 +97,17 @@ def test_pruning_drops_points_and_bodies_it_reports():
     _, _, full = compile_scene(task_scene("in_hand"), prune=False)
     assert report.bodies_dropped == ("table",) and full.bodies_dropped == ()
     assert report.points_kept < full.points_kept
+
+
+def test_a_planar_table_counts_only_its_contact_patch_in_the_stability_bound():
+    """The planar cube's side points near the table can never reach it (height held), so their horizontal
+    normals must not add the table's E to the bound: counting every point within stability_margin, as for a
+    body that moves, would need 3 sub-steps instead of 2 (4 at the planner's 8.4 mm spacing)."""
+    scene = task_scene("pushing")
+    model, state, report = compile_scene(scene, prune=False)
+    world = se3.transform_points(state.object_pose[0], model.points)
+    within_margin = torch.stack([
+        sdf(se3.transform_points(se3.inverse(state.body_poses[0, m]), world)) <= scene.stability_margin
+        for m, sdf in enumerate(model.bodies)])
+    assert report.substeps == 2
+    assert substeps_for(model, 64, within_margin) == 3

@@ -55,10 +55,12 @@ def pairs(model, dense):
 
 
 def test_the_pushing_scene_is_pruned_per_body():
-    """Bubble and table touch disjoint point sets (top and bottom of the cube): half the point-body pairs."""
+    """Bubble and table touch disjoint point sets; the planar table keeps exactly the cube's bottom face."""
     model, _, _ = pushing()
     bubble, table = (set(index.tolist()) for index in model.touchable)
     assert bubble and table and not bubble & table and len(bubble | table) == model.n_points
+    bottom = (model.points[:, 2] == model.points[:, 2].min()).nonzero().squeeze(-1).tolist()
+    assert table == set(bottom)
 
 
 def test_cached_phi_is_the_signed_distance_of_the_state():
