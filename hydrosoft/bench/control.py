@@ -8,26 +8,26 @@ model, ``--pose-noise-mm``, ``--pose-noise-deg``, ``--deformation-noise-mm`` its
 model, loop): the final ADD error in mm (mean and sample std over goals), the mean solve time in ms (and its
 split into rollout, backward and CEM), the success rate (final ADD <= the task's threshold) and the statuses.
 
-Settings. Full (default): planner surface spacing 8.4 mm (216 points on the 5 cm cube, ~200 active), B = 64
-samples, 8 elites, horizon K = 10, G = 2 gradient steps, 4 CEM rounds for the open-loop solve, 10 goals.
-``--quick`` (what CI runs, under 5 minutes on 2 cores): spacing 12.5 mm (96 points), B = 16, 4 elites, K = 6,
-G = 1, 3 open-loop rounds, 2 goals, replanning rate from 3 solves. The replanning rate is always measured with
-the full planner (B = 64, K = 10, G = 2, 180 active points, 4 sub-steps) on closed-loop planar pushing: the first
-solve is reported apart (``first_solve_ms``: a warm-up, and with ``--compile`` the compilation unless an episode
-planner of the same shapes compiled the step before), then the mean of the timed solves (``solve_ms``,
-``rate_hz``) and its rollout / backward / CEM split.
+Settings. Full (default): planner surface spacing 8.4 mm (216 points on the 5 cm cube; pruning keeps the 132
+that can touch a body in pushing and rotation), B = 64 samples, 8 elites, horizon K = 10, G = 2 gradient steps,
+4 CEM rounds for the open-loop solve, 10 goals. ``--quick`` (what CI runs, under 5 minutes on 2 cores): spacing
+12.5 mm (96 points), B = 16, 4 elites, K = 6, G = 1, 3 open-loop rounds, 2 goals, replanning rate from 3 solves.
+The replanning rate is always measured with the full planner (B = 64, K = 10, G = 2, 132 active points, 2
+sub-steps) on closed-loop planar pushing, once per ``--rate-dtypes`` entry in the same run: the first solve is
+reported apart (``first_solve_ms``: a warm-up, and with ``--compile`` the compilation unless an episode planner
+of the same shapes compiled the step before), then the mean of the timed solves (``solve_ms``, ``rate_hz``) and
+its rollout / backward / CEM split.
 
 ``--compile`` (``PlannerSettings.compile``) runs the planner's step through ``torch.compile`` (inductor, C++
 wrapper): the first solve of each new planner shape compiles four sub-step graphs (with and without gradients,
-each for a rollout's first step and for the later ones) and the backward graphs, about two minutes on one
-thread for the full pushing planner (131 s for a whole one-goal, two-step rate run); after that a full-planner
-solve takes ~0.54 s instead of ~2 s (1 thread; 2 threads gain ~5%). With ``--compile`` each task and model first runs an untimed one-step closed-loop episode that compiles
-its planner, so the reported solve times are steady-state ones.
+each for a rollout's first step and for the later ones) and the backward graphs, one to three minutes on one
+thread; after that a full-planner pushing solve takes ~0.24 s (float64, 1 thread). With ``--compile`` each task
+and model first runs an untimed one-step closed-loop episode that compiles its planner, so the reported solve
+times are steady-state ones.
 
-Run times (single thread, 2 shared cores): ``--quick`` 48 episodes in ~3.3 min CPU (4.8 min wall under load);
-the full setting takes about 6 hours: a full-planner closed-loop solve is 2-3.5 s (0.3-0.5 Hz), an episode
-of 20-40 steps 1.5-3.5 min closed loop and 1-2.5 min open loop, times 4 tasks x 3 models x 10 goals x 2 loops.
-Run tasks as separate processes (``--tasks pushing`` ...) to use both cores.
+Run times (single thread): ``--quick`` ~3.5 min; the full setting with ``--compile``, two processes sharing 2
+cores: pushing 11 min, rotation 11 min, rolling and in-hand together 40 min. Run tasks as separate processes
+(``--tasks pushing`` ...) to use both cores.
 
 Torch runs single-threaded by default (``--threads``): on 2 shared cores the OpenMP intra-op threads stall
 behind other processes (a B = 64 step took 250 ms with 2 threads and 22 ms with 1).
@@ -128,13 +128,16 @@ def _row(task: str, model: str, loop: str, results: list) -> dict:
 
 
 def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") -> dict:
-    """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, ~180 points) in ``dtype``: the
+    """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
+    132 that can touch a body are kept, each against its one body) in ``dtype``: the
     first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the
     mean of ``solves`` timed solves (``solve_ms``, ms) split into rollout / backward / CEM, and the replanning
     rate (Hz) it allows."""
+    import msgspec
     import torch
 
     from hydrosoft.control import CemGd
+    from hydrosoft.scene import build_surface
     from hydrosoft.tasks import make_task
     from hydrosoft.tasks.evaluation import PlannerSettings, estimate_state, prepare
 
@@ -143,6 +146,8 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
                                compile=compile, dtype=getattr(torch, dtype))
     setup = prepare(task, settings)
     model = setup.planner_model
+    surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
+    pairs = sum(index.numel() for index in model.touchable) if model.touchable else model.n_points * model.n_bodies
     low, high = task.bounds(model.body_names, model.dtype)
     stage, terminal = task.costs(model, task.sample_goal(0))
     solver = CemGd(setup.dynamics, stage, terminal, low, high,
@@ -162,8 +167,8 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
     compiled = getattr(setup.dynamics, "compiled", False)
     return {
-        "task": "pushing", "dtype": dtype, "samples": 64, "horizon": 10, "grad_steps": 2, "points": model.n_points,
-        "substeps": model.substeps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
+        "task": "pushing", "dtype": dtype, "samples": 64, "horizon": 10, "grad_steps": 2,
+        "surface_points": surface_points, "points": model.n_points, "pairs": pairs, "substeps": model.substeps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
     }
@@ -287,7 +292,8 @@ def run(args: argparse.Namespace) -> int:
             mode = "compiled" if r["compiled"] else "eager"
             compiling = ", compiling the step unless a planner of the same shapes did before" if r["compiled"] else ""
             print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
-                  f"G={r['grad_steps']}, {r['points']} points, {r['substeps']} sub-steps, {r['threads']} thread(s), "
+                  f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
+                  f"point-body pairs), {r['substeps']} sub-steps, {r['threads']} thread(s), "
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f}, backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first solve "
                   f"{r['first_solve_ms'] / 1e3:.1f} s{compiling})")

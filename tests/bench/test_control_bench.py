@@ -46,7 +46,7 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
     assert [rate["dtype"] for rate in document["replanning"]] == ["float64", "float32"]
     for rate in document["replanning"]:
         assert rate["samples"] == 64 and rate["horizon"] == 10 and rate["grad_steps"] == 2
-        assert 150 <= rate["points"] <= 250 and rate["rate_hz"] > 0
+        assert 150 <= rate["surface_points"] <= 250 and rate["pairs"] <= rate["points"] * 2 and rate["rate_hz"] > 0
         assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"]
         assert rate["compiled"] is False and rate["first_solve_ms"] > 0
     assert document["settings"]["compile"] is False
