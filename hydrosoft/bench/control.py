@@ -26,7 +26,7 @@ and model first runs an untimed one-step closed-loop episode that compiles its p
 times are steady-state ones.
 
 Run times (single thread): ``--quick`` ~3.5 min; the full setting with ``--compile``, two processes sharing 2
-cores: pushing 11 min, rotation 11 min, rolling and in-hand together 40 min. Run tasks as separate processes
+cores: pushing 11 min, rotation 11 min, rolling 20 min, in-hand 16 min. Run tasks as separate processes
 (``--tasks pushing`` ...) to use both cores.
 
 Torch runs single-threaded by default (``--threads``): on 2 shared cores the OpenMP intra-op threads stall
