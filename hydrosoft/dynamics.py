@@ -242,10 +242,14 @@ def touchable_points(model: Model) -> tuple[Tensor | None, ...]:
     return model.touchable if model.touchable else (None,) * model.n_bodies
 
 
+def pair_counts(model: Model) -> list[int]:
+    """Per body, the number ``N_m`` of points it is evaluated on; their sum is the width ``P`` of ``State.phi``."""
+    return [model.n_points if index is None else index.numel() for index in touchable_points(model)]
+
+
 def _cached_phi(model: Model, phi: Tensor) -> list[Tensor]:
     """``State.phi (B, P)`` split into the per-body ``(B, N_m)`` signed distances (body order)."""
-    sizes = [model.n_points if index is None else index.numel() for index in touchable_points(model)]
-    return list(phi.split(sizes, dim=-1))
+    return list(phi.split(pair_counts(model), dim=-1))
 
 
 def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses: Tensor) -> list[ContactStep]:

@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -99,17 +100,14 @@ def _log(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
-def _stats(values: list[float]) -> tuple[float, float]:
+def mean_and_std(values: list[float]) -> tuple[float, float]:
     """Mean and sample standard deviation (0 for one value)."""
-    n = len(values)
-    mean = sum(values) / n
-    var = sum((v - mean) ** 2 for v in values) / (n - 1) if n > 1 else 0.0
-    return mean, math.sqrt(var)
+    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
 
 
 def _row(task: str, model: str, loop: str, results: list) -> dict:
     errors = [r.error_mm for r in results]
-    mean, std = _stats(errors)
+    mean, std = mean_and_std(errors)
     statuses: dict[str, int] = {}
     for r in results:
         statuses[r.status] = statuses.get(r.status, 0) + 1
@@ -120,9 +118,9 @@ def _row(task: str, model: str, loop: str, results: list) -> dict:
         "solve_ms": per_solve("solve_s"), "rollout_ms": per_solve("rollout_s"),
         "backward_ms": per_solve("backward_s"), "cem_ms": per_solve("cem_s"),
         "success_rate": sum(r.success for r in results) / len(results), "goals": len(results),
-        "position_mm_mean": _stats([r.position_mm for r in results])[0],
-        "angle_deg_mean": _stats([r.angle_deg for r in results])[0],
-        "initial_error_mm_mean": _stats([r.initial_error_mm for r in results])[0],
+        "position_mm_mean": mean_and_std([r.position_mm for r in results])[0],
+        "angle_deg_mean": mean_and_std([r.angle_deg for r in results])[0],
+        "initial_error_mm_mean": mean_and_std([r.initial_error_mm for r in results])[0],
         "statuses": statuses, "errors_mm": errors,
     }
 
@@ -137,6 +135,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
     import torch
 
     from hydrosoft.control import CemGd
+    from hydrosoft.dynamics import pair_counts
     from hydrosoft.scene import build_surface
     from hydrosoft.tasks import make_task
     from hydrosoft.tasks.evaluation import PlannerSettings, estimate_state, prepare
@@ -147,7 +146,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
     setup = prepare(task, settings)
     model = setup.planner_model
     surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
-    pairs = sum(index.numel() for index in model.touchable) if model.touchable else model.n_points * model.n_bodies
+    pairs = sum(pair_counts(model))
     low, high = task.bounds(model.body_names, model.dtype)
     stage, terminal = task.costs(model, task.sample_goal(0))
     solver = CemGd(setup.dynamics, stage, terminal, low, high,

@@ -105,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the sweep; returns the process exit status (2 for an unknown task)."""
     import torch
 
+    from hydrosoft.bench.control import mean_and_std
     from hydrosoft.tasks import TASKS, make_task
     from hydrosoft.tasks.evaluation import prepare, run_episode
 
@@ -136,8 +137,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"[{i}/{len(runs)}] {knob}={value} {name}: {sum(errors[-goals:]) / goals:.2f} mm over {goals} "
                   f"goal(s), {1e3 * sum(solve[-goals:]) / goals:.0f} ms per solve, {time.perf_counter() - tic:.1f} s",
                   file=sys.stderr, flush=True)
-        mean = sum(errors) / len(errors)
-        spread = (sum((e - mean) ** 2 for e in errors) / (len(errors) - 1)) ** 0.5 if len(errors) > 1 else 0.0
+        mean, spread = mean_and_std(errors)
         points.append({"knob": knob, "value": value, "label": f"{knob}={value}", "episodes": len(errors),
                        "solve_ms": 1e3 * sum(solve) / len(solve), "error_mm": mean,
                        "error_mm_sem": spread / len(errors) ** 0.5})
