@@ -247,38 +247,48 @@ def pair_counts(model: Model) -> list[int]:
     return [model.n_points if index is None else index.numel() for index in touchable_points(model)]
 
 
-def _cached_phi(model: Model, phi: Tensor) -> list[Tensor]:
-    """``State.phi (B, P)`` split into the per-body ``(B, N_m)`` signed distances (body order)."""
-    return list(phi.split(pair_counts(model), dim=-1))
+def _body_groups(model: Model) -> list[tuple[slice, Tensor | None]]:
+    """Bodies evaluated together, each group on one point set: all ``M`` bodies on every point (one batched
+    evaluation) when the model is not pruned per body, else each body alone on its ``touchable`` indices."""
+    if not model.touchable:
+        return [(slice(0, model.n_bodies), None)]
+    return [(slice(m, m + 1), index) for m, index in enumerate(model.touchable)]
 
 
 def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses: Tensor) -> list[ContactStep]:
     """Geometry of the step from ``prev`` to the poses ``object_pose (B, 7)``, ``body_poses (B, M, 7)``.
 
-    One ``ContactStep`` per body ``m``, over the ``N_m`` points it can touch (``touchable_points``; all ``N`` when
-    the model was not pruned per body): ``phi_prev, phi_next (B, 1, N_m)``, ``displacement`` and ``normal
-    (B, 1, N_m, 3)``, ``area (N_m,)``. Every per-point quantity is an affine map of the object-frame points
-    ``P (3, N_m)``, so each is one batched ``(3, 3) @ (3, N_m)`` product of per-pose matrices: body-frame points
-    ``A P + c``, the displacement ``r = R_b1 (x_0 - x_1) = R_b1 (A_0 - A_1) P + R_b1 (c_0 - c_1)`` and the normals
-    ``-R_o1 n``. The results are transposed views ``(..., N_m, 3)`` of ``(..., 3, N_m)`` tensors, a layout in which
-    the reductions over the coordinate axis and the SDFs' element-wise work run over contiguous memory (several
-    times faster on CPU, and vectorised over points when compiled). ``phi_prev`` is taken from ``prev.phi`` when
-    it is cached.
+    One ``ContactStep`` per group of bodies that share a point set (``_body_groups``): the whole model, over all
+    ``N`` points, when it was not pruned per body; else one per body ``m`` over the ``N_m`` points it can touch
+    (``touchable_points``). Shapes, for ``g`` bodies on ``n`` points: ``phi_prev, phi_next (B, g, n)``,
+    ``displacement (B, g, n, 3)``, ``normal (B, 1, n, 3)``, ``area (n,)``. Every per-point quantity is an affine
+    map of the object-frame points ``P (3, n)``, so each is one batched ``(3, 3) @ (3, n)`` product of per-pose
+    matrices: body-frame points ``A P + c``, the displacement ``r = R_b1 (x_0 - x_1) = R_b1 (A_0 - A_1) P +
+    R_b1 (c_0 - c_1)`` and the normals ``-R_o1 n``. The results are transposed views ``(..., n, 3)`` of
+    ``(..., 3, n)`` tensors, a layout in which the reductions over the coordinate axis and the SDFs' element-wise
+    work run over contiguous memory (several times faster on CPU, and vectorised over points when compiled).
+    ``phi_prev`` is taken from ``prev.phi`` when it is cached.
     """
     A1, c1, R_b1, R_o1 = _relative_frame(object_pose, body_poses)
     A0, c0, _, _ = _relative_frame(prev.object_pose, prev.body_poses)
-    cached = None if prev.phi is None else _cached_phi(model, prev.phi)
+    groups = _body_groups(model)
+    cached = None if prev.phi is None else prev.phi.split(pair_counts(model), dim=-1)  # per body
+
+    def distances(A: Tensor, c: Tensor, P: Tensor, bodies: slice) -> Tensor:
+        local = (A[:, bodies] @ P + c[:, bodies]).mT
+        return torch.stack([model.bodies[m](local[:, j]) for j, m in enumerate(range(bodies.start, bodies.stop))], 1)
+
     geometries = []
-    for m, (sdf, index) in enumerate(zip(model.bodies, touchable_points(model))):
+    for bodies, index in groups:
         points, normals, areas = model.points, model.normals, model.areas
         if index is not None:
             points, normals, areas = points[index], normals[index], areas[index]
         P = points.mT
-        phi_prev = sdf((A0[:, m] @ P + c0[:, m]).mT) if cached is None else cached[m]
+        R = R_b1[:, bodies]
         geometries.append(ContactStep(
-            phi_prev=phi_prev.unsqueeze(1),
-            phi_next=sdf((A1[:, m] @ P + c1[:, m]).mT).unsqueeze(1),
-            displacement=((R_b1[:, m] @ (A0[:, m] - A1[:, m])) @ P + R_b1[:, m] @ (c0[:, m] - c1[:, m])).mT.unsqueeze(1),
+            phi_prev=distances(A0, c0, P, bodies) if cached is None else torch.stack(cached[bodies], dim=1),
+            phi_next=distances(A1, c1, P, bodies),
+            displacement=((R @ (A0[:, bodies] - A1[:, bodies])) @ P + R @ (c0[:, bodies] - c1[:, bodies])).mT,
             normal=(R_o1 @ -normals.mT).mT.unsqueeze(1),
             area=areas,
         ))
@@ -295,16 +305,16 @@ def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: 
     n = model.n_points
     forces, phis = [], []
     geometries = contact_geometry(model, state, object_pose, body_poses)
-    for m, (geometry, index) in enumerate(zip(geometries, touchable_points(model))):
-        material = Material(*(t[m:m + 1] for t in model.material))
-        previous = state.forces[:, m:m + 1]
+    for geometry, (bodies, index) in zip(geometries, _body_groups(model)):
+        material = Material(*(t[bodies] for t in model.material))
+        previous = state.forces[:, bodies]
         if index is not None:
             previous = previous[:, :, index]
         f = model.contact.step(geometry, previous, material)
         if index is not None:
-            f = f.new_zeros(f.shape[0], 1, n, 3).index_copy(2, index, f)
+            f = f.new_zeros(f.shape[0], f.shape[1], n, 3).index_copy(2, index, f)
         forces.append(f)
-        phis.append(geometry.phi_next[:, 0])
+        phis.append(geometry.phi_next.flatten(1))
     return State(object_pose, body_poses, torch.cat(forces, dim=1), torch.cat(phis, dim=-1))
 
 
@@ -390,13 +400,16 @@ class CompiledStep:
     def __call__(self, state: State, u: Tensor) -> State:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
         if self.fallback_reason is None:
+            config = torch._dynamo.config  # set and restored by hand: config.patch costs ~16 us per call
+            previous, config.fail_on_recompile_limit_hit = config.fail_on_recompile_limit_hit, True
             try:
-                with torch._dynamo.config.patch(fail_on_recompile_limit_hit=True):
-                    return _integrate(self.model, state, u, self._compiled)
+                return _integrate(self.model, state, u, self._compiled)
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager step
                 self.fallback_reason = f"{type(err).__name__}: {err}"
                 warnings.warn(f"torch.compile of the step failed, running eager: {self.fallback_reason}",
                               RuntimeWarning, stacklevel=2)
+            finally:
+                config.fail_on_recompile_limit_hit = previous
         return step(self.model, state, u)
 
 
