@@ -1,1 +1,1 @@
-"""Hardware adapters (real and simulated twins). Not built yet: see README "Not built yet"."""
+"""Hardware adapters: one async interface per device kind (``base``), real drivers and simulated twins side by side."""

@@ -72,6 +72,13 @@ class Model:
     planar: the object moves in (x, y, yaw) only, its height and tilt held.
     touchable: per body, the indices ``(N_m,)`` of the points it can touch (per-body pruning by the scene
     compiler: a point out of a body's reach is never evaluated against it); ``()`` means every point for every body.
+    support: in a planar model, the index of the body that carries the object's weight (the table: an unactuated
+    horizontal half-space), or None. Its normal forces are set each step to balance the vertical load: the
+    weight plus the other bodies' downward contact forces (``support_load``), so its friction limit is
+    ``mu (m g + downward load)``.
+    stability_margin: points within this distance (m) of a body count as in contact for the run-time stability
+    check (``substeps_needed``). max_substeps: the most sub-steps a step may take before it raises
+    ``UnstableStepError``.
     """
 
     points: Tensor
@@ -90,6 +97,9 @@ class Model:
     planar: bool
     substeps: int = 1
     touchable: tuple[Tensor, ...] = ()
+    support: int | None = None
+    stability_margin: float = 0.0
+    max_substeps: int = 64
 
     @property
     def n_points(self) -> int:
@@ -126,45 +136,67 @@ class Model:
         )
 
 
-def stiffness_bound(model: Model, active: Tensor | None = None) -> float:
-    """Upper bound of ``lambda_max(M^{-1} K_c)`` (1/s^2) over the points that can touch each body.
+STABLE_RATIO = 1.8
+"""Largest ``(h/epsilon)(h/n) lambda_max(M^-1 K_c)`` a sub-step may take: 0.9 of the explicit update's limit 2."""
 
-    ``K_c = sum_{m,i} active_{m,i} A_i J_i^T S_{m,i} J_i`` with ``S = E_m n n^T + K_m (I - n n^T)`` the per-point
-    stiffness against body ``m`` and ``J_i = [I, -[p_i]x]`` the point Jacobian, in the object frame (so the
-    bound does not depend on the object's pose); restricted to (x, y, yaw) for planar models. ``active (M, N)``
-    bool marks the points that can touch each body (all by default). Exact when all of them are in contact
-    at once, an upper bound otherwise (contact only removes terms).
+
+class UnstableStepError(ValueError):
+    """A step whose contacts are too stiff for the explicit object update within ``max_substeps`` sub-steps."""
+
+
+def _mass_matrix(model: Model) -> Tensor:
+    """The object's generalised mass ``(d, d)`` float64 in its own frame: ``d = 6`` (m I, inertia), or
+    ``d = 3`` (m, m, I_zz) for planar models."""
+    eye = torch.eye(3, dtype=torch.float64)
+    mass = torch.block_diag(model.mass * eye, model.inertia.double().cpu())
+    return mass[[0, 1, 5]][:, [0, 1, 5]] if model.planar else mass
+
+
+def point_stiffness(model: Model) -> Tensor:
+    """Per body and point, its contribution ``(M, N, d, d)`` (float64, object frame) to the contact stiffness.
+
+    ``A_i J_i^T S_{m,i} J_i`` with ``S = E_m n n^T + K_m (I - n n^T)`` (N/m per m^2 of area) and the point Jacobian
+    ``J_i = [I, -[p_i]x]``; in the object frame, so it does not depend on the object's pose; restricted to
+    (x, y, yaw) (``d = 3``) for planar models, else ``d = 6``.
     """
-    p, n, a = model.points.double(), model.normals.double(), model.areas.double()
-    if active is None:
-        active = torch.ones(model.n_bodies, model.n_points, dtype=torch.bool)
+    p, n, a = model.points.double().cpu(), model.normals.double().cpu(), model.areas.double().cpu()
     eye = torch.eye(3, dtype=torch.float64)
     nnT = n.unsqueeze(-1) * n.unsqueeze(-2)
     skew = torch.zeros(p.shape[0], 3, 3, dtype=torch.float64)
     skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
     skew = skew - skew.transpose(1, 2)
     J = torch.cat([eye.expand_as(skew), -skew], dim=-1)
-    weights = active.to(torch.float64).cpu() * a.cpu()
-    E = (weights * model.material.E.double().cpu().view(-1, 1)).sum(0)
-    K = (weights * model.material.K.double().cpu().view(-1, 1)).sum(0)
-    S = E.view(-1, 1, 1) * nnT.cpu() + K.view(-1, 1, 1) * (eye - nnT.cpu())
-    K_c = torch.einsum("nji,njk,nkl->il", J.cpu(), S, J.cpu())
-    mass = torch.block_diag(model.mass * eye, model.inertia.double().cpu())
     if model.planar:
-        keep = [0, 1, 5]
-        K_c, mass = K_c[keep][:, keep], mass[keep][:, keep]
-    return float(torch.linalg.eigvals(torch.linalg.solve(mass, K_c)).real.max())
+        J = J[..., [0, 1, 5]]
+    E = model.material.E.double().cpu().view(-1, 1, 1, 1)
+    K = model.material.K.double().cpu().view(-1, 1, 1, 1)
+    S = (E * nnT + K * (eye - nnT)) * a.view(1, -1, 1, 1)
+    return torch.einsum("nji,mnjk,nkl->mnil", J, S, J)
+
+
+def stiffness_bound(model: Model, active: Tensor | None = None) -> float:
+    """``lambda_max(M^-1 K_c)`` (1/s^2) with every point marked ``active (M, N)`` (bool) in contact with its body.
+
+    ``K_c = sum_{m,i} active_{m,i} A_i J_i^T S_{m,i} J_i`` (``point_stiffness``). It is exact when exactly the
+    marked points touch, and an upper bound over every state in which only marked points touch (contact only
+    removes terms, and ``lambda_max(M^-1 K)`` grows with ``K`` in the PSD order). It is not a bound over states
+    in which other points touch: the run-time check ``substeps_needed`` covers those.
+    """
+    if active is None:
+        active = torch.ones(model.n_bodies, model.n_points, dtype=torch.bool)
+    K_c = torch.einsum("mn,mnij->ij", active.to(torch.float64).cpu(), point_stiffness(model))
+    return float(torch.linalg.eigvals(torch.linalg.solve(_mass_matrix(model), K_c)).real.max())
 
 
 def substeps_for(model: Model, max_substeps: int, active: Tensor | None = None) -> int:
-    """Sub-steps per step that keep the explicit update stable, ``ceil(h^2 lambda / (2 * 0.9 epsilon))``.
+    """Sub-steps per step that keep the explicit update stable with the points ``active (M, N)`` in contact,
+    ``ceil((h^2/epsilon) lambda / 1.8)`` (``stiffness_bound``).
 
-    ``active (M, N)`` as in ``stiffness_bound``. Raises ValueError naming the bound when more than
-    ``max_substeps`` would be needed.
+    Raises ValueError naming the bound when more than ``max_substeps`` would be needed.
     """
     lam = stiffness_bound(model, active)
     ratio = model.dt**2 * lam / model.epsilon
-    n = max(1, math.ceil(ratio / (2 * 0.9)))
+    n = max(1, math.ceil(ratio / STABLE_RATIO))
     if n > max_substeps:
         raise ValueError(
             f"quasi-dynamic step unstable: h^2/epsilon * lambda_max(M^-1 K_c) = {ratio:.3g} must stay below 2 "
@@ -174,6 +206,60 @@ def substeps_for(model: Model, max_substeps: int, active: Tensor | None = None) 
             f"soften E/K, or allow more sub-steps."
         )
     return n
+
+
+@functools.lru_cache(maxsize=32)
+def _packed_stiffness(model: Model) -> tuple[Tensor, Tensor, Tensor]:
+    """``(Q (P, d*d), margin (P,), L^-1 (d, d))``: the per-pair stiffness terms in ``State.phi``'s layout (body after body,
+    each on its touchable points), the contact margin (m) of each pair, and the inverse Cholesky factor of the
+    mass matrix, float64 on the CPU. The support body of a planar model keeps exactly its contact patch (its
+    points' distances cannot change), so its margin is 0."""
+    terms = point_stiffness(model)
+    packed = torch.cat([terms[m] if index is None else terms[m, index.cpu()]
+                        for m, index in enumerate(touchable_points(model))])
+    margins = torch.cat([torch.full((count,), 0.0 if model.planar and m == model.support else model.stability_margin,
+                                    dtype=torch.float64) for m, count in enumerate(pair_counts(model))])
+    inverse_factor = torch.linalg.inv(torch.linalg.cholesky(_mass_matrix(model)))
+    return packed.flatten(1), margins, inverse_factor
+
+
+def stability_ratio(model: Model, state: State) -> Tensor:
+    """``(h^2/epsilon) lambda_max(M^-1 K_c)`` ``(B,)`` over the contacts of each sample of ``state``.
+
+    A point counts as in contact with a body when it lies within ``model.stability_margin`` of it (its cached
+    signed distance ``state.phi``, computed when missing; the support body of a planar model counts exactly its
+    contact patch). One step of ``n`` sub-steps is stable while this ratio
+    stays below ``2 n``. Float64 on the CPU, no gradient; non-finite samples give NaN.
+    """
+    phi = state.phi if state.phi is not None else packed_distances(model, state.object_pose, state.body_poses)
+    Q, margins, inverse_factor = _packed_stiffness(model)
+    active = (phi.detach().double().cpu() <= margins).to(torch.float64)
+    d = inverse_factor.shape[0]
+    K_c = (active @ Q).view(-1, d, d)
+    lam = torch.linalg.eigvalsh(inverse_factor @ K_c @ inverse_factor.mT)[:, -1]
+    finite = torch.isfinite(phi.detach()).all(-1).cpu()
+    return torch.where(finite, model.dt**2 / model.epsilon * lam, torch.nan)
+
+
+def substeps_needed(model: Model, state: State) -> int:
+    """Sub-steps the next step from ``state`` needs: ``model.substeps``, or more when the contacts of some sample
+    are stiffer than that count allows (``stability_ratio`` above ``1.8 n``).
+
+    Raises ``UnstableStepError`` naming the bound when that exceeds ``model.max_substeps``. Non-finite samples
+    are ignored (they are already lost, and the planner discards them).
+    """
+    ratio = stability_ratio(model, state)
+    worst = float(torch.nan_to_num(ratio, nan=0.0).max()) if ratio.numel() else 0.0
+    needed = max(model.substeps, math.ceil(worst / STABLE_RATIO))
+    if needed > model.max_substeps:
+        raise UnstableStepError(
+            f"quasi-dynamic step unstable: the current contacts give h^2/epsilon * lambda_max(M^-1 K_c) = "
+            f"{worst:.3g}, which needs {needed} sub-steps to stay below 1.8 per sub-step, but max_substeps = "
+            f"{model.max_substeps} (h = {model.dt} s, epsilon = {model.epsilon} s, contact within "
+            f"{model.stability_margin} m). The bodies press deeper than the scene allows for: raise epsilon or "
+            f"max_substeps, or bound the actions."
+        )
+    return needed
 
 
 def _frame(pose: Tensor) -> tuple[Tensor, Tensor]:
@@ -203,7 +289,7 @@ def body_wrenches(model: Model, state: State) -> Tensor:
     return wrench(-state.forces, _world_points(model, state.object_pose).unsqueeze(1), state.body_poses[..., :3])
 
 
-def _object_motion(model: Model, state: State, w: Tensor, dt_sub: float) -> Tensor:
+def _object_motion(model: Model, state: State, w: Tensor, dt_sub: Tensor) -> Tensor:
     """Object displacement ``(B, 6)`` ``(h/epsilon) dt_sub M^{-1} w`` (world translation, rotation vector)."""
     gain = model.dt / model.epsilon * dt_sub
     R = se3.quat_to_matrix(state.object_pose[:, 3:])
@@ -249,10 +335,33 @@ def pair_counts(model: Model) -> list[int]:
 
 def _body_groups(model: Model) -> list[tuple[slice, Tensor | None]]:
     """Bodies evaluated together, each group on one point set: all ``M`` bodies on every point (one batched
-    evaluation) when the model is not pruned per body, else each body alone on its ``touchable`` indices."""
-    if not model.touchable:
+    evaluation) when the model is not pruned per body and has no support body, else each body alone on its
+    ``touchable`` indices (all points when the model is not pruned)."""
+    if not model.touchable and (model.support is None or not model.planar):
         return [(slice(0, model.n_bodies), None)]
-    return [(slice(m, m + 1), index) for m, index in enumerate(model.touchable)]
+    return [(slice(m, m + 1), index) for m, index in enumerate(touchable_points(model))]
+
+
+def _distances(model: Model, A: Tensor, c: Tensor, P: Tensor, bodies: slice) -> Tensor:
+    """Signed distances ``(B, g, n)`` (m) of the object-frame points ``P (3, n)`` to the bodies ``bodies`` (``g`` of
+    them), seen through the relative frames ``A (B, M, 3, 3)``, ``c (B, M, 3, 1)`` (``_relative_frame``)."""
+    local = (A[:, bodies] @ P + c[:, bodies]).mT
+    return torch.stack([model.bodies[m](local[:, j]) for j, m in enumerate(range(bodies.start, bodies.stop))], 1)
+
+
+def _group_points(model: Model, index: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """The points, normals ``(n, 3)`` and areas ``(n,)`` of a body group's point set (all when ``index`` is None)."""
+    if index is None:
+        return model.points, model.normals, model.areas
+    return model.points[index], model.normals[index], model.areas[index]
+
+
+def packed_distances(model: Model, object_pose: Tensor, body_poses: Tensor) -> Tensor:
+    """Signed distances ``(B, P)`` (m) at the given poses in ``State.phi``'s layout (body after body, each on the
+    points it can touch)."""
+    A, c, _, _ = _relative_frame(object_pose, body_poses)
+    return torch.cat([_distances(model, A, c, _group_points(model, index)[0].mT, bodies).flatten(1)
+                      for bodies, index in _body_groups(model)], dim=-1)
 
 
 def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses: Tensor) -> list[ContactStep]:
@@ -271,28 +380,54 @@ def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses:
     """
     A1, c1, R_b1, R_o1 = _relative_frame(object_pose, body_poses)
     A0, c0, _, _ = _relative_frame(prev.object_pose, prev.body_poses)
-    groups = _body_groups(model)
     cached = None if prev.phi is None else prev.phi.split(pair_counts(model), dim=-1)  # per body
 
-    def distances(A: Tensor, c: Tensor, P: Tensor, bodies: slice) -> Tensor:
-        local = (A[:, bodies] @ P + c[:, bodies]).mT
-        return torch.stack([model.bodies[m](local[:, j]) for j, m in enumerate(range(bodies.start, bodies.stop))], 1)
-
     geometries = []
-    for bodies, index in groups:
-        points, normals, areas = model.points, model.normals, model.areas
-        if index is not None:
-            points, normals, areas = points[index], normals[index], areas[index]
+    for bodies, index in _body_groups(model):
+        points, normals, areas = _group_points(model, index)
         P = points.mT
         R = R_b1[:, bodies]
         geometries.append(ContactStep(
-            phi_prev=distances(A0, c0, P, bodies) if cached is None else torch.stack(cached[bodies], dim=1),
-            phi_next=distances(A1, c1, P, bodies),
+            phi_prev=_distances(model, A0, c0, P, bodies) if cached is None else torch.stack(cached[bodies], dim=1),
+            phi_next=_distances(model, A1, c1, P, bodies),
             displacement=((R @ (A0[:, bodies] - A1[:, bodies])) @ P + R @ (c0[:, bodies] - c1[:, bodies])).mT,
             normal=(R_o1 @ -normals.mT).mT.unsqueeze(1),
             area=areas,
         ))
     return geometries
+
+
+def support_load(model: Model, forces: Tensor) -> Tensor:
+    """The vertical load ``(B,)`` (N) the support body carries: the object's weight plus the downward contact
+    forces of the other bodies (``forces (B, M', N, 3)`` of those bodies, on the object), clamped at zero when
+    they lift the object off."""
+    weight = -model.mass * model.gravity[2]
+    return torch.relu(weight - forces[..., 2].sum((1, 2)))
+
+
+def _with_support_normal(forces: Tensor, geometry: ContactStep, load: Tensor, scale_friction: bool = False) -> Tensor:
+    """The support body's forces ``(B, 1, n, 3)`` with their normal parts replaced by ``load (B,)`` (N) spread over
+    its contact patch in proportion to ``A_i max(-phi_i, 0)`` (the pressure-field distribution; uniform on a flat
+    face). Tangential parts are kept, or with ``scale_friction`` (a model whose friction is a multiple of the
+    normal force it computed: PF) scaled with their normal force. A patch that does not touch carries nothing."""
+    normal = geometry.normal
+    weights = geometry.area * torch.relu(-geometry.phi_next)
+    total = weights.sum(-1, keepdim=True)
+    share = weights / torch.where(total > 0, total, torch.ones_like(total))
+    f_n = (forces * normal).sum(-1, keepdim=True)
+    supported = load.view(-1, 1, 1, 1) * share.unsqueeze(-1)
+    tangential = forces - f_n * normal
+    if scale_friction:
+        tangential = tangential * torch.where(f_n > 0, supported / torch.where(f_n > 0, f_n, torch.ones_like(f_n)),
+                                              torch.zeros_like(f_n))
+    return supported * normal + tangential
+
+
+def _body_turns(model: Model, body_poses: Tensor, next_poses: Tensor) -> Tensor:
+    """Rotation increments ``R_1 R_0^T (B, M, 3, 3)`` of the bodies over a step; identity for unactuated bodies."""
+    turn = se3.quat_to_matrix(next_poses[..., 3:]) @ se3.quat_to_matrix(body_poses[..., 3:]).mT
+    eye = torch.eye(3, dtype=turn.dtype, device=turn.device)
+    return torch.where(model.actuated.view(1, -1, 1, 1) > 0, turn, eye)
 
 
 def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: Tensor) -> State:
@@ -301,55 +436,194 @@ def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: 
     ``object_pose (B, 7)`` and ``body_poses (B, M, 7)``; used by the step and to replay prescribed motions
     (force benchmarks, tactile estimation). Each body's forces are updated on the points it can touch
     (``touchable_points``) and stay zero elsewhere. The returned state caches its signed distances (``State.phi``).
+
+    The force state co-rotates with its body (paper eq. 8 keeps it in the contact frame): before the contact
+    update, each body's stored forces are rotated by the body's rotation increment over the step, so a body and an
+    object that turn together without relative motion carry their forces along. In a planar model with a
+    ``support`` body, that body is updated last, with its normal forces set to ``support_load`` of the others'
+    new forces before (so the friction cone uses it) and after the contact update.
     """
     n = model.n_points
-    forces, phis = [], []
     geometries = contact_geometry(model, state, object_pose, body_poses)
-    for geometry, (bodies, index) in zip(geometries, _body_groups(model)):
+    groups = _body_groups(model)
+    turns = _body_turns(model, state.body_poses, body_poses)
+    support = model.support if model.planar else None
+    order = sorted(range(len(groups)), key=lambda g: groups[g][0].start == support)
+    forces, phis = [None] * len(groups), [None] * len(groups)
+    for g in order:
+        geometry, (bodies, index) = geometries[g], groups[g]
         material = Material(*(t[bodies] for t in model.material))
         previous = state.forces[:, bodies]
         if index is not None:
             previous = previous[:, :, index]
+        previous = previous @ turns[:, bodies].mT
+        is_support = bodies.start == support
+        if is_support:
+            load = support_load(model, torch.cat([f for f in forces if f is not None], dim=1))
+            previous = _with_support_normal(previous, geometry, load)
         f = model.contact.step(geometry, previous, material)
+        if is_support:
+            f = _with_support_normal(f, geometry, load, getattr(model.contact, "implicit_friction", False))
         if index is not None:
             f = f.new_zeros(f.shape[0], f.shape[1], n, 3).index_copy(2, index, f)
-        forces.append(f)
-        phis.append(geometry.phi_next.flatten(1))
+        forces[g] = f
+        phis[g] = geometry.phi_next.flatten(1)
     return State(object_pose, body_poses, torch.cat(forces, dim=1), torch.cat(phis, dim=-1))
 
 
-def _substep(model: Model, state: State, u: Tensor, dt_sub: float) -> State:
+def _planar_jacobian(lever: Tensor) -> Tensor:
+    """Point Jacobians ``(B, N, 3, 3)`` of the planar twist ``(vx, vy, wz)`` at levers ``(B, N, 3)`` (m)."""
+    zero, one = torch.zeros_like(lever[..., 0]), torch.ones_like(lever[..., 0])
+    rows = [torch.stack([one, zero, -lever[..., 1]], -1), torch.stack([zero, one, lever[..., 0]], -1),
+            torch.stack([zero, zero, zero], -1)]
+    return torch.stack(rows, dim=-2)
+
+
+def _spatial_jacobian(lever: Tensor) -> Tensor:
+    """Point Jacobians ``(B, N, 3, 6)`` of the twist ``(v, w)`` at levers ``(B, N, 3)`` (m): ``v + w x lever``."""
+    x, y, z = lever.unbind(-1)
+    zero, one = torch.zeros_like(x), torch.ones_like(x)
+    rows = [torch.stack([one, zero, zero, zero, z, -y], -1), torch.stack([zero, one, zero, -z, zero, x], -1),
+            torch.stack([zero, zero, one, y, -x, zero], -1)]
+    return torch.stack(rows, dim=-2)
+
+
+FRICTION_NEWTON_STEPS = 12
+NEWTON_TOLERANCE = 1e-10  # m or rad: an eager solve stops once a Newton step moves the object less than this
+LINE_SEARCH = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
+
+
+def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w: Tensor, dt_sub: Tensor,
+                              slip_tolerance: float) -> Tensor:
+    """Object displacement ``(B, 6)`` of a sub-step with Coulomb friction solved implicitly (PF's friction).
+
+    The object twist ``v`` (``d = 3`` planar or 6) minimises the convex energy
+    ``(1 / 2 gain) (v - v0)^T M (v - v0) + sum_{m,i} mu_m f_n,mi (sqrt(|s_mi|^2 + tol^2) - tol)``,
+    with ``v0 = gain M^-1 w`` the frictionless motion under the normal and gravity wrench ``w (B, 6)``, ``gain =
+    (h/epsilon) dt_sub`` and ``s_mi`` the tangential slip of object point ``i`` relative to body ``m``'s material
+    over the sub-step (its motion ``J_i v`` minus the body's motion at the point). Its stationarity condition is
+    ``v = v0 + gain M^-1 sum J^T f`` with ``f = -mu f_n s / sqrt(|s|^2 + tol^2)``: PF's regularised kinetic
+    friction (eq. 4) evaluated at the slip the motion itself produces (backward Euler, maximum dissipation).
+    Friction therefore never exceeds the force that stops the slip in this sub-step, so it cannot overshoot and
+    reverse the motion, whatever the step size. The energy is minimised by at most ``FRICTION_NEWTON_STEPS``
+    damped Newton steps (a line search over ``LINE_SEARCH`` that never raises it; the slips are affine in the step
+    length, so each candidate costs a few scalars per point), differentiable throughout; eager solves stop early
+    once converged (``NEWTON_TOLERANCE``), compiled ones take every step.
+    The normal forces ``f_n`` are those of ``state.forces``; a point without normal force carries no friction.
+    """
+    gain = model.dt / model.epsilon * dt_sub
+    R_o, t_o = _frame(state.object_pose)
+    points = (R_o @ model.points.mT + t_o).mT
+    normal = (R_o @ -model.normals.mT).mT
+    R_b0, t_b0 = _frame(state.body_poses)
+    R_b1, t_b1 = _frame(body_poses)
+    carried = (points.unsqueeze(1) - t_b0.mT) @ (R_b1 @ R_b0.mT).mT + t_b1.mT - points.unsqueeze(1)
+    f_n = torch.relu((state.forces * normal.unsqueeze(1)).sum(-1))
+    limit = model.material.mu.view(1, -1, 1) * f_n
+    lever = points - state.object_pose[:, None, :3]
+    if model.planar:
+        J = _planar_jacobian(lever)
+        izz = torch.einsum("bi,ij,bj->b", R_o[:, 2], model.inertia, R_o[:, 2])
+        mass = torch.diag_embed(torch.stack([torch.full_like(izz, model.mass), torch.full_like(izz, model.mass), izz], -1))
+        w_v = w[:, [0, 1, 5]]
+    else:
+        J = _spatial_jacobian(lever)
+        eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(w.shape[0], 3, 3)
+        inertia = R_o @ model.inertia @ R_o.mT
+        zero = torch.zeros_like(eye)
+        mass = torch.cat([torch.cat([model.mass * eye, zero], -1), torch.cat([zero, inertia], -1)], -2)
+        w_v = w
+    v0 = gain * torch.linalg.solve(mass, w_v.unsqueeze(-1)).squeeze(-1)
+    projector = torch.eye(3, dtype=w.dtype, device=w.device) - normal.unsqueeze(-1) * normal.unsqueeze(-2)
+    tol2 = slip_tolerance**2
+    PJ = projector @ J
+    carried_t = (carried.unsqueeze(-2) @ projector.unsqueeze(1)).squeeze(-2)
+    alphas = torch.tensor(LINE_SEARCH, dtype=w.dtype, device=w.device)
+    v = v0
+    for _ in range(FRICTION_NEWTON_STEPS):
+        s = (PJ @ v.view(-1, 1, v.shape[-1], 1)).squeeze(-1).unsqueeze(1) - carried_t
+        sigma = torch.sqrt(s.square().sum(-1) + tol2)
+        weight = limit / sigma
+        unit = s / sigma.unsqueeze(-1)
+        grad = (mass @ (v - v0).unsqueeze(-1)).squeeze(-1) / gain + torch.einsum(
+            "bnid,bni->bd", PJ, (weight.unsqueeze(-1) * s).sum(1))
+        curvature = (weight.unsqueeze(-1).unsqueeze(-1) * (projector.unsqueeze(1) - unit.unsqueeze(-1) * unit.unsqueeze(-2))).sum(1)
+        hessian = mass / gain + torch.einsum("bnid,bnij,bnje->bde", J, curvature, J)
+        direction = -torch.linalg.solve(hessian, grad.unsqueeze(-1)).squeeze(-1)
+        # energy along v + alpha * direction: quadratic kinetic part, per-point slips affine in alpha
+        ds = (PJ @ direction.view(-1, 1, v.shape[-1], 1)).squeeze(-1).unsqueeze(1)
+        a, b, c = s.square().sum(-1), (s * ds).sum(-1), ds.square().sum(-1)
+        slip2 = a.unsqueeze(-1) + alphas * (2 * b.unsqueeze(-1) + alphas * c.unsqueeze(-1))
+        slide = ((torch.sqrt(slip2 + tol2) - slip_tolerance) * limit.unsqueeze(-1)).sum((1, 2))
+        dv = v - v0
+        Mdv, Md = (mass @ dv.unsqueeze(-1)).squeeze(-1), (mass @ direction.unsqueeze(-1)).squeeze(-1)
+        kinetic = 0.5 / gain * ((dv * Mdv).sum(-1, keepdim=True) + alphas * (
+            2 * (direction * Mdv).sum(-1, keepdim=True) + alphas * (direction * Md).sum(-1, keepdim=True)))
+        best = alphas[(kinetic + slide).argmin(dim=-1)]
+        v = v + best.unsqueeze(-1) * direction
+        if not torch.compiler.is_compiling() and float((best.unsqueeze(-1) * direction).detach().abs().max()) < NEWTON_TOLERANCE:
+            break
+    if model.planar:
+        zero = torch.zeros_like(v[:, 0])
+        return torch.stack([v[:, 0], v[:, 1], zero, zero, zero, v[:, 2]], dim=-1)
+    return v
+
+
+def _normal_wrench(model: Model, state: State) -> Tensor:
+    """Net wrench ``(B, 6)`` of the normal parts of the contact forces and gravity, about the centre of mass."""
+    normal = se3.rotate_vectors(state.object_pose, -model.normals).unsqueeze(1)
+    forces = (state.forces * normal).sum(-1, keepdim=True) * normal
+    return object_wrench(model, state._replace(forces=forces))
+
+
+def _substep(model: Model, state: State, u: Tensor, dt_sub: Tensor) -> State:
     body_poses = se3.retract(state.body_poses, u * model.actuated.view(1, -1, 1))
-    w = object_wrench(model, state)
-    object_pose = se3.retract(state.object_pose, _object_motion(model, state, w, dt_sub))
+    if getattr(model.contact, "implicit_friction", False):
+        w = _normal_wrench(model, state)
+        motion = _implicit_friction_motion(model, state, body_poses, w, dt_sub, model.contact.slip_tolerance)
+    else:
+        motion = _object_motion(model, state, object_wrench(model, state), dt_sub)
+    object_pose = se3.retract(state.object_pose, motion)
     return advance_forces(model, state, object_pose, body_poses)
 
 
-def _substep_of(model: Model):
-    """The sub-step of ``model`` as a function ``(state, u_sub) -> state`` (``model`` and ``h / n`` bound)."""
-    return functools.partial(_substep, model, dt_sub=model.dt / model.substeps)
-
-
-def _integrate(model: Model, state: State, u: Tensor, substep) -> State:
-    """``model.substeps`` applications of ``substep(state, u / n)``: one step of length ``model.dt``."""
-    n = model.substeps
+def _integrate(model: Model, state: State, u: Tensor, substep, n: int) -> State:
+    """``n`` applications of ``substep(state, u / n, h / n)``: one step of length ``model.dt``."""
     u_sub = u if n == 1 else u / n
+    dt_sub = torch.tensor(model.dt / n, dtype=u.dtype, device=u.device)
     for _ in range(n):
-        state = substep(state, u_sub)
+        state = substep(state, u_sub, dt_sub)
     return state
 
 
+def _checked_step(model: Model, state: State, u: Tensor, substep) -> State:
+    """One step with as many sub-steps as its contacts need, checked at its start and its end.
+
+    The sub-step count is ``substeps_needed`` at the start; if the end state's contacts need more (the step
+    pressed deeper), the step is run again from the same start with that many. A state past the bound never
+    passes silently: beyond ``model.max_substeps`` it raises ``UnstableStepError``.
+    """
+    n = substeps_needed(model, state)
+    out = _integrate(model, state, u, substep, n)
+    n_end = substeps_needed(model, out)
+    if n_end > n:
+        out = _integrate(model, state, u, substep, n_end)
+    return out
+
+
 def step(model: Model, state: State, u: Tensor) -> State:
-    """One quasi-dynamic step of length ``model.dt``: ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
-    return _integrate(model, state, u, _substep_of(model))
+    """One quasi-dynamic step of length ``model.dt``: ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``.
+
+    Sub-steps ``model.substeps`` times, or more when the current contacts need it (``_checked_step``).
+    """
+    return _checked_step(model, state, u, functools.partial(_substep, model))
 
 
 def _bound_substep(model: Model):
-    """The sub-step of ``model`` as a plain function ``(state, u_sub) -> state``."""
-    substep = _substep_of(model)
+    """The sub-step of ``model`` as a plain function ``(state, u_sub, dt_sub) -> state``."""
 
-    def compiled_substep(state: State, u: Tensor) -> State:
-        return substep(state, u)
+    def compiled_substep(state: State, u: Tensor, dt_sub: Tensor) -> State:
+        return _substep(model, state, u, dt_sub)
 
     return compiled_substep
 
@@ -367,8 +641,10 @@ def _private_copy(fn):
 class CompiledStep:
     """``step(model, state, u)`` with its sub-step compiled by ``torch.compile`` (inductor), and an eager fallback.
 
-    Only one sub-step is compiled and the sub-step loop stays in Python, so the graphs stay small whatever
-    ``model.substeps`` is (compiling the whole step put every sub-step into each graph: minutes to compile).
+    Only one sub-step is compiled and the sub-step loop (with its stability check) stays in Python, so the graphs
+    stay small whatever the sub-step count is (compiling the whole step put every sub-step into each graph:
+    minutes to compile); the sub-step length is a tensor input, so a step that needs more sub-steps reuses the
+    compiled graph.
 
     ``CompiledStep(model, **options)(state, u)`` returns what ``step(model, state, u)`` returns, within float
     rounding (the compiled kernels reassociate sums: about 1e-7 relative in float32, 1e-15 in float64). The
@@ -403,7 +679,9 @@ class CompiledStep:
             config = torch._dynamo.config  # set and restored by hand: config.patch costs ~16 us per call
             previous, config.fail_on_recompile_limit_hit = config.fail_on_recompile_limit_hit, True
             try:
-                return _integrate(self.model, state, u, self._compiled)
+                return _checked_step(self.model, state, u, self._compiled)
+            except UnstableStepError:
+                raise
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager step
                 self.fallback_reason = f"{type(err).__name__}: {err}"
                 warnings.warn(f"torch.compile of the step failed, running eager: {self.fallback_reason}",

@@ -13,8 +13,10 @@ matter over the motion the scene declares (``reach``):
   ``reach`` times the SDF's Lipschitz bound is dropped (the active set).
 
 The sub-step count comes from ``dynamics.substeps_for`` over the contact patch the scene starts with, grown by
-``stability_margin`` (points within that distance of a body): a conservative bound of the stiffness the step
-meets, without assuming that every point within ``reach`` touches at once.
+``stability_margin`` (points within that distance of a body): a bound over states with that patch, without
+assuming that every point within ``reach`` touches at once. Deeper presses are caught at run time: every step
+checks its current contacts (``dynamics.substeps_needed``, with the same margin) and sub-steps more, up to
+``max_substeps``. A planar scene's table (an unactuated horizontal half-space) becomes the model's ``support``.
 
 Every omission is listed in the returned ``CompileReport``. Example TOML::
 
@@ -250,7 +252,7 @@ def compile_scene(
     bodies = [(spec, build_sdf(spec)) for spec in scene.bodies]
 
     world_points = se3.transform_points(object_pose, surface.points)
-    kept, dropped, near, touching = [], [], [], []
+    kept, dropped, near, touching, support = [], [], [], [], None
     for spec, sdf in bodies:
         body_pose = torch.tensor(spec.pose, dtype=torch.float64)
         local = se3.transform_points(se3.inverse(body_pose), world_points)
@@ -262,6 +264,8 @@ def compile_scene(
             continue
         kept.append((spec, sdf))
         fixed = fixed_contact_set(scene, spec, sdf)
+        if fixed and support is None:
+            support = len(kept) - 1
         reach, margin = (0.0, 0.0) if fixed else (scene.reach * sdf.lipschitz, scene.stability_margin)
         near.append(phi <= reach if prune else torch.ones_like(phi, dtype=torch.bool))
         touching.append(phi <= margin)
@@ -302,6 +306,9 @@ def compile_scene(
         epsilon=scene.epsilon,
         planar=scene.planar,
         touchable=touchable,
+        support=support,
+        stability_margin=scene.stability_margin,
+        max_substeps=scene.max_substeps,
     )
     try:
         n_sub = substeps_for(model, scene.max_substeps, touching)

@@ -9,11 +9,31 @@ import argparse
 import importlib
 import sys
 
-# subcommand -> (module with add_arguments(parser) and run(args) -> int, one-line help)
-BENCHES = {
-    "model": ("hydrosoft.bench.model", "contact-model step time, throughput, memory and force accuracy per model, dtype, batch and point count"),
-    "control": ("hydrosoft.bench.control", "closed/open-loop MPC error per task and model (paper Table III, simulation)"),
-    "tradeoff": ("hydrosoft.bench.tradeoff", "solve time against closed-loop error over the planner's knobs"),
+# group -> (group help, {subcommand -> (module with add_arguments(parser) and run(args) -> int, one-line help)})
+GROUPS = {
+    "bench": ("benchmarks that print figures (see `bench COMMAND --help`)", {
+        "model": ("hydrosoft.bench.model", "contact-model step time, throughput, memory and force accuracy per model, dtype, batch and point count"),
+        "control": ("hydrosoft.bench.control", "closed/open-loop MPC error per task and model (paper Table III, simulation)"),
+        "tradeoff": ("hydrosoft.bench.tradeoff", "solve time against closed-loop error over the planner's knobs"),
+        "bus": ("hydrosoft.services.benchmarks.bus", "one-way bus latency between two processes: wrench and 640x480 depth frames over tcp loopback and ipc"),
+        "tracker": ("hydrosoft.services.benchmarks.tracker", "AprilTag tracker accuracy on rendered images: position/orientation error and detection rate per camera distance and view angle"),
+    }),
+    "simulate": ("run a simulated device on its own until Ctrl-C (see `simulate DEVICE --help`)", {
+        "ur": ("hydrosoft.drivers.ur.simulator", "simulated UR e-Series controller (RTDE 30004, dashboard 29999, script 30003) on a 127.0.0.N address"),
+        "ft300": ("hydrosoft.drivers.robotiq_ft300.simulator", "simulated Robotiq FT 300 streaming real frames on a pseudo-terminal"),
+    }),
+    "calibrate": ("calibrate a device (see `calibrate DEVICE --help`)", {
+        "camera": ("hydrosoft.drivers.camera.calibration", "camera intrinsics from ChArUco board pictures, written as a calibration TOML"),
+    }),
+}
+
+
+# top-level command -> (module with add_arguments(parser) and run(args) -> int, one-line help)
+COMMANDS = {
+    "goal": ("hydrosoft.services.client", "set a goal on a running stack, start it and (with --wait) wait for the outcome"),
+    "launch": ("hydrosoft.services.launcher", "start the stack's services from a config, keep them up, stop them safely on Ctrl-C"),
+    "status": ("hydrosoft.services.status", "show each running service's state, pid, uptime, message rates, restarts and errors"),
+    "check": ("hydrosoft.services.check", "probe every device a stack config names and say what answers, without moving the arm"),
 }
 
 
@@ -33,12 +53,17 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--steps", type=int, default=20, help="control steps to simulate (default 20)")
     demo.add_argument("--model", default="nh", choices=["nh", "snh", "pf", "pff"], help="contact model (default nh)")
     demo.add_argument("--speed", type=float, default=2.0, help="bubble speed along x in mm per step (default 2)")
-    bench = sub.add_parser("bench", help="benchmarks that print figures (see `bench COMMAND --help`)")
-    bench_sub = bench.add_subparsers(dest="bench", metavar="BENCH", required=True)
-    for name, (module, text) in BENCHES.items():
-        p = bench_sub.add_parser(name, help=text, description=text)
-        p.set_defaults(bench_module=module)
+    for name, (module, text) in COMMANDS.items():
+        p = sub.add_parser(name, help=text, description=text)
+        p.set_defaults(command_module=module)
         importlib.import_module(module).add_arguments(p)
+    for group, (group_help, commands) in GROUPS.items():
+        group_parser = sub.add_parser(group, help=group_help)
+        group_sub = group_parser.add_subparsers(dest=group, metavar=group.upper(), required=True)
+        for name, (module, text) in commands.items():
+            p = group_sub.add_parser(name, help=text, description=text)
+            p.set_defaults(command_module=module)
+            importlib.import_module(module).add_arguments(p)
     return parser
 
 
@@ -52,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         from hydrosoft.services.demo import run_demo
 
         return run_demo(steps=args.steps, model=args.model, speed_mm=args.speed)
-    return importlib.import_module(args.bench_module).run(args)
+    return importlib.import_module(args.command_module).run(args)
 
 
 if __name__ == "__main__":

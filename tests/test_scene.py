@@ -102,8 +102,8 @@ def test_pruning_drops_points_and_bodies_it_reports():
 def test_a_planar_table_counts_only_its_contact_patch_in_the_stability_bound():
     """The planar cube's side points near the table can never reach it (height held), so their horizontal
     normals must not add the table's E to the bound: counting every point within stability_margin, as for a
-    body that moves, would need 3 sub-steps instead of 2 (4 at the planner's 8.4 mm spacing)."""
-    scene = task_scene("pushing")
+    body that moves, would need 3 sub-steps instead of 2 in the rotation scene (5 instead of 3 in pushing)."""
+    scene = task_scene("rotation")
     model, state, report = compile_scene(scene, prune=False)
     world = se3.transform_points(state.object_pose[0], model.points)
     within_margin = torch.stack([

@@ -3,10 +3,13 @@ simulation rows), and the closed-loop replanning rate.
 
 For each task and planner contact model, ``--goals`` seeded goals (goal ``g`` is ``Task.sample_goal(g)``) are
 run open loop (one solve over the whole episode, then executed) and closed loop (one solve per control step
-from the tactile state estimate) on a finer NH plant (``hydrosoft.tasks.evaluation``; ``--plant`` picks its contact
-model, ``--pose-noise-mm``, ``--pose-noise-deg``, ``--deformation-noise-mm`` its seeded sensor noise). Reported per (task,
-model, loop): the final ADD error in mm (mean and sample std over goals), the mean solve time in ms (and its
-split into rollout, backward and CEM), the success rate (final ADD <= the task's threshold) and the statuses.
+from the tactile state estimate) on each plant of ``--plants`` (``hydrosoft.tasks.evaluation``): ``finer``, an NH
+model at half the planner's spacing and time step, and ``same``, the planner's own model and resolution (the
+paper's simulation setting), so that the table separates what model mismatch costs from what the controller
+achieves. ``--plant`` picks the finer plant's contact model, ``--pose-noise-mm``, ``--pose-noise-deg``,
+``--deformation-noise-mm`` the seeded sensor noise. Reported per (plant, task, model, loop): the final ADD error in
+mm (mean and sample std over goals), the mean solve time in ms (and its split into rollout, backward and CEM), the
+success rate (final ADD <= the task's threshold), the statuses and the episode lengths (``Task.episode_steps``).
 
 Settings. Full (default): planner surface spacing 8.4 mm (216 points on the 5 cm cube; pruning keeps the 132
 that can touch a body in pushing and rotation), B = 64 samples, 8 elites, horizon K = 10, G = 2 gradient steps,
@@ -45,6 +48,7 @@ import math
 import statistics
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 TASK_TITLES = {
@@ -76,7 +80,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="small planner and 2 goals: under 5 minutes on 2 cores")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
     parser.add_argument("--out", type=Path, default=Path("out/bench-control"), help="folder for the PNGs")
-    parser.add_argument("--plant", default="nh", help="the plant's contact model, or 'same' as the planner (default nh)")
+    parser.add_argument("--plant", default="nh", help="the finer plant's contact model, or 'same' as the planner (default nh)")
+    parser.add_argument("--plants", type=_csv, default=["finer", "same"], metavar="P1,P2",
+                        help="plant settings: finer (half the planner's spacing and step), same (the planner's own "
+                             "model); default both")
+    parser.add_argument("--same-models", type=_csv, default=None, metavar="M1,M2",
+                        help="planner models that also run on the 'same' plant (default: every --models entry)")
     parser.add_argument("--steps", type=int, default=None, help="control steps per episode (default: the task's)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--pose-noise-mm", type=float, default=0.0,
@@ -105,7 +114,7 @@ def mean_and_std(values: list[float]) -> tuple[float, float]:
     return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
 
 
-def _row(task: str, model: str, loop: str, results: list) -> dict:
+def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
     errors = [r.error_mm for r in results]
     mean, std = mean_and_std(errors)
     statuses: dict[str, int] = {}
@@ -113,7 +122,7 @@ def _row(task: str, model: str, loop: str, results: list) -> dict:
         statuses[r.status] = statuses.get(r.status, 0) + 1
     per_solve = lambda key: 1e3 * sum(getattr(r, key) for r in results) / len(results)  # noqa: E731
     return {
-        "task": task, "model": model, "loop": loop,
+        "plant": plant, "task": task, "model": model, "loop": loop,
         "error_mm_mean": mean, "error_mm_std": std,
         "solve_ms": per_solve("solve_s"), "rollout_ms": per_solve("rollout_s"),
         "backward_ms": per_solve("backward_s"), "cem_ms": per_solve("cem_s"),
@@ -121,7 +130,7 @@ def _row(task: str, model: str, loop: str, results: list) -> dict:
         "position_mm_mean": mean_and_std([r.position_mm for r in results])[0],
         "angle_deg_mean": mean_and_std([r.angle_deg for r in results])[0],
         "initial_error_mm_mean": mean_and_std([r.initial_error_mm for r in results])[0],
-        "statuses": statuses, "errors_mm": errors,
+        "statuses": statuses, "errors_mm": errors, "steps": [len(r.errors_mm) - 1 for r in results],
     }
 
 
@@ -138,7 +147,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
     from hydrosoft.dynamics import pair_counts
     from hydrosoft.scene import build_surface
     from hydrosoft.tasks import make_task
-    from hydrosoft.tasks.evaluation import PlannerSettings, estimate_state, prepare
+    from hydrosoft.tasks.evaluation import PlannerSettings, observed_state, prepare
 
     task = make_task("pushing")
     settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
@@ -154,7 +163,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
     first_s, times = 0.0, []
     for k in range(solves + 1):
         tic = time.perf_counter()
-        result = solver.solve(estimate_state(setup, setup.plant.measure()))
+        result = solver.solve(observed_state(setup))
         wall = time.perf_counter() - tic
         setup.plant.apply(torch.zeros(setup.plant.model.n_bodies, 6, dtype=torch.float64).index_copy(
             0, setup.body_index, result.action.double()))
@@ -174,7 +183,13 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
 
 
 def _table(rows: list[dict], models: list[str]) -> str:
-    """Table III layout: one line per task; per model OL mean, std and CL mean, std (mm)."""
+    """Table III layout per plant: one line per task; per model OL mean, std and CL mean, std (mm)."""
+    return "\n\n".join(f"plant: {plant}\n" + _plant_table([r for r in rows if r["plant"] == plant], models)
+                       for plant in dict.fromkeys(r["plant"] for r in rows))
+
+
+def _plant_table(rows: list[dict], models: list[str]) -> str:
+    """One plant's rows in Table III's layout."""
     index = {(r["task"], r["model"], r["loop"]): r for r in rows}
     tasks = [t for t in TASK_TITLES if any(r["task"] == t for r in rows)]
     width = 27
@@ -209,7 +224,7 @@ def _plot(rows: list[dict], task: str, out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    task_rows = [r for r in rows if r["task"] == task]
+    task_rows = [r for r in rows if r["task"] == task and r["plant"] == rows[0]["plant"]]
     models = list(dict.fromkeys(r["model"] for r in task_rows))
     fig, axes = plt.subplots(1, len(models), figsize=(4 * len(models), 3.2), squeeze=False, sharey=True)
     for ax, model in zip(axes[0], models):
@@ -241,6 +256,7 @@ def run(args: argparse.Namespace) -> int:
 
     bad = ([t for t in args.tasks if t not in TASKS] + [m for m in args.models if m not in MODEL_TITLES]
            + [loop for loop in args.loops if loop not in ("open", "closed")]
+           + [p for p in args.plants if p not in ("finer", "same")]
            + [d for d in args.rate_dtypes if d not in ("float64", "float32")])
     if bad or args.plant not in (*MODEL_TITLES, "same"):
         _log(f"bench control: unknown task, model, loop, rate dtype or plant: {', '.join(bad) or args.plant}")
@@ -251,33 +267,44 @@ def run(args: argparse.Namespace) -> int:
     rate_solves = args.rate_solves if args.rate_solves is not None else preset["rate_solves"]
     started = time.perf_counter()
     rows = []
-    total = len(args.tasks) * len(args.models) * len(args.loops) * goals
+    same_models = args.models if args.same_models is None else args.same_models
+    runs = [(plant, model) for model in args.models for plant in args.plants if plant != "same" or model in same_models]
+    total = len(runs) * len(args.tasks) * len(args.loops) * goals
     done = 0
     for name in args.tasks:
         task = make_task(name, args.steps)
         for model in args.models:
             planner = PlannerSettings(model=model, compile=args.compile, **{k: preset[k] for k in (
                 "spacing", "samples", "elites", "horizon", "grad_steps", "open_loop_iterations")})
-            plant = PlantSettings(
-                model=model if args.plant == "same" else args.plant, pose_noise_m=args.pose_noise_mm / 1e3,
-                pose_noise_rad=math.radians(args.pose_noise_deg), deformation_noise_m=args.deformation_noise_mm / 1e3)
-            setup = prepare(task, planner, plant)
-            if args.compile:  # compile outside the timed episodes: a one-step closed-loop warm-up
-                run_episode(setup, task.sample_goal(0), "closed", steps=1)
-            for loop in args.loops:
-                results = []
-                for g in range(goals):
-                    tic = time.perf_counter()
-                    result = run_episode(setup, task.sample_goal(g), loop)
-                    results.append(result)
-                    done += 1
-                    _log(f"[{done}/{total}] {name} {model} {loop} goal {g}: {result.initial_error_mm:.1f} -> "
-                         f"{result.error_mm:.2f} mm ({result.status}), {time.perf_counter() - tic:.1f} s")
-                rows.append(_row(name, model, loop, results))
+            noise = {"pose_noise_m": args.pose_noise_mm / 1e3, "pose_noise_rad": math.radians(args.pose_noise_deg),
+                     "deformation_noise_m": args.deformation_noise_mm / 1e3}
+            plants = {"finer": PlantSettings(model=model if args.plant == "same" else args.plant, **noise),
+                      "same": replace(PlantSettings.same_as_planner(model), **noise)}
+            compiled_step = None
+            for plant_name in [plant for plant, m in runs if m == model]:
+                setup = prepare(task, planner, plants[plant_name])
+                if compiled_step is not None:  # one compiled planner step per task and model, shared by the plants
+                    setup = replace(setup, dynamics=compiled_step)
+                elif args.compile:  # compile outside the timed episodes: a one-step closed-loop warm-up
+                    run_episode(setup, task.sample_goal(0), "closed", steps=1)
+                    compiled_step = setup.dynamics
+                for loop in args.loops:
+                    results = []
+                    for g in range(goals):
+                        tic = time.perf_counter()
+                        result = run_episode(setup, task.sample_goal(g), loop, steps=args.steps)
+                        results.append(result)
+                        done += 1
+                        _log(f"[{done}/{total}] {plant_name} {name} {model} {loop} goal {g}: "
+                             f"{result.initial_error_mm:.1f} -> {result.error_mm:.2f} mm ({result.status}, "
+                             f"{len(result.errors_mm) - 1} steps), {time.perf_counter() - tic:.1f} s")
+                    rows.append(_row(plant_name, name, model, loop, results))
     replanning = [replanning_rate(rate_solves, args.compile, dtype) for dtype in args.rate_dtypes
                   ] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
-    settings = {**preset, "goals": goals, "quick": args.quick, "plant": args.plant, "threads": args.threads,
+    settings = {**preset, "goals": goals, "quick": args.quick, "plant": args.plant, "plants": args.plants,
+                "same_models": same_models,
+                "threads": args.threads,
                 "compile": args.compile,
                 "noise": {"pose_mm": args.pose_noise_mm, "pose_deg": args.pose_noise_deg,
                           "deformation_mm": args.deformation_noise_mm},

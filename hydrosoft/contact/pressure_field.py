@@ -36,12 +36,19 @@ class PressureField:
 
     The sliding direction comes from the step's relative displacement: the object point moves by ``-r``
     relative to the body, so friction on the object points along ``+r_t``. Eq. 4 is discontinuous at zero
-    slip; ``slip_tolerance`` (metres per step) regularises it as ``r_t / sqrt(|r_t|^2 + slip_tolerance^2)``, so
-    zero slip gives exactly zero friction and the force never leaves the cone.
+    slip; ``slip_tolerance`` (metres per sub-step) regularises it as ``r_t / sqrt(|r_t|^2 + slip_tolerance^2)``,
+    so zero slip gives exactly zero friction and the force never leaves the cone.
+
+    ``step`` evaluates the law at a prescribed displacement (kinematic replays: the force benchmark, the tactile
+    model). In the quasi-dynamic step the friction must not come from the previous sub-step's slip: applied
+    explicitly, its gain ``(h^2/epsilon) mu f_n / (m tol)`` is far above 1 and the object chatters back and forth
+    across the bubble. ``implicit_friction`` tells ``dynamics`` to solve it together with the object's motion
+    instead (backward Euler, ``dynamics._implicit_friction_motion``), which is stable for any step size.
     """
 
     slip_tolerance: float = 1e-7
     name: ClassVar[str] = "pf"
+    implicit_friction: ClassVar[bool] = True
 
     def step(self, geometry: ContactStep, forces: Tensor, material: Material) -> Tensor:
         """Forces ``(B, M, N, 3)``; ``forces`` (the previous state) is ignored."""

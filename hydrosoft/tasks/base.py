@@ -22,6 +22,8 @@ from hydrosoft.geometry import se3
 from hydrosoft.geometry.se3 import safe_norm
 from hydrosoft.scene import Scene
 
+EPISODE_MARGIN = 2.0  # episode length over the fewest steps a goal needs (Task.episode_steps)
+
 GoalSampler = Callable[[Tensor, torch.Generator], Tensor]
 """``(initial object pose (7,) float64, generator) -> goal pose (7,) float64``."""
 
@@ -83,6 +85,8 @@ class Task:
     bounds are ``-limit <= u <= limit`` (a zero limit fixes that DOF; bodies not listed are not actuated).
     goal_sampler: the seeded goal distribution (stated in each task module). steps: control steps per episode.
     success_mm: an episode succeeds when its final ADD is at most this. weights: MPC cost weights.
+    travel_ratio: the most the object translates per metre of body translation (1 when it can be dragged
+    along; 1/2 for rolling without slip, where the contact on top moves twice as fast as the centre).
     """
 
     name: str
@@ -92,6 +96,7 @@ class Task:
     steps: int
     success_mm: float = 5.0
     weights: CostWeights = CostWeights()
+    travel_ratio: float = 1.0
 
     def initial_pose(self) -> Tensor:
         """The object's initial pose ``(7,)`` (float64) from the scene."""
@@ -112,10 +117,11 @@ class Task:
         """Largest object motion per step the actions could cause: ``(m, rad)``.
 
         The object moves no faster than the bodies drag it: translation up to the largest body translation
-        bound; rotation up to the largest body rotation bound plus that translation over the object's smallest
-        half-extent (rolling). An upper bound, used to tell reachable goals from unreachable ones.
+        bound times ``travel_ratio``; rotation up to the largest body rotation bound plus that translation over
+        the object's smallest half-extent (rolling). An upper bound, used to tell reachable goals from
+        unreachable ones and to size episodes.
         """
-        trans = max((math.hypot(*lim[:3]) for lim in self.step_limits.values()), default=0.0)
+        trans = self.travel_ratio * max((math.hypot(*lim[:3]) for lim in self.step_limits.values()), default=0.0)
         rot = max((math.hypot(*lim[3:]) for lim in self.step_limits.values()), default=0.0)
         return trans, rot + trans / self.object_radius()
 
@@ -125,6 +131,21 @@ class Task:
         sizes = [v / 2 for k, v in params.items() if k in ("side", "length", "width", "height")]
         sizes += [v for k, v in params.items() if k == "radius"]
         return min(sizes) if sizes else 0.01
+
+    def min_steps(self, start: Tensor, goal: Tensor) -> int:
+        """The fewest control steps in which ``goal (7,)`` could be reached from ``start (7,)`` (``max_travel``)."""
+        trans, rot = self.max_travel()
+        distance = float(position_error(start, goal))
+        angle = float(orientation_error(start, goal))
+        need = max(distance / trans if trans > 0 else math.inf * (distance > 1e-9),
+                   angle / rot if rot > 0 else math.inf * (angle > 1e-9), 0.0)
+        return math.ceil(need - 1e-9) if math.isfinite(need) else 2**31
+
+    def episode_steps(self, goal: Tensor) -> int:
+        """Control steps of an episode towards ``goal (7,)``: the task's ``steps``, or ``EPISODE_MARGIN`` times the
+        fewest steps the goal needs when that is more, so that every sampled goal is reachable within its
+        episode with room to correct."""
+        return max(self.steps, math.ceil(EPISODE_MARGIN * self.min_steps(self.initial_pose(), goal)))
 
     def reachable(self, start: Tensor, goal: Tensor, steps: int) -> bool:
         """Whether the goal ``(7,)`` is within reach of ``start (7,)`` in ``steps`` steps (``max_travel`` bound)."""

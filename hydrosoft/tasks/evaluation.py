@@ -8,11 +8,19 @@ sees measurements.
 
 - Open loop: one solve from the measured initial state over the whole episode (horizon = episode length,
   ``open_loop_iterations`` CEM rounds), then the plan is executed on the plant.
-- Closed loop: every control step the planner's state is rebuilt from the plant's measurement and solved
-  again (paper IV-E, V-A): object pose (optionally noisy), body poses (proprioception) and contact forces from
-  the tactile model: plant forces -> ``deformation_from_forces`` (plant areas, materials) -> ``resample`` to
-  the planner's points by object-frame nearest neighbour -> ``forces_from_deformation`` (planner areas,
-  materials); the first action is applied to the plant.
+- Closed loop: every control step the planner's state is rebuilt from what the plant's sensors observe and
+  solved again (paper IV-E, V-A): the object pose (tags, optionally noisy), the body poses (the arm) and, per
+  Soft Bubble, the depth of each planner surface point inside its nominal membrane, computed from the plant's
+  geometry (``tactile.membrane_penetration``: what its depth camera sees; optionally noisy). The plant's force
+  state never leaves it. ``tactile.estimate_state`` turns the observation into the planner's state, carrying
+  shear and the table's forces over from the planner's own prediction of this instant (one step of its model
+  under the action it applied); the first action is applied to the plant.
+
+The plant is finer than the planner by default (``PlantSettings()``); ``PlantSettings.same_as_planner()`` is the
+planner's own model (the paper's simulation setting, as far as we can tell), which separates what model
+mismatch costs from what the controller achieves. An episode lasts ``Task.episode_steps(goal)`` control steps
+(at least the task's, longer for goals whose travel needs more under the action bounds); a goal beyond reach
+even so is marked ``unreachable`` before any planning.
 
 Episode status, the first that applies: ``diverged`` (the plant's state became non-finite; the episode stops at
 the last finite state), ``no_finite_plan`` (a solve had no sample with a finite cost; the rest action was
@@ -27,7 +35,7 @@ import functools
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Literal, NamedTuple
+from typing import Callable, Literal
 
 import msgspec
 import torch
@@ -38,7 +46,7 @@ from hydrosoft.control.costs import orientation_error, position_error
 from hydrosoft.dynamics import CompiledStep, Model, State, step
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, build_surface, compile_scene
-from hydrosoft.tactile import deformation_from_forces, forces_from_deformation, nearest_indices, resample
+from hydrosoft.tactile import TactileObservation, estimate_state, membrane_penetration, sensor_bodies
 from hydrosoft.tasks.base import Task, mean_point_distance
 
 METRIC_SPACING_M = 0.005  # surface spacing of the points the ADD error is measured on (fixed for all settings)
@@ -99,7 +107,8 @@ class PlantSettings:
     surface spacing relative to the planner's (0.5: finer). substep_factor: sub-steps per planner sub-step (2:
     half the time step). pose_noise_m / pose_noise_rad: std of the seeded Gaussian noise on the observed
     object position (m, per axis) and orientation (rad, rotation vector per axis). deformation_noise_m: std of
-    the noise on the observed membrane deformation (m, per axis, at points in contact). seed: noise seed.
+    the noise on the observed membrane deformation (m, at points in contact; the result is clipped at 0).
+    seed: noise seed.
     """
 
     model: str = "nh"
@@ -110,14 +119,15 @@ class PlantSettings:
     deformation_noise_m: float = 0.0
     seed: int = 0
 
+    @classmethod
+    def same_as_planner(cls, model: str = "nh") -> PlantSettings:
+        """A plant with the planner's own spacing and time step (and contact model ``model``)."""
+        return cls(model=model, spacing_factor=1.0, substep_factor=1)
 
-class Measurement(NamedTuple):
-    """What the sensors report: ``object_pose (1, 7)`` (tags, maybe noisy), ``body_poses (1, M, 7)``
-    (proprioception), ``deformation (1, M, N, 3)`` (m, world frame, on the plant's surface points)."""
-
-    object_pose: Tensor
-    body_poses: Tensor
-    deformation: Tensor
+    @property
+    def label(self) -> str:
+        """``finer`` or ``same`` (spacing and step as the planner's), as the benchmarks name plants."""
+        return "same" if self.spacing_factor == 1.0 and self.substep_factor == 1 else "finer"
 
 
 def with_contact(scene: Scene, contact: str, spacing: float) -> Scene:
@@ -139,8 +149,8 @@ def with_solver_steps(scene: Scene, steps: int | None) -> Scene:
 class Plant:
     """The simulated world of a task: a compiled model, its state, and its sensors.
 
-    ``apply(u)`` runs one control step with ``u (M, 6)`` in the plant's body order; ``measure()`` returns a
-    ``Measurement``. Its tensors never leave it: measurements are fresh tensors.
+    ``apply(u)`` runs one control step with ``u (M, 6)`` in the plant's body order; ``observe(...)`` returns what
+    the sensors see. Its tensors never leave it: observations are fresh tensors computed from its geometry.
     """
 
     def __init__(self, scene: Scene, settings: PlantSettings, planner_spacing: float) -> None:
@@ -164,34 +174,33 @@ class Plant:
         self.state = State(*(t.detach() for t in nxt[:3]))
         return True
 
-    def inward_normals(self, object_pose: Tensor) -> Tensor:
-        """Inward object normals ``(1, 1, N, 3)`` in the world frame at ``object_pose (1, 7)``."""
-        return -se3.rotate_vectors(object_pose, self.model.normals).unsqueeze(1)
-
-    def measure(self) -> Measurement:
-        """Sensor readings of the current state, with the configured noise."""
+    def observe(self, points: Tensor, body_index: Tensor, sensors: Tensor) -> TactileObservation:
+        """What the sensors see, with the configured noise, for a planner whose surface points are ``points
+        (N, 3)`` (object frame) and whose bodies are the plant's ``body_index (M,)``, with sensor bodies ``sensors
+        (S,)`` (planner indices): the object pose (tags), the planner's bodies' poses (arm) and the depth of each
+        planner point inside each sensor's nominal membrane at the true poses (float64)."""
         s, m, g = self.settings, self.model, self.generator
         true_pose = self.state.object_pose
-        deformation = deformation_from_forces(self.state.forces, self.inward_normals(true_pose), m.areas, m.material)
+        plant_sensors = body_index[sensors]
+        penetration = membrane_penetration([m.bodies[int(j)] for j in plant_sensors], points.double(), true_pose,
+                                           self.state.body_poses[:, plant_sensors])
         if s.deformation_noise_m > 0:
-            touching = (self.state.forces.abs().sum(-1, keepdim=True) > 0).to(deformation.dtype)
-            noise = torch.randn(deformation.shape, generator=g, dtype=deformation.dtype)
-            deformation = deformation + s.deformation_noise_m * touching * noise
+            noise = torch.randn(penetration.shape, generator=g, dtype=penetration.dtype)
+            penetration = torch.relu(penetration + s.deformation_noise_m * (penetration > 0) * noise)
         pose = true_pose.clone()
         if s.pose_noise_m > 0 or s.pose_noise_rad > 0:
             noise = torch.randn(1, 6, generator=g, dtype=pose.dtype)
             scale = torch.tensor([s.pose_noise_m] * 3 + [s.pose_noise_rad] * 3, dtype=pose.dtype)
             pose = se3.retract(pose, noise * scale)
-        return Measurement(pose, self.state.body_poses.clone(), deformation)
+        return TactileObservation(pose, self.state.body_poses[:, body_index].clone(), penetration)
 
 
 @dataclass(frozen=True)
 class Setup:
-    """A task compiled for evaluation: planner model, plant, and the maps between their points and bodies.
+    """A task compiled for evaluation: planner model, plant, and the map between their bodies.
 
-    point_index ``(N_planner,)``: nearest plant point of each planner point (object frame, normals weighted so
-    faces do not mix). body_index ``(M_planner,)``: plant body of each planner body (by name), which maps
-    measurements to the planner and actions to the plant. metric_points ``(N, 3)``: object-frame points (5 mm
+    body_index ``(M_planner,)``: plant body of each planner body (by name), which maps observations to the
+    planner and actions to the plant. sensors ``(S,)``: the planner's sensor bodies (``tactile.sensor_bodies``). metric_points ``(N, 3)``: object-frame points (5 mm
     spacing, the same for every setting) on which the ADD error is measured. dynamics: the planner's step
     ``(state, u) -> state`` on planner_model, a ``CompiledStep`` when ``planner.compile`` is set (one per setup,
     shared by every solve on it, so it compiles once).
@@ -202,8 +211,8 @@ class Setup:
     planner_model: Model
     dynamics: Callable[[State, Tensor], State]
     plant: Plant
-    point_index: Tensor
     body_index: Tensor
+    sensors: Tensor
     metric_points: Tensor
 
 
@@ -224,9 +233,6 @@ def prepare(
     model, _, _ = compile_scene(scene, dtype=planner.dtype)
     model = replace(model, substeps=model.substeps * planner.substep_factor)
     world = Plant(task.scene, plant, spacing)
-    weight = spacing
-    source = torch.cat([world.model.points, weight * world.model.normals], -1)
-    target = torch.cat([model.points.double(), weight * model.normals.double()], -1)
     missing = [name for name in model.body_names if name not in world.model.body_names]
     if missing:
         raise ValueError(f"the plant has no body {missing} that the planner moves")
@@ -236,17 +242,24 @@ def prepare(
         dynamics = CompiledStep(model, **{"dynamic": False, **(compile_options or {})})
     else:
         dynamics = functools.partial(step, model)
-    return Setup(task, planner, model, dynamics, world, nearest_indices(source, target), body_index, metric)
+    return Setup(task, planner, model, dynamics, world, body_index, sensor_bodies(model), metric)
 
 
-def estimate_state(setup: Setup, measurement: Measurement) -> State:
-    """The planner's state ``(B = 1)`` from a measurement: pose, proprioception and tactile forces (eq. 22-24)."""
+def observed_state(setup: Setup, prediction: State | None = None) -> State:
+    """The planner's state ``(B = 1)`` from what the plant's sensors see now and the planner's ``prediction`` of
+    this instant (None before the first action): ``tactile.estimate_state``."""
     model = setup.planner_model
-    pose = measurement.object_pose.to(model.dtype)
-    deformation = resample(measurement.deformation[:, setup.body_index], setup.point_index).to(model.dtype)
-    normal = -se3.rotate_vectors(pose, model.normals).unsqueeze(1)
-    forces = forces_from_deformation(deformation, normal, model.areas, model.material)
-    return State(object_pose=pose, body_poses=measurement.body_poses[:, setup.body_index].to(model.dtype), forces=forces)
+    seen = setup.plant.observe(model.points, setup.body_index, setup.sensors)
+    seen = TactileObservation(*(t.to(model.dtype) for t in seen))
+    return estimate_state(model, seen, setup.sensors, prediction)
+
+
+def predict(setup: Setup, state: State, u: Tensor) -> State:
+    """The planner model's prediction ``(B = 1)`` of the state after applying ``u (M, 6)`` from ``state`` (eager
+    step, no gradient): the carry-over for the next state estimate."""
+    with torch.no_grad():
+        nxt = step(setup.planner_model, state, u.to(setup.planner_model.dtype).unsqueeze(0))
+    return State(*(t.detach() for t in nxt[:3]))
 
 
 @dataclass
@@ -293,15 +306,30 @@ def run_episode(
     steps: int | None = None,
     on_step: Callable[[int, float], None] | None = None,
 ) -> EpisodeResult:
-    """Run one episode of ``steps`` control steps (the task's by default) towards ``goal (7,)`` (float64).
+    """Run one episode of ``steps`` control steps (``task.episode_steps(goal)`` by default) towards ``goal (7,)``
+    (float64).
 
     ``on_step(k, error_mm)`` is called after every control step (progress reports). Never raises for an
-    unreachable goal, a contact-free start or a plan without a finite sample: the status says what happened.
+    unreachable goal, a contact-free start or a plan without a finite sample: the status says what happened. A
+    goal beyond reach of the action bounds within its sized episode is reported ``unreachable`` without
+    planning; an episode cut short by an explicit ``steps`` (a warm-up, a test) runs, and is reported
+    ``unreachable`` when the goal was out of reach in that many steps.
     """
     task, planner, plant = setup.task, setup.planner, setup.plant
-    steps = task.steps if steps is None else steps
+    sized = steps is None
+    steps = task.episode_steps(goal) if sized else steps
     model = setup.planner_model
     plant.reset()
+    start = plant.initial.object_pose[0]
+    reachable = task.reachable(start, goal, steps)
+    if sized and not reachable:
+        add, pos, ang = _errors(setup, plant.state.object_pose, goal)
+        return EpisodeResult(
+            task=task.name, model=planner.model, loop=loop, status="unreachable", error_mm=add, position_mm=pos,
+            angle_deg=ang, initial_error_mm=add, success=False, solves=0, solve_s=0.0, rollout_s=0.0,
+            backward_s=0.0, cem_s=0.0, errors_mm=[add], actions=torch.zeros(0, model.n_bodies, 6, dtype=torch.float64),
+            final_pose=plant.state.object_pose[0].clone(),
+        )
     low, high = task.bounds(model.body_names, model.dtype)
     stage, terminal = task.costs(model, goal)
     horizon, iterations = (steps, planner.open_loop_iterations) if loop == "open" else (
@@ -313,16 +341,19 @@ def run_episode(
     start_error = _errors(setup, plant.state.object_pose, goal)[0]
     errors, actions, timings = [start_error], [], []
     no_finite = diverged = False
-    plan = None
+    plan = prediction = None
     for k in range(steps):
         if loop == "closed" or plan is None:
             tic = time.perf_counter()
-            result = solver.solve(estimate_state(setup, plant.measure()))
+            state = observed_state(setup, prediction)
+            result = solver.solve(state)
             timings.append({**result.timings, "solve_s": time.perf_counter() - tic})
             no_finite |= result.status != "ok"
             plan = result.plan
         u = plan[0] if loop == "closed" else plan[k]
         u = u.detach().clamp(low, high)
+        if loop == "closed":
+            prediction = predict(setup, state, u)
         plant_u = torch.zeros(plant.model.n_bodies, 6, dtype=plant.model.dtype)
         plant_u[setup.body_index] = u.to(plant.model.dtype)
         if not plant.apply(plant_u):
@@ -335,12 +366,11 @@ def run_episode(
 
     add, pos, ang = _errors(setup, plant.state.object_pose, goal)
     success = add <= task.success_mm
-    start = plant.initial.object_pose[0]
     if diverged:
         status = "diverged"
     elif no_finite:
         status = "no_finite_plan"
-    elif not task.reachable(start, goal, steps):
+    elif not reachable:
         status = "unreachable"
     else:
         status = "reached" if success else "not_reached"

@@ -6,7 +6,9 @@ moves the contact by ``d`` along the membrane, whose half-length is 6 cm and whi
 cylinder beyond about 4 cm, so larger rolls would need a regrasp. Actions: the
 bubble translates along x by at most ``STEP_M`` per step and along z by at most ``STEP_Z_M`` (to keep the
 membrane pressed as the contact moves over its curved surface). The bubble leads the rolling cylinder (its
-top moves twice as fast as its centre), so the cost lets it drift up to 4.5 cm relative to the object.
+top moves twice as fast as its centre), so the cost lets it drift up to 4.5 cm relative to the object, and an
+episode lasts long enough for the bubble to travel twice the goal distance (``travel_ratio`` 1/2,
+``Task.episode_steps``: 30 steps, up to 54 for a 4 cm roll).
 """
 
 from __future__ import annotations
@@ -45,4 +47,5 @@ def make_task(steps: int = 30) -> Task:
         goal_sampler=lambda start, generator: sample_goal(start, generator, radius),
         steps=steps,
         weights=CostWeights(drift_limit=0.045),
+        travel_ratio=0.5,
     )

@@ -36,9 +36,10 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
     out, err = capsys.readouterr()
     document = json.loads(out)
     rows = document["rows"]
-    assert len(rows) == 2 * 2 * 2
-    assert {(r["task"], r["model"], r["loop"]) for r in rows} == {
-        (t, m, loop) for t in ("pushing", "in_hand") for m in ("nh", "pff") for loop in ("open", "closed")}
+    assert len(rows) == 2 * 2 * 2 * 2
+    assert {(r["plant"], r["task"], r["model"], r["loop"]) for r in rows} == {
+        (p, t, m, loop) for p in ("finer", "same") for t in ("pushing", "in_hand") for m in ("nh", "pff")
+        for loop in ("open", "closed")}
     for row in rows:
         assert KEYS <= row.keys() and row["goals"] == 2 and len(row["errors_mm"]) == 2
         assert row["error_mm_mean"] > 0 and row["error_mm_std"] >= 0 and 0 <= row["success_rate"] <= 1
@@ -52,7 +53,7 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
     assert document["settings"]["compile"] is False
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
     assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "[16/16] in_hand pff closed goal 1" in err
+    assert "[32/32] same in_hand pff closed goal 1" in err
 
 
 def test_table_is_laid_out_like_table_iii(tmp_path, capsys):

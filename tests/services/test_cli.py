@@ -13,13 +13,15 @@ def test_help_lists_every_command(capsys):
         main(["--help"])
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
-    for command in ("demo", "bench"):
+    for command in ("demo", "bench", "simulate", "calibrate"):
         assert command in out
-    with pytest.raises(SystemExit):
-        main(["bench", "--help"])
-    out = capsys.readouterr().out
-    for bench in ("model", "control", "tradeoff"):
-        assert bench in out
+    for group, commands in (("bench", ("model", "control", "tradeoff", "bus", "tracker")),
+                            ("simulate", ("ur", "ft300")), ("calibrate", ("camera",))):
+        with pytest.raises(SystemExit):
+            main([group, "--help"])
+        out = capsys.readouterr().out
+        for command in commands:
+            assert command in out
 
 
 def test_no_command_prints_help(capsys):

@@ -1,0 +1,420 @@
+"""``URArm``: the ``Arm`` interface of ``drivers/base.py`` on a UR e-Series controller through ``ur_rtde`` 1.6.5.
+
+Two ur_rtde clients per arm: ``RTDEReceiveInterface`` streams the state (timestamp, TCP pose and speed, runtime
+state, safety status bits) and ``RTDEControlInterface`` uploads ur_rtde's control script and sends commands through
+RTDE registers (devices.md section 3). Poses cross this edge converted between UR's ``[x, y, z, rx, ry, rz]`` and
+the stack's ``(7,)`` ``[x, y, z, qw, qx, qy, qz]`` (``pose.py``), in the robot base frame.
+
+Threads. Every ur_rtde method blocks in C++ with the GIL released, so each client gets one dedicated worker thread
+(the calls of one client are serialised; the event loop never waits on them). The constructors and destructors
+are the exception: they hold the GIL. Before constructing, ``connect`` checks with asyncio that the RTDE stream
+flows and that the dashboard and script ports answer (``probe.py``), so a controller that is gone or stalled fails
+fast without freezing the loop; a successful construction still freezes the loop for its duration (about 5 ms
+for the receive client and 20-40 ms for the control client on loopback, more when a script must be replaced). A destructor sleeps 500 ms holding the GIL, so retired clients are
+disconnected on their worker thread (the sleep there does not hold the GIL) and parked in ``_RETIRED_CLIENTS``
+until the interpreter exits.
+
+Safety behaviour:
+- ``connect`` arms the controller's watchdog (``setWatchdog(watchdog_min_hz)``): when no command reaches the
+  controller for ``1 / watchdog_min_hz`` s (this process died or hangs) the script stops and so does the arm. While
+  connected, a supervisor task kicks the watchdog whenever no other command went out within a quarter period.
+- ``servo_to`` reads the state first and never commands while the stream is stale, while protectively or
+  emergency stopped, or while the control script is not running: it raises ``Stale`` or ``DeviceFault`` instead.
+- ``read_state`` raises ``Stale`` when the newest state is older than ``max_age_s``, its age estimated from the
+  controller's RTDE timestamp against the host clock (``stream_age.py``; ur_rtde keeps returning the last values
+  for about 2.5 s after the stream stops, and says nothing about when they arrived).
+- When the stream closes (controller gone, or stalled for 2.5 s), the supervisor disconnects both clients and
+  reconnects with doubling back-off; calls raise ``NotConnected`` meanwhile. A stopped script or a protective stop
+  is not undone automatically: the caller decides (``restart_script``; an operator unlocks protective stops).
+- ``close`` stops the arm, runs ``stopScript`` (a disconnect alone leaves the script running) and disconnects.
+
+``counters`` counts by name what the driver refused or detected (``stale``, ``not_connected``,
+``refused_safety_stop``, ``refused_script_not_running``, ``rejected_target``, ``command_rejected``,
+``command_timeout``, ``link_lost``, ``reconnects``, ``reconnect_failures``) and what it did (``servo_commands``,
+``stops``, ``watchdog_kicks``, ``script_stops``, ``script_restarts``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, TypeVar
+
+import numpy as np
+
+from hydrosoft.drivers.base import ArmState
+from hydrosoft.drivers.errors import DeviceFault, NotConnected, Stale
+from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SCRIPT_PORT, URArmConfig
+from hydrosoft.drivers.ur.pose import pose_to_ur, ur_to_pose
+from hydrosoft.drivers.ur.probe import error_text, probe_port, probe_rtde_stream
+from hydrosoft.drivers.ur.stream_age import StreamAge
+
+try:
+    import rtde_control
+    import rtde_receive
+except ImportError as exc:  # pragma: no cover - the dependency is installed with the package
+    raise ImportError("hydrosoft.drivers.ur.arm needs the 'ur-rtde' package (pip install ur-rtde==1.6.5)") from exc
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "actual_TCP_speed", "runtime_state", "safety_status_bits"]
+RUNTIME_STATE_PLAYING = 2
+SAFETY_BIT_PROTECTIVE_STOP = 1 << 2
+SAFETY_BIT_EMERGENCY_STOP = 1 << 7
+
+# Limits of the waits on the worker threads. ur_rtde's own waits are longer (a real-time command spins up to ~4 s
+# for "ready", a stop up to 300 s), so these bound how long a caller waits, not how long the thread is busy.
+REALTIME_CALL_TIMEOUT_S = 0.5  # servoL, kickWatchdog: normally a few hundred microseconds
+SETUP_CALL_TIMEOUT_S = 5.0  # setWatchdog, reuploadScript, stopScript
+STOP_MARGIN_S = 1.0  # stop() waits the longest configured stop plus this
+DISCONNECT_TIMEOUT_S = 3.0  # disconnect() sleeps 500 ms by itself
+SUPERVISOR_FRACTION = 0.25  # the supervisor wakes every quarter watchdog period
+
+# Retired ur_rtde clients, kept alive so their GIL-holding 500 ms destructors never run on the event loop's watch.
+_RETIRED_CLIENTS: list[Any] = []
+
+
+class URArm:
+    """A UR e-Series arm behind ur_rtde, implementing ``hydrosoft.drivers.base.Arm``.
+
+    Args:
+        config: host and servo, stop, watchdog, staleness and reconnect settings (``URArmConfig``).
+    """
+
+    def __init__(self, config: URArmConfig) -> None:
+        self.config = config
+        self.counters: Counter = Counter()
+        self._control: Any = None
+        self._receive: Any = None
+        self._control_thread = ThreadPoolExecutor(1, thread_name_prefix=f"ur-control-{config.host}")
+        self._receive_thread = ThreadPoolExecutor(1, thread_name_prefix=f"ur-receive-{config.host}")
+        self._control_calls_in_flight = 0
+        self._last_command_ns = 0
+        self._age = StreamAge()
+        self._supervisor: asyncio.Task | None = None
+        self._link_up = False
+        self._closed = False
+
+    def __str__(self) -> str:
+        return f"URArm({self.config.host})"
+
+    # -- Arm protocol ----------------------------------------------------------------------------------------
+
+    async def connect(self) -> None:
+        """Connect both clients, start the control script, arm the watchdog and start the supervisor.
+
+        Raises ``NotConnected`` naming the host and what failed (a port that does not answer, a client that
+        could not start), ``DeviceFault`` when the controller refuses the watchdog.
+        """
+        if self._closed:
+            raise NotConnected(f"{self}: closed")
+        if self._supervisor is not None:  # connected before: the supervisor owns reconnecting
+            if self._link_up:
+                return
+            raise NotConnected(f"{self}: link lost; reconnecting in the background")
+        await self._open()
+        self._supervisor = asyncio.create_task(self._supervise(), name=f"{self}-supervisor")
+
+    async def read_state(self) -> ArmState:
+        """The newest controller state; raises ``NotConnected`` when the link is down, ``Stale`` when that state is
+        older than ``max_age_s`` (judged from the controller's timestamp, see ``stream_age.py``)."""
+        receive = self._require_link()
+        try:
+            connected, stamp_s, ur_pose, speed, runtime_state, safety_bits = await self._on_thread(
+                self._receive_thread, lambda: _read_receive(receive), REALTIME_CALL_TIMEOUT_S
+            )
+        except asyncio.TimeoutError as exc:
+            self.counters["stale"] += 1
+            raise Stale(f"{self}: the receive client did not answer within {REALTIME_CALL_TIMEOUT_S} s") from exc
+        now_ns = time.monotonic_ns()
+        if not connected:
+            self._mark_link_lost("the RTDE stream closed")
+            self.counters["not_connected"] += 1
+            raise NotConnected(f"{self}: the RTDE stream from the controller closed; reconnecting")
+        age_s = self._age.observe(stamp_s, now_ns)
+        if age_s > self.config.max_age_s:
+            self.counters["stale"] += 1
+            raise Stale(
+                f"{self}: newest controller state (timestamp {stamp_s:.3f} s) is {age_s:.3f} s old "
+                f"(max_age_s {self.config.max_age_s} s)"
+            )
+        return ArmState(
+            tcp_pose=ur_to_pose(ur_pose),
+            tcp_speed=np.asarray(speed, dtype=np.float64),
+            running=runtime_state == RUNTIME_STATE_PLAYING,
+            protective_stop=bool(safety_bits & SAFETY_BIT_PROTECTIVE_STOP),
+            emergency_stop=bool(safety_bits & SAFETY_BIT_EMERGENCY_STOP),
+            stamp_ns=now_ns,
+            hw_stamp_ns=round(stamp_s * 1e9),
+        )
+
+    async def servo_to(self, tcp_pose: np.ndarray) -> None:
+        """Send one servoL toward ``tcp_pose (7,)`` [m, wxyz] in the base frame, for one servo period.
+
+        Raises ``ValueError`` for a malformed pose (shape, non-finite, quaternion not unit), ``NotConnected``,
+        ``Stale``, and ``DeviceFault`` when protectively/emergency stopped, when the script is not running or
+        when the controller does not accept the command. Nothing is sent in any of these cases but the last.
+        """
+        try:
+            ur_pose = pose_to_ur(tcp_pose).tolist()
+        except ValueError:
+            self.counters["rejected_target"] += 1
+            raise
+        state = await self.read_state()
+        self._require_commandable(state, "servoL")
+        cfg = self.config
+        accepted = await self._control_call(
+            lambda c: c.servoL(ur_pose, cfg.servo_speed_m_s, cfg.servo_accel_m_s2, cfg.servo_period_s,
+                               cfg.servo_lookahead_s, cfg.servo_gain),
+            REALTIME_CALL_TIMEOUT_S,
+        )
+        if not accepted:
+            self.counters["command_rejected"] += 1
+            raise DeviceFault(f"{self}: the controller did not accept servoL (script not ready)")
+        self.counters["servo_commands"] += 1
+
+    async def stop(self) -> None:
+        """Decelerate the TCP to rest at ``stop_decel_m_s2`` (servoStop) and return once it is at rest.
+
+        Safe to repeat. When protectively stopped or when the script is not running, the controller has already
+        stopped the arm and nothing is sent. Raises ``NotConnected`` when the controller cannot be reached (its
+        watchdog then stops the arm) and ``DeviceFault`` when the running script refuses the stop.
+        """
+        state = await self._state_for_stop()
+        if state is not None and (state.protective_stop or state.emergency_stop or not state.running):
+            return
+        decel = self.config.stop_decel_m_s2
+        stopped = await self._control_call(
+            lambda c: c.servoStop(decel), self.config.max_stop_duration_s + STOP_MARGIN_S
+        )
+        if not stopped:
+            after = await self._state_for_stop()
+            if after is not None and (after.protective_stop or after.emergency_stop or not after.running):
+                return
+            self.counters["command_rejected"] += 1
+            raise DeviceFault(f"{self}: the controller did not complete servoStop")
+        self.counters["stops"] += 1
+
+    async def close(self) -> None:
+        """Stop the arm, stop the control script (stopScript) and disconnect both clients. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._supervisor is not None:
+            self._supervisor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._supervisor
+        if self._link_up:
+            with contextlib.suppress(NotConnected, Stale, DeviceFault):
+                await self.stop()
+            with contextlib.suppress(NotConnected, DeviceFault):
+                await self._control_call(lambda c: c.stopScript(), SETUP_CALL_TIMEOUT_S)
+                self.counters["script_stops"] += 1
+        await self._retire_clients()
+        self._control_thread.shutdown(wait=False)
+        self._receive_thread.shutdown(wait=False)
+
+    # -- extras ------------------------------------------------------------------------------------------------
+
+    async def restart_script(self) -> None:
+        """Upload and start the control script again (after a watchdog expiry or an operator's stop) and re-arm
+        the watchdog. Raises ``DeviceFault`` while protectively stopped or when the controller refuses."""
+        state = await self.read_state()
+        if state.protective_stop or state.emergency_stop:
+            raise DeviceFault(f"{self}: cannot restart the script while stopped by the safety system")
+        if not await self._control_call(lambda c: c.reuploadScript(), SETUP_CALL_TIMEOUT_S):
+            raise DeviceFault(f"{self}: the controller did not restart the control script")
+        await self._wait_running()
+        await self._arm_watchdog()
+        self.counters["script_restarts"] += 1
+
+    @property
+    def connected(self) -> bool:
+        """True while both clients are up (a stale stream still counts as connected)."""
+        return self._link_up
+
+    # -- connection ------------------------------------------------------------------------------------------
+
+    async def _open(self) -> None:
+        cfg = self.config
+        await probe_rtde_stream(cfg.host, cfg.connect_timeout_s)
+        await probe_port(cfg.host, DASHBOARD_PORT, "dashboard", cfg.connect_timeout_s)
+        await probe_port(cfg.host, SCRIPT_PORT, "script", cfg.connect_timeout_s)
+        try:
+            self._receive = await self._on_thread(
+                self._receive_thread,
+                lambda: rtde_receive.RTDEReceiveInterface(
+                    cfg.host, -1.0, RECEIVE_VARIABLES, False, cfg.upper_range_registers
+                ),
+                SETUP_CALL_TIMEOUT_S,
+            )
+        except (RuntimeError, asyncio.TimeoutError) as exc:
+            raise NotConnected(f"{self}: RTDE receive interface failed to start: {error_text(exc)}") from exc
+        flags = rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+        if cfg.upper_range_registers:
+            flags |= rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS
+        try:
+            self._control = await self._on_thread(
+                self._control_thread,
+                lambda: rtde_control.RTDEControlInterface(cfg.host, -1.0, flags),
+                SETUP_CALL_TIMEOUT_S,
+            )
+        except (RuntimeError, asyncio.TimeoutError) as exc:
+            await self._retire_clients()
+            raise NotConnected(f"{self}: RTDE control interface failed to start: {error_text(exc)}") from exc
+        self._link_up = True
+        self._age.reset()  # the controller may have restarted: its clock too
+        try:
+            await self._arm_watchdog()
+        except (DeviceFault, NotConnected):
+            await self._retire_clients()
+            raise
+        log.info("%s: connected, watchdog %.1f Hz", self, cfg.watchdog_min_hz)
+
+    async def _arm_watchdog(self) -> None:
+        min_hz = self.config.watchdog_min_hz
+        if not await self._control_call(lambda c: c.setWatchdog(min_hz), SETUP_CALL_TIMEOUT_S):
+            raise DeviceFault(f"{self}: the controller refused setWatchdog({min_hz})")
+
+    async def _wait_running(self) -> None:
+        deadline_ns = time.monotonic_ns() + int(SETUP_CALL_TIMEOUT_S * 1e9)
+        while time.monotonic_ns() < deadline_ns:
+            with contextlib.suppress(Stale):
+                if (await self.read_state()).running:
+                    return
+            await asyncio.sleep(self.config.servo_period_s)
+        raise DeviceFault(f"{self}: the control script did not start within {SETUP_CALL_TIMEOUT_S} s")
+
+    async def _retire_clients(self) -> None:
+        """Disconnect both clients on their own threads and park them (see ``_RETIRED_CLIENTS``)."""
+        self._link_up = False
+        control, receive = self._control, self._receive
+        self._control = self._receive = None
+        waits = []
+        for client, thread in ((control, self._control_thread), (receive, self._receive_thread)):
+            if client is not None:
+                _RETIRED_CLIENTS.append(client)
+                waits.append(self._on_thread(thread, client.disconnect, DISCONNECT_TIMEOUT_S))
+        for result in await asyncio.gather(*waits, return_exceptions=True):
+            if isinstance(result, BaseException):
+                log.warning("%s: disconnect failed: %s", self, result)
+
+    def _mark_link_lost(self, reason: str) -> None:
+        if self._link_up:
+            self._link_up = False
+            self.counters["link_lost"] += 1
+            log.warning("%s: link lost (%s)", self, reason)
+
+    def _require_link(self) -> Any:
+        receive = self._receive
+        if self._closed or not self._link_up or receive is None:
+            self.counters["not_connected"] += 1
+            raise NotConnected(f"{self}: not connected" + (" (closed)" if self._closed else ""))
+        return receive
+
+    def _require_commandable(self, state: ArmState, command: str) -> None:
+        if state.protective_stop or state.emergency_stop:
+            self.counters["refused_safety_stop"] += 1
+            kind = "emergency" if state.emergency_stop else "protective"
+            raise DeviceFault(f"{self}: {kind} stop active; {command} not sent")
+        if not state.running:
+            self.counters["refused_script_not_running"] += 1
+            raise DeviceFault(f"{self}: the control script is not running; {command} not sent")
+
+    async def _state_for_stop(self) -> ArmState | None:
+        """State for ``stop``: None when only staleness prevents reading it (the stop is sent anyway)."""
+        try:
+            return await self.read_state()
+        except Stale:
+            return None
+
+    # -- supervisor: watchdog kicks and reconnects -------------------------------------------------------------
+
+    async def _supervise(self) -> None:
+        period_s = self.config.watchdog_period_s * SUPERVISOR_FRACTION
+        while not self._closed:
+            await asyncio.sleep(period_s)
+            try:
+                await self._supervise_once(period_s)
+            except Exception:  # the supervisor must outlive any one failure: log it, count it, go on
+                self.counters["supervisor_error"] += 1
+                log.exception("%s: supervisor step failed", self)
+
+    async def _supervise_once(self, period_s: float) -> None:
+        if not self._link_up:
+            await self._reconnect()
+            return
+        receive = self._receive
+        if receive is None:
+            return
+        if not await self._on_thread(self._receive_thread, receive.isConnected, REALTIME_CALL_TIMEOUT_S):
+            self._mark_link_lost("the RTDE stream closed")
+            return
+        idle_ns = time.monotonic_ns() - self._last_command_ns
+        if self._control_calls_in_flight == 0 and idle_ns > period_s * 1e9:
+            with contextlib.suppress(NotConnected, DeviceFault):
+                await self._control_call(lambda c: c.kickWatchdog(), REALTIME_CALL_TIMEOUT_S)
+                self.counters["watchdog_kicks"] += 1
+
+    async def _reconnect(self) -> None:
+        """Retire the dead clients, then try to connect again with doubling back-off until it works or close()."""
+        await self._retire_clients()
+        wait_s = self.config.reconnect_initial_s
+        while not self._closed:
+            try:
+                await self._open()
+            except (NotConnected, DeviceFault) as exc:
+                self.counters["reconnect_failures"] += 1
+                log.info("%s: reconnect failed (%s); next try in %.1f s", self, exc, wait_s)
+                await asyncio.sleep(wait_s)
+                wait_s = min(2.0 * wait_s, self.config.reconnect_max_s)
+                continue
+            self.counters["reconnects"] += 1
+            log.info("%s: reconnected", self)
+            return
+
+    # -- worker threads --------------------------------------------------------------------------------------
+
+    async def _control_call(self, call: Callable[[Any], T], timeout_s: float) -> T:
+        """Run ``call(control_client)`` on the control thread; ``NotConnected`` when there is no client,
+        ``DeviceFault`` when ur_rtde raises or the call outlasts ``timeout_s``."""
+        control = self._control
+        if control is None:
+            self.counters["not_connected"] += 1
+            raise NotConnected(f"{self}: not connected")
+        self._control_calls_in_flight += 1
+        self._last_command_ns = time.monotonic_ns()
+        try:
+            return await self._on_thread(self._control_thread, lambda: call(control), timeout_s)
+        except asyncio.TimeoutError as exc:
+            self.counters["command_timeout"] += 1
+            raise DeviceFault(f"{self}: ur_rtde call did not return within {timeout_s} s") from exc
+        except RuntimeError as exc:
+            self.counters["command_rejected"] += 1
+            raise DeviceFault(f"{self}: ur_rtde call failed: {exc}") from exc
+        finally:
+            self._control_calls_in_flight -= 1
+            self._last_command_ns = time.monotonic_ns()
+
+    async def _on_thread(self, thread: ThreadPoolExecutor, call: Callable[[], T], timeout_s: float) -> T:
+        loop = asyncio.get_running_loop()
+        return await asyncio.wait_for(loop.run_in_executor(thread, call), timeout_s)
+
+
+def _read_receive(receive: Any) -> tuple[bool, float, list[float], list[float], int, int]:
+    """One consistent-enough read of the receive client (each getter locks ur_rtde's state separately)."""
+    return (
+        receive.isConnected(),
+        receive.getTimestamp(),
+        receive.getActualTCPPose(),
+        receive.getActualTCPSpeed(),
+        receive.getRuntimeState(),
+        receive.getSafetyStatusBits(),
+    )
+

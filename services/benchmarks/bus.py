@@ -1,0 +1,237 @@
+"""``hydrosoft-stack bench bus``: one-way latency of the bus between two processes on this host.
+
+For each transport (``tcp://127.0.0.1`` and ``ipc://``) and payload (a ``Wrench``, a 640 x 480 uint16
+``DepthFrame``) the benchmark starts a publisher process and a subscriber process. The publisher sends at a fixed
+rate through ``bus.Publisher``; the subscriber reads through ``bus.LatestSubscriber`` as a service does and takes,
+for each message it hands out, its age: ``time.monotonic_ns()`` after receiving and decoding minus the
+publisher's ``stamp_ns`` (one host, one monotonic clock). The first ``WARMUP_S`` of messages are not measured
+(connection set-up, slow joiner). Rows report the median and 99th percentile age in microseconds and the
+messages per second the subscriber received. Targets: small messages p99 < 1 ms, depth frames p99 < 5 ms.
+
+Each row's two processes run ``python -m hydrosoft.services.benchmarks.bus publish|subscribe ...``; they are
+stopped by pid when they overrun their time limits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
+from hydrosoft.services.messages import DepthFrame, Message, Wrench
+
+#: Publishing rate per payload, Hz: above an F/T sensor's stream rate we consume, and a depth camera's frame rate.
+RATES_HZ = {"wrench": 1000.0, "depth_640x480": 100.0}
+TRANSPORTS = ("tcp", "ipc")
+#: Messages of the first WARMUP_S seconds are sent but not measured.
+WARMUP_S = 0.3
+#: The subscriber ends after this long without a message (once messages have flowed), s.
+SILENCE_END_S = 0.3
+#: Longest wait for a process to start and report, s (imports on two busy cores).
+START_TIMEOUT_S = 20.0
+#: Time a process may take beyond its nominal run before it is killed, s.
+END_MARGIN_S = 10.0
+
+
+def make_message(payload: str) -> Message:
+    """The message a row publishes: a wrench, or a 640 x 480 uint16 depth frame of random values."""
+    if payload == "wrench":
+        return Wrench(sensor="bench", wrench=np.array([0.5, -1.0, 9.8, 0.01, 0.02, -0.03]), tared=True)
+    depth = np.random.default_rng(0).integers(0, 4000, size=(480, 640), dtype=np.uint16)
+    return DepthFrame(bubble="bench", depth=depth, depth_scale_m=1e-4, fx_px=380.0, fy_px=380.0, cx_px=320.0,
+                      cy_px=240.0)
+
+
+@dataclass(frozen=True)
+class Row:
+    """One payload over one transport. p50_us, p99_us: message age when handed out, us; msgs_per_s: messages the
+    subscriber received per second of measurement; rate_hz: the publishing rate; sent, received: message counts
+    after the warm-up; samples: ages measured (one per hand-out, so at most ``received``)."""
+
+    payload: str
+    transport: str
+    p50_us: float
+    p99_us: float
+    msgs_per_s: float
+    rate_hz: float
+    sent: int
+    received: int
+    samples: int
+
+
+# --- the two roles, each in its own process ---------------------------------------------------------------------
+
+
+async def publish(endpoint: str, payload: str, seconds: float) -> None:
+    """Bind ``endpoint``, print ``BOUND <endpoint>``, wait for a line on stdin, then publish ``payload`` at its rate
+    for ``WARMUP_S + seconds`` and print ``{"sent": N}`` (messages after the warm-up)."""
+    rate_hz = RATES_HZ[payload]
+    period_ns = round(1e9 / rate_hz)
+    warmup_count = round(WARMUP_S * rate_hz)
+    total = warmup_count + round(seconds * rate_hz)
+    message = make_message(payload)
+    with Bus() as bus:
+        publisher = Publisher(bus, endpoint, source="bench_publisher")
+        print(f"BOUND {publisher.endpoint}", flush=True)
+        await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
+        next_ns = time.monotonic_ns()
+        for _ in range(total):
+            await publisher.send(message)
+            next_ns = max(next_ns + period_ns, time.monotonic_ns() - period_ns)  # late: no catch-up burst
+            await asyncio.sleep(max(0.0, (next_ns - time.monotonic_ns()) * 1e-9))
+    print(json.dumps({"sent": total - warmup_count}), flush=True)
+
+
+async def subscribe(endpoint: str, payload: str, seconds: float) -> None:
+    """Connect to ``endpoint``, print ``READY``, then take the age of every message handed out (after the
+    warm-up's ``seq``) until ``SILENCE_END_S`` without messages; print the counts and percentiles as JSON."""
+    rate_hz = RATES_HZ[payload]
+    warmup_count = round(WARMUP_S * rate_hz)
+    topic = make_message(payload).topic
+    ages_ns: list[int] = []
+    received = 0
+    deadline_s = time.monotonic() + START_TIMEOUT_S + WARMUP_S + seconds
+    with Bus() as bus:
+        subscriber = LatestSubscriber(bus, endpoint, [topic])
+        print("READY", flush=True)
+        while time.monotonic() < deadline_s:
+            waited_s = SILENCE_END_S if received else deadline_s - time.monotonic()
+            if not await subscriber.wait(max(waited_s, 0.0)):
+                break
+            try:
+                newest = subscriber.latest(topic, math.inf)
+            except Stale:
+                continue
+            if newest.value.seq > warmup_count:
+                ages_ns.append(round(newest.age_s * 1e9))
+                received = subscriber.received[topic] - warmup_count
+    ages_us = np.asarray(ages_ns, dtype=np.float64) * 1e-3
+    print(json.dumps({
+        "received": received,
+        "samples": len(ages_ns),
+        "p50_us": float(np.percentile(ages_us, 50)) if ages_ns else math.nan,
+        "p99_us": float(np.percentile(ages_us, 99)) if ages_ns else math.nan,
+    }), flush=True)
+
+
+# --- the orchestrator -------------------------------------------------------------------------------------------
+
+
+async def _start(role: str, endpoint: str, payload: str, seconds: float) -> asyncio.subprocess.Process:
+    return await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "hydrosoft.services.benchmarks.bus", role, endpoint, payload, str(seconds),
+        stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+    )
+
+
+async def _first_line(process: asyncio.subprocess.Process, role: str) -> str:
+    try:
+        line = await asyncio.wait_for(process.stdout.readline(), START_TIMEOUT_S)  # type: ignore[union-attr]
+    except TimeoutError:
+        raise RuntimeError(f"the {role} process did not start within {START_TIMEOUT_S} s") from None
+    if not line:
+        raise RuntimeError(f"the {role} process exited before reporting (exit {await process.wait()})")
+    return line.decode().strip()
+
+
+async def _result(process: asyncio.subprocess.Process, role: str, timeout_s: float) -> dict[str, float]:
+    try:
+        out, _ = await asyncio.wait_for(process.communicate(), timeout_s)
+    except TimeoutError:
+        raise RuntimeError(f"the {role} process did not finish within {timeout_s:.1f} s") from None
+    if process.returncode != 0:
+        raise RuntimeError(f"the {role} process failed (exit {process.returncode})")
+    return json.loads(out.decode().strip().splitlines()[-1])
+
+
+async def measure(payload: str, transport: str, seconds: float, ipc_dir: Path) -> Row:
+    """Run one publisher and one subscriber process for ``payload`` over ``transport`` and return their row."""
+    endpoint = "tcp://127.0.0.1:*" if transport == "tcp" else f"ipc://{ipc_dir}/{payload}.ipc"
+    processes: list[asyncio.subprocess.Process] = []
+    try:
+        publisher = await _start("publish", endpoint, payload, seconds)
+        processes.append(publisher)
+        bound = (await _first_line(publisher, "publisher")).removeprefix("BOUND ")
+        subscriber = await _start("subscribe", bound, payload, seconds)
+        processes.append(subscriber)
+        await _first_line(subscriber, "subscriber")
+        publisher.stdin.write(b"go\n")  # type: ignore[union-attr]
+        await publisher.stdin.drain()  # type: ignore[union-attr]
+        limit_s = WARMUP_S + seconds + SILENCE_END_S + END_MARGIN_S
+        sent, got = await asyncio.gather(_result(publisher, "publisher", limit_s),
+                                         _result(subscriber, "subscriber", limit_s))
+    finally:
+        for process in processes:
+            if process.returncode is None:
+                process.kill()
+                await process.wait()
+    return Row(payload=payload, transport=transport, p50_us=round(got["p50_us"], 1), p99_us=round(got["p99_us"], 1),
+               msgs_per_s=round(got["received"] / seconds, 1), rate_hz=RATES_HZ[payload], sent=int(sent["sent"]),
+               received=int(got["received"]), samples=int(got["samples"]))
+
+
+async def measure_all(seconds: float) -> list[Row]:
+    """Every payload over every transport, one after the other."""
+    with tempfile.TemporaryDirectory(prefix="hs-bench-") as ipc_dir:
+        return [await measure(payload, transport, seconds, Path(ipc_dir))
+                for transport in TRANSPORTS for payload in RATES_HZ]
+
+
+def format_table(rows: list[Row]) -> str:
+    """The rows as a text table."""
+    lines = [f"{'payload':<14} {'transport':<9} {'p50 us':>8} {'p99 us':>8} {'msgs/s':>8} {'rate Hz':>8} "
+             f"{'sent':>6} {'received':>8}"]
+    lines += [f"{r.payload:<14} {r.transport:<9} {r.p50_us:8.1f} {r.p99_us:8.1f} {r.msgs_per_s:8.1f} "
+              f"{r.rate_hz:8.0f} {r.sent:6d} {r.received:8d}" for r in rows]
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``hydrosoft-stack bench bus``."""
+    parser.add_argument("--seconds", type=float, default=2.0,
+                        help="measured seconds per payload and transport, after a 0.3 s warm-up (default 2)")
+    parser.add_argument("--json", action="store_true", help='print {"rows": [...]} as JSON instead of a table')
+
+
+def run(args: argparse.Namespace) -> int:
+    """Measure every row and print them; return the exit code."""
+    if not args.seconds > 0:
+        print(f"--seconds must be > 0, got {args.seconds}", file=sys.stderr)
+        return 2
+    rows = asyncio.run(measure_all(args.seconds))
+    if args.json:
+        print(json.dumps({"rows": [asdict(row) for row in rows]}))
+    else:
+        print(format_table(rows))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m hydrosoft.services.benchmarks.bus [--seconds S] [--json]``, or one process role
+    (``publish|subscribe ENDPOINT PAYLOAD SECONDS``, started by ``measure``)."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in ("publish", "subscribe"):
+        role = argparse.ArgumentParser(prog="hydrosoft.services.benchmarks.bus ROLE")
+        role.add_argument("role", choices=["publish", "subscribe"])
+        role.add_argument("endpoint")
+        role.add_argument("payload", choices=sorted(RATES_HZ))
+        role.add_argument("seconds", type=float)
+        args = role.parse_args(argv)
+        asyncio.run((publish if args.role == "publish" else subscribe)(args.endpoint, args.payload, args.seconds))
+        return 0
+    parser = argparse.ArgumentParser(prog="hydrosoft-stack bench bus", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,183 @@
+"""The bubble camera service: one Soft Bubble's depth frames and its membrane deformation.
+
+One per arm, named ``bubble_camera-ARM``. Depth frames come from the bubble's ``DepthCamera``: in sim mode
+``sim_devices.BusDepthCamera`` on sim_world's rendered ``depth/ARM`` (no real Soft Bubble driver is built yet, so
+lab mode is refused). The reference is the undeformed membrane's depth image: in sim mode the nominal membrane
+(the scene body ``ARM``'s ellipsoid) seen from the configured camera pose, ``drivers.bubble.render.reference_depth``.
+Each frame is published as ``depth/ARM`` (``DepthFrame``, the configured intrinsics) and ``deformation/ARM``
+(``MembraneDeformation``: reference minus measured depth along the optical axis, m, NaN = no return), both
+carrying the frame's ``hw_stamp_ns``.
+
+A frame that does not fit the configured camera (size, depth unit) is counted as ``bad_frame`` and dropped; a
+camera that sends nothing new for ``STALE_FRAME_PERIODS`` frame periods is counted as ``stale`` and the service
+reports ``degraded`` until frames come again; nothing is republished meanwhile. Neither ends the service.
+
+Run: ``python -m hydrosoft.services.bubble_camera CONFIG [--name bubble_camera-ARM]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hydrosoft.drivers.base import DepthFrame
+from hydrosoft.drivers.bubble.deformation import membrane_deformation
+from hydrosoft.drivers.bubble.render import PinholeDepth, reference_depth
+from hydrosoft.drivers.errors import DriverError, NotConnected, ProtocolError, Stale
+from hydrosoft.services import messages as msg
+from hydrosoft.services.config import ConfigError, StackConfig, load_config
+from hydrosoft.services.runtime import Service, run_service
+from hydrosoft.services.sim_devices import BusDepthCamera, depth_topic
+from hydrosoft.tasks import make_task
+
+MODULE = "bubble_camera"
+#: The camera is stale after this many frame periods (of ``depth.fps``) without a new frame.
+STALE_FRAME_PERIODS = 5
+#: A frame's depth unit may differ from the configured ``depth_scale_m`` by this fraction (float rounding).
+SCALE_TOLERANCE = 1e-6
+
+
+class BadFrame(ValueError):
+    """A depth frame that does not fit the configured camera (its size or depth unit)."""
+
+
+def membrane_radii(config: StackConfig, arm: str) -> tuple[float, float, float]:
+    """The radii (m, bubble frame) of ``arm``'s nominal membrane: the ellipsoid of the scene body named ``arm``.
+    Raises ConfigError when the scene has no such body or it is not an ellipsoid."""
+    scene = make_task(config.scene.task).scene
+    body = next((b for b in scene.bodies if b.name == arm), None)
+    if body is None or body.sdf != "ellipsoid":
+        raise ConfigError(f"arms: {arm!r} must name an ellipsoid (Soft Bubble) body of the {config.scene.task!r} "
+                          f"scene; its bodies are {[(b.name, b.sdf) for b in scene.bodies]}")
+    return tuple(float(r) for r in body.params["radii"])
+
+
+def depth_camera(config: StackConfig, arm: str) -> PinholeDepth:
+    """``arm``'s depth camera model (image size and intrinsics, px) from its ``depth`` table."""
+    d = config.arm(arm).depth
+    return PinholeDepth(d.width, d.height, d.fx, d.fy, d.cx, d.cy)
+
+
+@dataclass(frozen=True)
+class BubbleDepth:
+    """One bubble's depth pipeline: checks each frame against the camera and turns it into the two messages.
+
+    bubble: the bubble's (arm's) name. camera: the pinhole model. depth_scale_m: the depth unit, m per count.
+    reference_m: ``(H, W)`` float32 the undeformed membrane's depth image, m. reference_stamp_ns: when it was
+    taken (``time.monotonic_ns``).
+    """
+
+    bubble: str
+    camera: PinholeDepth
+    depth_scale_m: float
+    reference_m: np.ndarray
+    reference_stamp_ns: int
+
+    @classmethod
+    def nominal(cls, config: StackConfig, arm: str) -> BubbleDepth:
+        """The pipeline of ``arm`` with the nominal membrane as its reference (sim mode)."""
+        depth = config.arm(arm).depth
+        camera = depth_camera(config, arm)
+        reference = reference_depth(camera, membrane_radii(config, arm), depth.camera_in_bubble())
+        return cls(arm, camera, depth.depth_scale_m, reference, time.monotonic_ns())
+
+    def messages(self, frame: DepthFrame) -> tuple[msg.DepthFrame, msg.MembraneDeformation]:
+        """The ``DepthFrame`` and ``MembraneDeformation`` messages of one frame. Raises BadFrame when its image is
+        not ``(H, W)`` uint16 of the camera or its depth unit is not ``depth_scale_m``."""
+        counts = np.asarray(frame.depth)
+        expected = (self.camera.height, self.camera.width)
+        if counts.dtype != np.uint16 or counts.shape != expected:
+            raise BadFrame(f"bubble {self.bubble}: a depth frame must be {expected} uint16, got {counts.shape} "
+                           f"{counts.dtype}")
+        if not abs(frame.depth_scale_m - self.depth_scale_m) <= SCALE_TOLERANCE * self.depth_scale_m:
+            raise BadFrame(f"bubble {self.bubble}: a depth frame in units of {frame.depth_scale_m} m, the camera's "
+                           f"are {self.depth_scale_m} m")
+        depth_m = counts.astype(np.float32) * np.float32(self.depth_scale_m)
+        c = self.camera
+        depth = msg.DepthFrame(bubble=self.bubble, depth=counts, depth_scale_m=self.depth_scale_m, fx_px=c.fx,
+                               fy_px=c.fy, cx_px=c.cx, cy_px=c.cy, hw_stamp_ns=frame.hw_stamp_ns)
+        deformation = msg.MembraneDeformation(bubble=self.bubble,
+                                              deformation=membrane_deformation(depth_m, self.reference_m),
+                                              reference_stamp_ns=self.reference_stamp_ns,
+                                              hw_stamp_ns=frame.hw_stamp_ns)
+        return depth, deformation
+
+
+def error_kind(error: Exception) -> str:
+    """The short name under which the service counts ``error``."""
+    if isinstance(error, BadFrame):
+        return "bad_frame"
+    if isinstance(error, Stale):
+        return "stale"
+    if isinstance(error, NotConnected):
+        return "not_connected"
+    if isinstance(error, ProtocolError):
+        return "protocol"
+    return "driver"
+
+
+async def serve(service: Service, config: StackConfig, arm: str) -> None:
+    """Publish ``arm``'s depth frames and deformation images until cancelled (module docstring)."""
+    bubble = BubbleDepth.nominal(config, arm)
+    depth_cfg = config.arm(arm).depth
+    frames = service.subscriber(config.endpoint("sim_world"), [depth_topic(arm)])
+    camera = BusDepthCamera(frames, arm, timeout_s=STALE_FRAME_PERIODS / depth_cfg.fps)
+    await camera.connect()
+    service.on_shutdown(camera.close)
+    out = service.publisher(config.endpoint(service.name))
+    depth_out, deformation_out = msg.topic_for(msg.DepthFrame, arm), msg.topic_for(msg.MembraneDeformation, arm)
+    await service.ready()
+    while True:
+        try:
+            depth, deformation = bubble.messages(await camera.read())
+        except (DriverError, BadFrame) as error:
+            service.count_error(error_kind(error), str(error))
+            if isinstance(error, Stale) and service.state != "degraded":
+                await service.set_state("degraded")
+            continue
+        try:
+            await out.send(depth, depth_out)
+            await out.send(deformation, deformation_out)
+        except msg.MessageError as error:
+            service.count_error(error.kind, f"cannot publish: {error}")
+            continue
+        if service.state != "ready":
+            await service.set_state("ready")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments: CONFIG [--name bubble_camera-ARM]."""
+    parser.add_argument("config", help="the stack's TOML config (deploy/sim.toml)")
+    parser.add_argument("--name", default=None,
+                        help=f"service name {MODULE}-ARM (default: {MODULE}- and the config's first arm)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the service until SIGINT/SIGTERM; the exit code (2: a bad config or name, or lab mode)."""
+    try:
+        config = load_config(args.config)
+        name, arm = config.arm_service(MODULE, args.name)
+        if config.mode != "sim":
+            raise ConfigError(f"mode = {config.mode!r}: no real Soft Bubble depth driver is built yet; "
+                              f"{MODULE} runs in mode = 'sim' only")
+        membrane_radii(config, arm)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return run_service(name, config.runtime(name), functools.partial(serve, config=config, arm=arm))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog=f"python -m hydrosoft.services.{MODULE}",
+                                     description=__doc__.split("\n", 1)[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,603 @@
+"""The bus: sockets with a safe endpoint policy, publishers, latest-value subscribers and the client's
+request/reply pair (pyzmq ``zmq.asyncio``; message frames in ``messages``).
+
+Topology. Each publishing service binds its own PUB endpoint, listed in the launch config, and each subscriber
+connects to the endpoints of the services it reads (one SUB socket may connect to several). There is no
+XPUB/XSUB proxy: for a stack of ~7 processes on one host the config lists every endpoint anyway, and without a
+proxy a depth frame crosses one hop instead of two (half the copies through the kernel and no extra process on
+two shared cores), and no single proxy process takes every stream down when it dies or stalls. A publisher that
+restarts binds the same endpoint again and its subscribers reconnect on their own.
+
+Latest value. Sensor streams are read by their newest message only. A ``LatestSubscriber`` reads whenever its
+socket is readable (its ``wait`` loop, or its ``run`` task) and keeps only the newest message per topic, so as
+long as its event loop is free nothing queues anywhere. While the loop is blocked (a planner's solve), messages
+queue: ``SUB_RCVHWM`` in the SUB socket, the OS socket buffers (a few hundred kB: thousands of small messages,
+about one depth frame) and ``PUB_SNDHWM`` in the publisher, which then drops new ones. All of that is bounded and
+is read in one burst once the loop is free again (~10 us a message). ``ZMQ_CONFLATE`` would keep one message,
+but only for single-frame messages; ours are multipart. A message always travels with its age, and
+``latest(topic, max_age_s)`` raises ``Stale`` rather than hand out an old one: a service that blocks its loop
+should run the long computation in an executor, so its subscribers keep reading.
+
+Endpoint policy. ``ipc://``, ``inproc://`` and ``tcp://127.x.x.x`` (IPv4 loopback) are allowed as they are. Any
+other TCP address (``tcp://*``, ``tcp://0.0.0.0``, a LAN address, a host name) reaches beyond this host, so the
+socket must be given CURVE keys (``CurveServer`` on the side that authenticates its peers, usually the binding
+one; ``CurveClient`` on the other); without them ``BusConfigError`` says so. Keys are ``zmq.auth`` certificate
+files (``zmq.auth.create_certificates(dir, name)`` writes ``name.key`` and ``name.key_secret``); a CURVE server
+admits only the clients whose public ``.key`` files lie in its ``authorized_keys_dir``, checked by a ZAP
+authenticator thread the ``Bus`` starts (a thread, so handshakes proceed while a planner's solve holds the loop).
+
+Every socket option (HWM, LINGER 0, MAXMSGSIZE, subscriptions, CURVE) is set before bind/connect, where libzmq
+applies it. Receive timeouts are asyncio's (``wait(timeout_s)``, the client's ``timeout_s``): ``RCVTIMEO`` does
+not govern ``zmq.asyncio`` sockets. Ages and deadlines use ``time.monotonic_ns``, which all processes on one host
+share; across hosts they would not compare, which ``FutureStamp`` errors would show.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import itertools
+import logging
+import math
+import time
+from collections import Counter
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Generic, TypeVar
+
+import msgspec
+import zmq
+import zmq.asyncio
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
+
+from hydrosoft.services.messages import (
+    MAX_FRAME_BYTES,
+    BusError,
+    CommandReply,
+    Message,
+    MessageError,
+    Reply,
+    Request,
+    UnknownTopic,
+    decode,
+    encode,
+)
+
+log = logging.getLogger(__name__)
+
+#: Messages a PUB socket queues per subscriber before it drops new ones (a few frames of the fastest stream).
+PUB_SNDHWM = 16
+#: Messages a SUB socket holds for its reader (beyond that they wait in the OS buffers, then in the publisher);
+#: small, as only the newest counts and each can be a 600 kB depth frame.
+SUB_RCVHWM = 4
+#: Most messages one ``drain`` call decodes (~10 us each), so that a flood cannot hold the event loop for long.
+MAX_DRAIN_MESSAGES = 1000
+#: A received ``stamp_ns`` may lie this far in the future of the receiver's clock (same host: scheduling only).
+FUTURE_STAMP_TOLERANCE_NS = 5_000_000
+#: Default time a client waits for a reply, s.
+REQUEST_TIMEOUT_S = 2.0
+#: Errors of one kind are logged on the 1st, (N+1)th, (2N+1)th ... occurrence.
+LOG_EVERY_N = 100
+
+_LOOPBACK = ipaddress.ip_network("127.0.0.0/8")
+
+M = TypeVar("M", bound=Message)
+T = TypeVar("T")
+
+
+class BusConfigError(BusError):
+    """A socket cannot be set up as configured (endpoint policy, keys, address in use); the text says what to
+    change."""
+
+
+class Stale(BusError):
+    """No value, or only one older than the caller's maximum age."""
+
+
+class FutureStamp(MessageError):
+    """A received message's ``stamp_ns`` lies in the future of this host's monotonic clock."""
+
+    kind = "future_stamp"
+
+
+# --- errors and latest values ------------------------------------------------------------------------------------
+
+
+class ErrorCounter:
+    """Counts errors by kind, keeps the newest text and logs each kind's 1st, (N+1)th, ... occurrence."""
+
+    def __init__(self, logger: logging.Logger = log, log_every: int = LOG_EVERY_N) -> None:
+        self.counts: Counter[str] = Counter()
+        self.last_error = ""
+        self._logger = logger
+        self._log_every = log_every
+
+    def count(self, kind: str, text: str) -> None:
+        """Count one error of ``kind`` (a short name such as ``"schema"``) with its explanation ``text``."""
+        self.counts[kind] += 1
+        n = self.counts[kind]
+        self.last_error = f"{kind}: {text}"
+        if n % self._log_every == 1 or self._log_every == 1:
+            self._logger.warning("%s (%d so far, logged every %d): %s", kind, n, self._log_every, text)
+
+
+@dataclass(frozen=True)
+class Received(Generic[T]):
+    """A value with its stamp and age. stamp_ns: ``time.monotonic_ns()`` when it was produced (for a message,
+    published); age_s: seconds from then until it was handed out."""
+
+    value: T
+    stamp_ns: int
+    age_s: float
+
+
+class Latest(Generic[T]):
+    """The newest value of one input and its stamp; ``get`` hands it out only while it is younger than
+    ``max_age_s`` (s), otherwise raises ``Stale``: an old value is never reused silently."""
+
+    def __init__(self, name: str, max_age_s: float, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        if not max_age_s > 0:
+            raise ValueError(f"Latest({name!r}): max_age_s must be > 0, got {max_age_s!r}")
+        self.name = name
+        self.max_age_s = max_age_s
+        self._clock_ns = clock_ns
+        self._value: T | None = None
+        self._stamp_ns: int | None = None
+
+    def put(self, value: T, stamp_ns: int) -> None:
+        """Store ``value`` produced at ``stamp_ns`` (``time.monotonic_ns``) unless the held one is newer."""
+        if self._stamp_ns is None or stamp_ns >= self._stamp_ns:
+            self._value, self._stamp_ns = value, stamp_ns
+
+    def get(self, max_age_s: float | None = None) -> Received[T]:
+        """The value and its age; ``max_age_s`` overrides the holder's limit for this call. Raises Stale."""
+        limit_s = self.max_age_s if max_age_s is None else max_age_s
+        if self._stamp_ns is None:
+            raise Stale(f"{self.name}: nothing received yet")
+        age_s = (self._clock_ns() - self._stamp_ns) * 1e-9
+        if age_s > limit_s:
+            raise Stale(f"{self.name}: newest value is {age_s:.3f} s old, limit {limit_s:.3f} s")
+        return Received(self._value, self._stamp_ns, age_s)  # type: ignore[arg-type]
+
+    @property
+    def stamp_ns(self) -> int | None:
+        """Stamp of the held value, or None before the first ``put``."""
+        return self._stamp_ns
+
+
+# --- sockets -----------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CurveServer:
+    """CURVE for a socket that authenticates its peers. secret_key_file: its own ``.key_secret`` certificate;
+    authorized_keys_dir: a directory of the admitted clients' public ``.key`` certificates."""
+
+    secret_key_file: Path
+    authorized_keys_dir: Path
+
+
+@dataclass(frozen=True)
+class CurveClient:
+    """CURVE for a socket that connects to a CURVE server. secret_key_file: its own ``.key_secret`` certificate
+    (its public half must be in the server's authorized directory); server_key_file: the server's public ``.key``."""
+
+    secret_key_file: Path
+    server_key_file: Path
+
+
+Curve = CurveServer | CurveClient
+
+
+def is_local_endpoint(endpoint: str) -> bool:
+    """True for ``ipc://``, ``inproc://`` and ``tcp://`` on a literal 127.0.0.0/8 address. Raises BusConfigError
+    for a transport other than those three or a tcp endpoint without a port."""
+    transport, sep, address = endpoint.partition("://")
+    if not sep:
+        raise BusConfigError(f"endpoint {endpoint!r} has no transport: write ipc://PATH or tcp://127.0.0.1:PORT")
+    if transport in ("ipc", "inproc"):
+        return True
+    if transport != "tcp":
+        raise BusConfigError(f"endpoint {endpoint!r}: transport {transport!r} is not supported; use ipc:// or tcp://")
+    host, sep, port = address.rpartition(":")
+    if not sep or not (port == "*" or port.isdigit()):
+        raise BusConfigError(f"endpoint {endpoint!r} has no port: write tcp://HOST:PORT (PORT may be * to bind)")
+    try:
+        return ipaddress.ip_address(host.strip("[]")) in _LOOPBACK
+    except ValueError:
+        return False
+
+
+def check_endpoint(endpoint: str, curve: Curve | None) -> None:
+    """Enforce the endpoint policy of the module docstring: raise BusConfigError for a non-local endpoint without
+    CURVE keys."""
+    if not is_local_endpoint(endpoint) and curve is None:
+        raise BusConfigError(
+            f"endpoint {endpoint!r} is not ipc:// or tcp://127.x.x.x, so it would expose the bus beyond this host; "
+            "either use a local endpoint or configure CURVE keys for it: CurveServer(secret_key_file, "
+            "authorized_keys_dir) on the authenticating side and CurveClient(secret_key_file, server_key_file) on "
+            "the other (make key pairs with zmq.auth.create_certificates)"
+        )
+
+
+def _load_key_pair(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
+    try:
+        public, secret = zmq.auth.load_certificate(path)
+    except (OSError, ValueError) as error:
+        raise BusConfigError(f"cannot read CURVE certificate {path}: {error}") from None
+    if need_secret and secret is None:
+        raise BusConfigError(f"CURVE certificate {path} holds no secret key: give the .key_secret file")
+    return public, secret
+
+
+class Bus:
+    """One process's ZeroMQ context and socket factory, with the ZAP authenticator its CURVE servers need.
+
+    Close it (``close`` or a ``with`` block) to close every socket it made; a ``with`` block drops what is still
+    queued for sending (LINGER 0), so that a dead peer never delays an exit.
+    """
+
+    def __init__(self) -> None:
+        self.context = zmq.asyncio.Context()
+        self._authenticator: ThreadAuthenticator | None = None
+        self._zap_domains: dict[Path, str] = {}
+        self._sockets: list[zmq.asyncio.Socket] = []
+
+    def socket(
+        self,
+        socket_type: int,
+        endpoints: str | Sequence[str],
+        *,
+        bind: bool,
+        curve: Curve | None = None,
+        options: Sequence[tuple[int, int | bytes]] = (),
+    ) -> zmq.asyncio.Socket:
+        """A socket of ``socket_type`` bound (``bind``) or connected to each of ``endpoints``.
+
+        LINGER 0, ``options`` (``(zmq.SNDHWM, 16)``, ``(zmq.SUBSCRIBE, b"topic")``, ...) and ``curve`` are set
+        before any bind or connect. Raises BusConfigError on a policy violation, bad keys or a failed bind.
+        """
+        endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
+        for endpoint in endpoints:
+            check_endpoint(endpoint, curve)
+        sock = self.context.socket(socket_type)
+        try:
+            sock.setsockopt(zmq.LINGER, 0)
+            for option, value in options:
+                sock.setsockopt(option, value)
+            if isinstance(curve, CurveServer):
+                self._make_curve_server(sock, curve)
+            elif isinstance(curve, CurveClient):
+                self._make_curve_client(sock, curve)
+            for endpoint in endpoints:
+                (sock.bind if bind else sock.connect)(endpoint)
+        except zmq.ZMQError as error:
+            sock.close(linger=0)
+            raise BusConfigError(f"cannot {'bind' if bind else 'connect'} {endpoints}: {error}") from None
+        except BaseException:
+            sock.close(linger=0)
+            raise
+        self._sockets.append(sock)
+        return sock
+
+    def _make_curve_server(self, sock: zmq.Socket, curve: CurveServer) -> None:
+        public, secret = _load_key_pair(curve.secret_key_file, need_secret=True)
+        sock.zap_domain = self._zap_domain(Path(curve.authorized_keys_dir)).encode()
+        sock.curve_publickey = public
+        sock.curve_secretkey = secret
+        sock.curve_server = True
+
+    def _make_curve_client(self, sock: zmq.Socket, curve: CurveClient) -> None:
+        public, secret = _load_key_pair(curve.secret_key_file, need_secret=True)
+        server_public, _ = _load_key_pair(curve.server_key_file, need_secret=False)
+        sock.curve_publickey = public
+        sock.curve_secretkey = secret
+        sock.curve_serverkey = server_public
+
+    def _zap_domain(self, keys_dir: Path) -> str:
+        """The ZAP domain admitting the public keys in ``keys_dir``, starting the authenticator on first use."""
+        keys_dir = keys_dir.resolve()
+        if keys_dir in self._zap_domains:
+            return self._zap_domains[keys_dir]
+        if not keys_dir.is_dir() or not any(keys_dir.glob("*.key")):
+            raise BusConfigError(f"CURVE authorized_keys_dir {keys_dir} holds no public .key certificates")
+        if self._authenticator is None:
+            self._authenticator = ThreadAuthenticator(self.context, log=log.getChild("zap"))
+            self._authenticator.start()
+        domain = f"hydrosoft-{len(self._zap_domains)}"
+        self._authenticator.configure_curve(domain=domain, location=str(keys_dir))
+        self._zap_domains[keys_dir] = domain
+        return domain
+
+    def close(self, linger_ms: int = 0) -> None:
+        """Close every socket made here, stop the authenticator and end the context. linger_ms: how long queued
+        outgoing messages may still be sent, ms (a clean shutdown's last status); 0 drops them."""
+        for sock in self._sockets:
+            sock.close(linger=linger_ms)
+        self._sockets.clear()
+        if self._authenticator is not None:
+            self._authenticator.stop()
+            self._authenticator = None
+        self.context.destroy(linger=linger_ms)
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def _bound_endpoint(sock: zmq.Socket) -> str:
+    return sock.getsockopt_string(zmq.LAST_ENDPOINT)
+
+
+# --- streams -----------------------------------------------------------------------------------------------------
+
+
+class Publisher:
+    """A PUB socket that stamps and sends messages.
+
+    Each ``send`` sets ``seq`` (per topic, from 1), ``stamp_ns`` (``time.monotonic_ns()``) and ``source``, checks
+    the message and hands its arrays to ZeroMQ without copying them (do not modify an array after sending it).
+    A subscriber that is not keeping up loses new messages beyond ``sndhwm``; the publisher never blocks.
+    """
+
+    def __init__(
+        self,
+        bus: Bus,
+        endpoint: str,
+        *,
+        source: str,
+        bind: bool = True,
+        curve: Curve | None = None,
+        sndhwm: int = PUB_SNDHWM,
+    ) -> None:
+        self.source = source
+        self.sent: Counter[str] = Counter()
+        self._sock = bus.socket(zmq.PUB, endpoint, bind=bind, curve=curve, options=[(zmq.SNDHWM, sndhwm)])
+
+    @property
+    def endpoint(self) -> str:
+        """The endpoint actually bound or connected (a ``tcp://127.0.0.1:*`` bind shows its port here)."""
+        return _bound_endpoint(self._sock)
+
+    async def send(self, msg: M, topic: str | None = None) -> M:
+        """Stamp ``msg`` and publish it on ``topic`` (default its kind's topic); return the stamped message.
+        Raises the ``MessageError`` of a message that breaks its kind's rules."""
+        topic = msg.topic if topic is None else topic
+        stamped = msgspec.structs.replace(msg, seq=self.sent[topic] + 1, stamp_ns=time.monotonic_ns(),
+                                          source=self.source)
+        frames = encode(stamped, topic)
+        await self._sock.send_multipart(frames, copy=False)
+        self.sent[topic] += 1
+        return stamped
+
+
+class LatestSubscriber:
+    """A SUB socket that keeps the newest valid message per topic.
+
+    Read it in one of two ways: await ``wait`` in the service's loop (an event-driven service), or start ``run``
+    as a task and call ``latest`` whenever an input is needed (a service whose loop does other work). Only one
+    coroutine may wait on a subscriber at a time. ``drain`` (called by both and by ``latest``) reads everything
+    queued without blocking; invalid messages are counted in ``errors`` by kind (logged once per
+    ``LOG_EVERY_N``) and dropped, never raised. ``received`` counts valid messages per topic. Topics are matched
+    by prefix, as ZeroMQ subscriptions are (``""``: all).
+
+    A subscriber that is not reading when a publisher exits can lose that publisher's last messages: libzmq
+    discards what it had not yet read from a closed connection (seen with a final ``stopping`` status). Read
+    status and other last words with a subscriber that reads all along (``run``).
+    """
+
+    def __init__(
+        self,
+        bus: Bus,
+        endpoints: str | Sequence[str],
+        topics: Sequence[str] = ("",),
+        *,
+        curve: Curve | None = None,
+        rcvhwm: int = SUB_RCVHWM,
+        errors: ErrorCounter | None = None,
+    ) -> None:
+        self.errors = errors if errors is not None else ErrorCounter()
+        self.received: Counter[str] = Counter()
+        self._latest: dict[str, Latest[Message]] = {}
+        self._waiting = False
+        options: list[tuple[int, int | bytes]] = [(zmq.RCVHWM, rcvhwm), (zmq.MAXMSGSIZE, MAX_FRAME_BYTES)]
+        options += [(zmq.SUBSCRIBE, topic.encode()) for topic in topics]
+        self._sock = bus.socket(zmq.SUB, endpoints, bind=False, curve=curve, options=options)
+
+    def drain(self) -> set[str]:
+        """Read every message queued now (at most ``MAX_DRAIN_MESSAGES``) and keep the newest valid one per
+        topic. Returns the topics that got a new message."""
+        updated: set[str] = set()
+        for _ in range(MAX_DRAIN_MESSAGES):
+            if not self._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a recv that fails with Again
+                break
+            frames = self._sock.recv_multipart(zmq.NOBLOCK, copy=False).result()
+            received_ns = time.monotonic_ns()
+            try:
+                topic, msg = decode(frames)
+                if msg.stamp_ns > received_ns + FUTURE_STAMP_TOLERANCE_NS:
+                    raise FutureStamp(f"{topic!r} seq {msg.seq} from {msg.source!r} is stamped "
+                                      f"{(msg.stamp_ns - received_ns) * 1e-6:.1f} ms in the future")
+            except MessageError as error:
+                self.errors.count(error.kind, str(error))
+                continue
+            slot = self._latest.get(topic)
+            if slot is None:
+                slot = self._latest[topic] = Latest(topic, math.inf)
+            slot.put(msg, msg.stamp_ns)
+            self.received[topic] += 1
+            updated.add(topic)
+        return updated
+
+    async def wait(self, timeout_s: float | None = None) -> set[str]:
+        """Wait until at least one valid message arrived (at most ``timeout_s`` s; None: no limit), drain, and
+        return the topics that got a new message (empty on timeout)."""
+        if self._waiting:
+            raise RuntimeError("another coroutine already waits on this subscriber (wait and run exclude each other)")
+        loop = asyncio.get_running_loop()
+        deadline_s = None if timeout_s is None else loop.time() + timeout_s
+        self._waiting = True
+        try:
+            updated = self.drain()
+            while not updated:
+                if deadline_s is None:
+                    await self._sock.poll()
+                else:
+                    remaining_s = deadline_s - loop.time()
+                    if remaining_s <= 0 or not await self._sock.poll(math.ceil(remaining_s * 1000)):
+                        return self.drain()
+                updated = self.drain()
+            return updated
+        finally:
+            self._waiting = False
+
+    async def run(self) -> None:
+        """Read every message as it arrives, until cancelled (start it as a task; then use only ``latest``)."""
+        while True:
+            await self.wait()
+
+    def latest(self, topic: str, max_age_s: float, kind: type[M] = Message) -> Received[M]:  # type: ignore[assignment]
+        """The newest message on exactly ``topic`` (after a drain) with its age since it was published. Raises
+        Stale when none arrived or the newest is older than ``max_age_s`` (s), TypeError when it is not a
+        ``kind``."""
+        self.drain()
+        slot = self._latest.get(topic)
+        if slot is None:
+            raise Stale(f"{topic}: nothing received yet")
+        received = slot.get(max_age_s)
+        if not isinstance(received.value, kind):
+            raise TypeError(f"{topic} carries {type(received.value).__name__}, not {kind.__name__}")
+        return received  # type: ignore[return-value]
+
+
+# --- client API ---------------------------------------------------------------------------------------------------
+
+Handler = Callable[[Request], Awaitable[Reply]]
+
+
+class RequestServer:
+    """A ROUTER socket answering the client's requests with ``handler``, one at a time.
+
+    Frames: ``[client identity, request id, message frames...]`` in, the same identity and id with the reply's
+    frames out. A request that does not decode, is not a ``Request``, has passed its ``deadline_ns`` or makes the
+    handler raise gets ``CommandReply(ok=False, error=...)`` and is counted in ``errors``; the server carries on.
+    """
+
+    def __init__(
+        self,
+        bus: Bus,
+        endpoint: str,
+        handler: Handler,
+        *,
+        source: str,
+        bind: bool = True,
+        curve: Curve | None = None,
+        errors: ErrorCounter | None = None,
+    ) -> None:
+        self.source = source
+        self.errors = errors if errors is not None else ErrorCounter()
+        self._handler = handler
+        self._replies = 0
+        self._sock = bus.socket(zmq.ROUTER, endpoint, bind=bind, curve=curve,
+                                options=[(zmq.MAXMSGSIZE, MAX_FRAME_BYTES)])
+
+    @property
+    def endpoint(self) -> str:
+        """The endpoint actually bound or connected."""
+        return _bound_endpoint(self._sock)
+
+    async def serve(self) -> None:
+        """Answer requests until cancelled."""
+        while True:
+            await self.handle_one()
+
+    async def handle_one(self) -> None:
+        """Wait for one request and answer it."""
+        frames = await self._sock.recv_multipart(copy=False)
+        if len(frames) < 2:
+            self.errors.count("frame_count", f"a request of {len(frames)} frame(s) has no request id")
+            return
+        identity, request_id = frames[0], frames[1]
+        reply = await self._answer(frames[2:])
+        self._replies += 1
+        reply = msgspec.structs.replace(reply, seq=self._replies, stamp_ns=time.monotonic_ns(), source=self.source)
+        await self._sock.send_multipart([identity, request_id, *encode(reply)], copy=False)
+
+    async def _answer(self, frames: Sequence[zmq.Frame]) -> Reply:
+        try:
+            topic, request = decode(frames)
+            if not isinstance(request, Request):
+                raise UnknownTopic(f"{topic!r} is not a request topic")
+        except MessageError as error:
+            self.errors.count(error.kind, f"bad request: {error}")
+            return CommandReply(ok=False, error=f"{error.kind}: {error}")
+        if request.deadline_ns and time.monotonic_ns() > request.deadline_ns:
+            text = f"{type(request).__name__} from {request.source!r} arrived after its deadline"
+            self.errors.count("expired_request", text)
+            return request.reply(ok=False, error=text)
+        try:
+            reply = await self._handler(request)
+        except Exception as error:  # the server outlives a failing handler; the client gets the reason
+            log.exception("handler failed on %s", type(request).__name__)
+            self.errors.count("handler", f"{type(request).__name__}: {error!r}")
+            return request.reply(ok=False, error=f"handler failed: {error!r}")
+        if not isinstance(reply, request.reply):
+            text = (f"handler answered {type(request).__name__} with {type(reply).__name__}, "
+                    f"not {request.reply.__name__}")
+            self.errors.count("handler", text)
+            return request.reply(ok=False, error=text)
+        return reply
+
+
+class RequestClient:
+    """A DEALER socket sending requests and waiting for their replies, one request at a time.
+
+    Each request gets an id and a ``deadline_ns`` (now + timeout), so a server that receives it late refuses it
+    instead of acting on it. Replies to earlier, timed-out requests are dropped. ``ZMQ_IMMEDIATE`` keeps requests
+    from queueing on a connection that is not up.
+    """
+
+    def __init__(
+        self,
+        bus: Bus,
+        endpoint: str,
+        *,
+        source: str,
+        curve: Curve | None = None,
+        timeout_s: float = REQUEST_TIMEOUT_S,
+    ) -> None:
+        self.source = source
+        self.timeout_s = timeout_s
+        self.endpoint = endpoint
+        self._ids = itertools.count(1)
+        self._lock = asyncio.Lock()
+        self._sock = bus.socket(zmq.DEALER, endpoint, bind=False, curve=curve,
+                                options=[(zmq.IMMEDIATE, 1), (zmq.MAXMSGSIZE, MAX_FRAME_BYTES)])
+
+    async def request(self, request: Request, timeout_s: float | None = None) -> Reply:
+        """Send ``request`` and return the server's reply (check its ``ok``). Raises TimeoutError when no reply
+        comes within ``timeout_s`` (default the client's), or the ``MessageError`` of a malformed reply."""
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        async with self._lock:
+            request_id = next(self._ids).to_bytes(8, "big")
+            now_ns = time.monotonic_ns()
+            request = msgspec.structs.replace(request, seq=int.from_bytes(request_id, "big"), stamp_ns=now_ns,
+                                              source=self.source, deadline_ns=now_ns + int(timeout_s * 1e9))
+            try:
+                async with asyncio.timeout(timeout_s):
+                    await self._sock.send_multipart([request_id, *encode(request)], copy=False)
+                    while True:
+                        frames = await self._sock.recv_multipart(copy=False)
+                        if frames and frames[0].bytes == request_id:
+                            break
+            except TimeoutError:
+                raise TimeoutError(f"no reply to {type(request).__name__} from {self.endpoint} within "
+                                   f"{timeout_s} s") from None
+        _, reply = decode(frames[1:])
+        if not isinstance(reply, Reply):
+            raise UnknownTopic(f"the server answered with {type(reply).__name__}, which is not a reply")
+        return reply

@@ -1,0 +1,200 @@
+"""The experiment client: connect to a running stack, set a goal, start and stop it, wait for the outcome, read
+status, subscribe to any topic. ``StackClient`` is async; ``BlockingClient`` wraps it for scripts.
+
+    from hydrosoft.services.client import BlockingClient
+    with BlockingClient("deploy/sim.toml") as stack:
+        stack.set_goal("pushing", dx_m=0.04, tolerance_mm=5.0, timeout_s=180.0)
+        stack.start()
+        result = stack.wait(timeout_s=190.0)
+        print(result.outcome, result.error_mm, result.solves)
+
+``hydrosoft-stack goal TASK [--dx M] [--dy M] [--dyaw DEG] [--wait S] [--json]`` is this from the command line;
+with ``--json`` it prints one document ``{"status", "error_mm", "elapsed_s", "solves", "mean_solve_ms"}`` (error by
+the stack's own tracked pose) and in sim mode ``"true_error_mm"`` from sim_world's ``eval/object_pose``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import torch
+
+from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import Bus, LatestSubscriber, RequestClient, Stale
+from hydrosoft.services.config import StackConfig, load_config
+
+DEFAULT_CONFIG = "deploy/sim.toml"
+CONFIG_ENV = "HYDROSOFT_CONFIG"  # the config path when --config is not given
+POLL_PERIOD_S = 0.25  # s between status polls while waiting for an outcome
+REQUEST_TIMEOUT_S = 3.0
+FINAL = ("reached", "failed", "timeout", "stopped")
+
+
+class ClientError(RuntimeError):
+    """The stack refused a request; the message says why."""
+
+
+class StackClient:
+    """An async connection to a running stack's planner (requests) and to any service's topics."""
+
+    def __init__(self, config: StackConfig | str | Path) -> None:
+        self.config = config if isinstance(config, StackConfig) else load_config(config)
+        self.bus = Bus()
+        self.requests = RequestClient(self.bus, self.config.endpoint("planner", "cmd"), source="client",
+                                      timeout_s=REQUEST_TIMEOUT_S)
+
+    def close(self) -> None:
+        self.bus.close()
+
+    async def __aenter__(self) -> StackClient:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        self.close()
+
+    async def _command(self, request: msg.Request) -> msg.Reply:
+        reply = await self.requests.request(request)
+        if not reply.ok:
+            raise ClientError(reply.error)
+        return reply
+
+    async def set_goal(self, task: str, *, dx_m: float = 0.0, dy_m: float = 0.0, dyaw_rad: float = 0.0,
+                       target_pose: np.ndarray | None = None, tolerance_mm: float = 5.0, timeout_s: float = 180.0) -> None:
+        """Set the planner's goal (a displacement from the object's pose at ``start``, or an absolute pose)."""
+        goal = msg.Goal(task=task, target_pose=target_pose, dx_m=dx_m, dy_m=dy_m, dyaw_rad=dyaw_rad,
+                        tolerance_mm=tolerance_mm, timeout_s=timeout_s)
+        await self._command(msg.SetGoal(goal=goal))
+
+    async def start(self) -> None:
+        """Start pursuing the goal."""
+        await self._command(msg.Start())
+
+    async def stop(self, reason: str = "client") -> None:
+        """Stop pursuing the goal; the arm stops when the last target's deadline passes."""
+        await self._command(msg.Stop(reason=reason))
+
+    async def status(self) -> msg.StatusReply:
+        """The planner's status: outcome, error, solves."""
+        return await self._command(msg.GetStatus())
+
+    async def wait(self, timeout_s: float) -> msg.StatusReply:
+        """Poll the status until the goal ends or ``timeout_s`` passes (then the last status, outcome running)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            reply = await self.status()
+            if reply.outcome in FINAL or time.monotonic() >= deadline:
+                return reply
+            await asyncio.sleep(POLL_PERIOD_S)
+
+    def subscribe(self, service: str, topics: tuple[str, ...] = ("",)) -> LatestSubscriber:
+        """A latest-value subscriber to ``service``'s data topics (``await sub.wait()``, then ``sub.latest``)."""
+        return LatestSubscriber(self.bus, self.config.endpoint(service), topics)
+
+
+class BlockingClient:
+    """``StackClient`` for plain scripts: every method blocks until done."""
+
+    def __init__(self, config: StackConfig | str | Path) -> None:
+        self._loop = asyncio.new_event_loop()
+        self._client = StackClient(config)
+
+    def __enter__(self) -> BlockingClient:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._client.close()
+        self._loop.close()
+
+    def set_goal(self, task: str, **kwargs) -> None:
+        self._loop.run_until_complete(self._client.set_goal(task, **kwargs))
+
+    def start(self) -> None:
+        self._loop.run_until_complete(self._client.start())
+
+    def stop(self, reason: str = "client") -> None:
+        self._loop.run_until_complete(self._client.stop(reason))
+
+    def status(self) -> msg.StatusReply:
+        return self._loop.run_until_complete(self._client.status())
+
+    def wait(self, timeout_s: float) -> msg.StatusReply:
+        return self._loop.run_until_complete(self._client.wait(timeout_s))
+
+
+async def true_error_mm(client: StackClient, target: np.ndarray, task: str, wait_s: float = 1.0) -> float | None:
+    """The ADD error (mm) of sim_world's true object pose against ``target (7,)``, or None without sim_world."""
+    from hydrosoft.scene import build_surface
+    from hydrosoft.tasks import make_task
+    from hydrosoft.tasks.base import mean_point_distance
+    from hydrosoft.tasks.evaluation import METRIC_SPACING_M
+
+    if client.config.mode != "sim":
+        return None
+    sub = client.subscribe("sim_world", ("eval/object_pose",))
+    try:
+        await sub.wait(wait_s)
+        truth = sub.latest("eval/object_pose", max_age_s=wait_s + 1.0).value.pose
+    except Stale:
+        return None
+    scene_object = make_task(task).scene.object
+    points = build_surface(msgspec.structs.replace(scene_object, spacing=METRIC_SPACING_M)).points
+    return 1e3 * float(mean_point_distance(points, torch.as_tensor(np.array(truth)), torch.as_tensor(np.array(target))))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``hydrosoft-stack goal``."""
+    parser.add_argument("task", help="pushing, rotation, rolling or in_hand (the running stack's scene.task)")
+    parser.add_argument("--config", default=os.environ.get(CONFIG_ENV, DEFAULT_CONFIG),
+                        help=f"the running stack's config (default ${CONFIG_ENV} or {DEFAULT_CONFIG})")
+    parser.add_argument("--dx", type=float, default=0.0, help="object displacement along base x, m")
+    parser.add_argument("--dy", type=float, default=0.0, help="object displacement along base y, m")
+    parser.add_argument("--dyaw", type=float, default=0.0, help="object rotation about base z, degrees")
+    parser.add_argument("--tolerance-mm", type=float, default=5.0, help="success when the ADD error is below (mm)")
+    parser.add_argument("--timeout", type=float, default=None, help="the stack gives up after this long (s; default --wait or 180)")
+    parser.add_argument("--wait", type=float, default=0.0, help="wait up to this long for the outcome (s); 0: start and return")
+    parser.add_argument("--json", action="store_true", help="print one JSON document")
+
+
+async def _goal(args: argparse.Namespace) -> dict:
+    timeout_s = args.timeout if args.timeout is not None else (args.wait or 180.0)
+    async with StackClient(args.config) as client:
+        await client.set_goal(args.task, dx_m=args.dx, dy_m=args.dy, dyaw_rad=math.radians(args.dyaw),
+                              tolerance_mm=args.tolerance_mm, timeout_s=timeout_s)
+        await client.start()
+        reply = await (client.wait(args.wait) if args.wait > 0 else client.status())
+        result = {"status": reply.outcome, "error_mm": reply.error_mm, "elapsed_s": reply.elapsed_s,
+                  "solves": reply.solves, "mean_solve_ms": reply.mean_solve_ms}
+        if reply.outcome_reason:
+            result["reason"] = reply.outcome_reason
+        if reply.goal is not None and reply.goal.target_pose is not None:
+            true = await true_error_mm(client, reply.goal.target_pose, args.task)
+            if true is not None:
+                result["true_error_mm"] = true
+        return result
+
+
+def run(args: argparse.Namespace) -> int:
+    """``hydrosoft-stack goal``: exit 0 when reached (or started, without --wait), 1 otherwise, 2 when refused."""
+    try:
+        result = asyncio.run(_goal(args))
+    except (ClientError, TimeoutError) as err:
+        print(f"hydrosoft-stack goal: {err}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(", ".join(f"{key} {value:.2f}" if isinstance(value, float) else f"{key} {value}"
+                        for key, value in result.items()))
+    return 0 if result["status"] in ("reached", "running") else 1

@@ -1,0 +1,317 @@
+"""The stack's configuration: one TOML file (``deploy/sim.toml``, ``deploy/lab.toml``) read into frozen structs.
+
+Every service reads the same file and takes its own part. ``load_config`` validates it on load; an unknown or
+bad key raises ``ConfigError`` naming the file and the key (``limits.max_speed_m_s: must be > 0``).
+
+Layout (see ``deploy/sim.toml`` for a commented example)::
+
+    run_dir, log_level, mode          where ipc sockets and pty links live; "sim" or "lab"
+    [scene]                           the task whose scene is on the table, the tags on the object
+    [camera]                          the tag camera: intrinsics, pose in the base frame, rate
+    [[arms]]                          per arm: the scene body it carries (its TCP is that body's frame), the UR
+                                      controller's address, its bubble's depth camera, its F/T sensor's port
+    [limits]                          the arm commander's safety limits and watchdog timeouts
+    [planner]                         the MPC settings and the maximum age of each input
+    [sim]                             sim_world: rate, plant resolution, noise
+    [services.NAME]                   per service: restart policy and readiness timeout
+    [endpoints]                       optional overrides "SERVICE.data|status|cmd" = "tcp://..." (else ipc://)
+    [curve]                           CURVE key files, required for endpoints other than loopback or ipc
+
+Service names: ``sim_world`` (sim mode only), ``tag_tracker``, ``planner`` and one ``arm_commander-ARM``,
+``bubble_camera-ARM`` and ``ft_reader-ARM`` per arm. Each binds ``ipc://RUN_DIR/NAME.data`` (its topics) and
+``ipc://RUN_DIR/NAME.status`` (status, heartbeat); the planner also ``ipc://RUN_DIR/planner.cmd`` (the client API).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+import msgspec
+
+from hydrosoft.services.bus import CurveServer, check_endpoint
+from hydrosoft.services.runtime import RuntimeConfig
+
+Pose = tuple[float, float, float, float, float, float, float]
+Vec3 = tuple[float, float, float]
+RestartPolicy = Literal["never", "on-failure", "always"]
+ENDPOINT_KINDS = ("data", "status", "cmd")
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; the message names the file and the key."""
+
+
+def _require(condition: bool, key: str, text: str) -> None:
+    if not condition:
+        raise ConfigError(f"{key}: {text}")
+
+
+def _check_pose(pose: Pose, key: str) -> None:
+    _require(all(math.isfinite(v) for v in pose), key, f"a pose is 7 finite numbers [x, y, z, qw, qx, qy, qz], got {pose}")
+    _require(abs(math.sqrt(sum(v * v for v in pose[3:])) - 1.0) <= 1e-6, key, f"quaternion {pose[3:]} is not unit length")
+
+
+def _positive(owner: object, prefix: str, *names: str) -> None:
+    for name in names:
+        value = getattr(owner, name)
+        _require(isinstance(value, (int, float)) and math.isfinite(value) and value > 0, f"{prefix}.{name}",
+                 f"must be a positive number, got {value!r}")
+
+
+class Strict(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Base of every config table: unknown keys are errors."""
+
+
+class SceneConfig(Strict):
+    """task: the ``hydrosoft.tasks`` task whose scene is on the table. tag_size_m: AprilTag black-square edge on
+    each face of the object (m)."""
+
+    task: Literal["pushing", "rotation", "rolling", "in_hand"] = "pushing"
+    tag_size_m: float = 0.032
+
+    def __post_init__(self) -> None:
+        _positive(self, "scene", "tag_size_m")
+
+
+class CameraConfig(Strict):
+    """The tag camera: image size (px), pinhole intrinsics (px), ``pose`` = T_base_camera (OpenCV axes: x right,
+    y down, z forward), frame rate (Hz); ``calibration``: a calibration TOML file that overrides the intrinsics
+    and pose (the lab's), or "" to use these numbers; ``device``: OpenCV device index or URL (lab only)."""
+
+    width: int = 640
+    height: int = 480
+    fx: float = 600.0
+    fy: float = 600.0
+    cx: float = 319.5
+    cy: float = 239.5
+    pose: Pose = (0.35, -0.2, 0.35, 0.376141, -0.778837, -0.451977, 0.218283)
+    fps: float = 15.0
+    calibration: str = ""
+    device: str = ""
+
+    def __post_init__(self) -> None:
+        _positive(self, "camera", "width", "height", "fx", "fy", "fps")
+        _check_pose(self.pose, "camera.pose")
+
+
+class DepthConfig(Strict):
+    """A bubble's depth camera, sitting at the bubble frame's origin and looking along its ``axis`` (``-z`` or
+    ``+z`` of the bubble frame, whichever side of the membrane touches the object; its image x axis along the
+    bubble's x): image size (px), intrinsics (px), rate (Hz), depth unit (m per count); ``device``: lab only."""
+
+    axis: Literal["-z", "+z"] = "-z"
+    width: int = 160
+    height: int = 120
+    fx: float = 40.0  # a 126 x 113 deg view: the whole contact patch (at 90 px the rim was lost, 26-38 % of the force)
+    fy: float = 40.0
+    cx: float = 79.5
+    cy: float = 59.5
+    fps: float = 30.0
+    depth_scale_m: float = 0.0001
+    device: str = ""
+
+    def __post_init__(self) -> None:
+        _positive(self, "depth", "width", "height", "fx", "fy", "fps", "depth_scale_m")
+
+    def camera_in_bubble(self) -> Pose:
+        """T_bubble_camera ``(7,)``: at the bubble frame's origin, looking along ``axis`` (for ``-z`` the bubble
+        frame turned 180 deg about its x axis, for ``+z`` the bubble frame itself)."""
+        return (0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0) if self.axis == "-z" else (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+class ArmConfig(Strict):
+    """One arm. name: the scene body it carries (its TCP frame is that body's frame). ur_host: the UR controller's
+    address (sim: a 127.0.0.N loopback address for the simulated controller). ft_port: the FT 300's serial port
+    (sim: a path under run_dir that sim_world links to its pseudo-terminal). depth: the bubble's depth camera."""
+
+    name: str
+    ur_host: str = "127.0.0.2"
+    ft_port: str = ""
+    depth: DepthConfig = DepthConfig()
+
+
+class LimitsConfig(Strict):
+    """The arm commander's limits. workspace_min/max: the box (m, base frame) every TCP target must lie in.
+    max_speed_m_s, max_angular_speed_rad_s: the interpolation's speed limit. max_force_n: a target is refused and
+    the arm stopped while the F/T force exceeds this. servo_rate_hz: the rate of servo commands.
+    heartbeat_timeout_s: stop when the planner's heartbeat is older. state_timeout_s: stop when the arm driver's
+    state has not advanced for this long."""
+
+    workspace_min: Vec3 = (-0.15, -0.15, 0.0)
+    workspace_max: Vec3 = (0.15, 0.15, 0.2)
+    max_speed_m_s: float = 0.1
+    max_angular_speed_rad_s: float = 1.0
+    max_force_n: float = 40.0
+    servo_rate_hz: float = 125.0
+    heartbeat_timeout_s: float = 0.5
+    state_timeout_s: float = 0.2
+
+    def __post_init__(self) -> None:
+        _positive(self, "limits", "max_speed_m_s", "max_angular_speed_rad_s", "max_force_n", "servo_rate_hz",
+                  "heartbeat_timeout_s", "state_timeout_s")
+        _require(all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max)), "limits.workspace_min",
+                 f"must be below workspace_max on every axis, got {self.workspace_min} and {self.workspace_max}")
+
+
+class PlannerConfig(Strict):
+    """The MPC (``hydrosoft.tasks.evaluation.PlannerSettings`` names): contact model, surface spacing (m), samples
+    B, elites, horizon K, gradient steps G, dtype, compile (compile the step during start-up), seed.
+    max_age_s: per input topic kind, the oldest sample the planner acts on (s). heartbeat_period_s: its heartbeat
+    period (must be under half the commander's heartbeat_timeout_s). target_lead_s: how long each target stays
+    valid (its deadline)."""
+
+    model: Literal["nh", "snh", "pf", "pff"] = "nh"
+    spacing: float = 0.0125
+    samples: int = 16
+    elites: int = 4
+    horizon: int = 6
+    grad_steps: int = 1
+    dtype: Literal["float32", "float64"] = "float32"
+    compile: bool = False
+    seed: int = 0
+    max_age_s: dict[str, float] = msgspec.field(
+        default_factory=lambda: {"object_pose": 0.5, "arm_state": 0.2, "deformation": 0.5})
+    heartbeat_period_s: float = 0.1
+    target_lead_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s")
+        for key, value in self.max_age_s.items():
+            _require(value > 0, f"planner.max_age_s.{key}", f"must be > 0 s, got {value}")
+
+
+class SimConfig(Strict):
+    """sim_world: physics rate (Hz of simulated time, run in real time), the plant's spacing relative to the
+    planner's, camera noise (grey levels) and blur (px), depth noise (m)."""
+
+    rate_hz: float = 50.0
+    spacing_factor: float = 0.5
+    image_noise: float = 2.0
+    image_blur_px: float = 0.6
+    depth_noise_m: float = 0.0002
+
+    def __post_init__(self) -> None:
+        _positive(self, "sim", "rate_hz", "spacing_factor")
+        _require(self.rate_hz >= 50.0, "sim.rate_hz", f"must be at least 50 Hz, got {self.rate_hz}")
+
+
+class ServiceConfig(Strict):
+    """Per service: restart policy (never, on-failure, always), most restarts, first backoff (s, doubling), and
+    how long the launcher waits for READY (s)."""
+
+    restart: RestartPolicy = "on-failure"
+    max_restarts: int = 5
+    backoff_s: float = 0.5
+    ready_timeout_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        _positive(self, "services", "backoff_s", "ready_timeout_s")
+        _require(self.max_restarts >= 0, "services.max_restarts", f"must be >= 0, got {self.max_restarts}")
+
+
+class CurveConfig(Strict):
+    """CURVE keys (pyzmq zmq.auth certificate files): the servers' secret key file and the folder of authorised
+    client public keys."""
+
+    secret_key_file: str
+    authorized_keys_dir: str
+
+
+class StackConfig(Strict):
+    """The whole stack (see the module docstring)."""
+
+    arms: list[ArmConfig]
+    run_dir: str = "/tmp/hydrosoft"
+    log_level: str = "INFO"
+    mode: Literal["sim", "lab"] = "sim"
+    scene: SceneConfig = SceneConfig()
+    camera: CameraConfig = CameraConfig()
+    limits: LimitsConfig = LimitsConfig()
+    planner: PlannerConfig = PlannerConfig()
+    sim: SimConfig = SimConfig()
+    services: dict[str, ServiceConfig] = {}
+    endpoints: dict[str, str] = {}
+    curve: CurveConfig | None = None
+
+    def __post_init__(self) -> None:
+        _require(len(self.arms) >= 1, "arms", "the stack needs at least one arm")
+        names = [arm.name for arm in self.arms]
+        _require(len(set(names)) == len(names), "arms", f"arm names must be unique, got {names}")
+        _require(2 * self.planner.heartbeat_period_s < self.limits.heartbeat_timeout_s, "planner.heartbeat_period_s",
+                 f"must be under half of limits.heartbeat_timeout_s ({self.limits.heartbeat_timeout_s} s)")
+        for name in self.services:
+            _require(name in self.service_names(), f"services.{name}",
+                     f"no such service; the services are {', '.join(self.service_names())}")
+        for key, endpoint in self.endpoints.items():
+            service, _, kind = key.rpartition(".")
+            _require(service in self.service_names() and kind in ENDPOINT_KINDS, f"endpoints.{key}",
+                     "keys are SERVICE.data, SERVICE.status or SERVICE.cmd")
+            try:
+                check_endpoint(endpoint, self.curve_server())
+            except Exception as err:  # noqa: BLE001 - re-raised with the key named
+                raise ConfigError(f"endpoints.{key}: {err}") from err
+
+    def service_names(self) -> list[str]:
+        """Every service of this stack, in start order (sim_world first, the planner last)."""
+        names = ["sim_world"] if self.mode == "sim" else []
+        for arm in self.arms:
+            names += [f"arm_commander-{arm.name}", f"ft_reader-{arm.name}", f"bubble_camera-{arm.name}"]
+        return names + ["tag_tracker", "planner"]
+
+    def service(self, name: str) -> ServiceConfig:
+        """The launcher settings of service ``name`` (defaults when its table is absent)."""
+        return self.services.get(name, ServiceConfig())
+
+    def arm(self, name: str) -> ArmConfig:
+        """The arm carrying scene body ``name``."""
+        for arm in self.arms:
+            if arm.name == name:
+                return arm
+        raise ConfigError(f"arms: no arm named {name!r}; the arms are {[a.name for a in self.arms]}")
+
+    def arm_service(self, module: str, name: str | None) -> tuple[str, str]:
+        """``(service name, arm)`` of a per-arm service ``module`` run as ``name`` (``MODULE-ARM``; None: the
+        first arm's). Raises ConfigError for another name or an unknown arm."""
+        name = name or f"{module}-{self.arms[0].name}"
+        prefix, _, arm = name.partition("-")
+        if prefix != module or not arm:
+            raise ConfigError(f"--name {name!r}: expected {module}-ARM, e.g. {module}-{self.arms[0].name}")
+        self.arm(arm)
+        return name, arm
+
+    def endpoint(self, service: str, kind: str = "data") -> str:
+        """Where ``service`` binds its ``kind`` socket (data, status or cmd)."""
+        return self.endpoints.get(f"{service}.{kind}", f"ipc://{self.run_dir}/{service}.{kind}")
+
+    def runtime(self, service: str) -> RuntimeConfig:
+        """The runtime settings of ``service`` (the planner's heartbeat at ``planner.heartbeat_period_s``)."""
+        heartbeat = {"heartbeat_period_s": self.planner.heartbeat_period_s} if service == "planner" else {}
+        return RuntimeConfig(status_endpoint=self.endpoint(service, "status"), log_level=self.log_level, **heartbeat)
+
+    def curve_server(self) -> CurveServer | None:
+        """The CURVE server keys, or None."""
+        if self.curve is None:
+            return None
+        return CurveServer(Path(self.curve.secret_key_file), Path(self.curve.authorized_keys_dir))
+
+
+def parse_config(text: str | bytes, origin: str = "config") -> StackConfig:
+    """Validate a stack config from TOML text; raises ConfigError naming ``origin`` and the key."""
+    try:
+        return msgspec.toml.decode(text, type=StackConfig)
+    except ConfigError as err:
+        raise ConfigError(f"{origin}: {err}") from err
+    except msgspec.ValidationError as err:
+        raise ConfigError(f"{origin}: {err}") from err
+    except msgspec.DecodeError as err:
+        raise ConfigError(f"{origin} is not valid TOML: {err}") from err
+
+
+def load_config(path: str | Path) -> StackConfig:
+    """Read and validate a stack config file; raises ConfigError naming the file and the key."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist")
+    return parse_config(path.read_bytes(), origin=str(path))

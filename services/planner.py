@@ -1,0 +1,404 @@
+"""The planner service: the tactile state estimate and the MPC of ``hydrosoft.control`` on the stack's sensors.
+
+Inputs (each refused when older than ``planner.max_age_s``): the object pose from the tag tracker, each arm's TCP
+pose from its commander, and each bubble's membrane deformation image from its bubble camera. They become a
+``hydrosoft.tactile.TactileObservation`` (the membrane deformation turned into per-point depths inside the nominal
+membrane), which ``hydrosoft.tactile.estimate_state`` turns into the planner's state, carrying shear over from the
+planner's own prediction of the last plan. ``CemGd`` then plans; the plan's first actions, applied to the arms'
+current TCP poses, are the absolute TCP targets sent to the commanders, each with a deadline. Stale inputs mean no
+solve and no target: the commander's watchdog then stops the arm.
+
+The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. A goal ends ``reached`` (the
+tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed`` (with a reason: an unknown task,
+an unreachable goal, no object pose to start from) or ``stopped``.
+
+The pure parts (``PlannerCore``, ``resolve_target``, ``targets_from_plan``) are plain functions and classes that
+tests call without sockets; ``main`` is the thin loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import functools
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
+import torch
+
+from hydrosoft.control import CemGd
+from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
+from hydrosoft.drivers.bubble.render import PinholeDepth
+from hydrosoft.dynamics import CompiledStep, State, step
+from hydrosoft.geometry import se3
+from hydrosoft.geometry.sdf import Ellipsoid
+from hydrosoft.scene import build_surface, compile_scene
+from hydrosoft.tactile import TactileObservation, estimate_state, sensor_bodies
+from hydrosoft.tasks import make_task
+from hydrosoft.tasks.base import mean_point_distance
+from hydrosoft.tasks.evaluation import METRIC_SPACING_M, PlannerSettings, with_contact
+from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import Stale
+from hydrosoft.services.config import StackConfig, load_config
+from hydrosoft.services.runtime import Service, run_service
+
+IDLE_PERIOD_S = 0.05  # s between checks while no goal runs or inputs are stale
+SETTLE_S = 0.3  # a goal is reached once the object stayed within its tolerance this long (s)
+COMMAND_TIMEOUT_S = 1.0
+
+
+def as_pose(values) -> torch.Tensor:
+    """A float64 pose tensor ``(7,)`` from any 7 numbers."""
+    return torch.as_tensor(np.asarray(values, dtype=np.float64)).clone()
+
+
+def resolve_target(goal: msg.Goal, start_pose: torch.Tensor) -> torch.Tensor:
+    """The object pose ``(7,)`` a goal asks for: its ``target_pose``, or the start pose moved by ``dx_m, dy_m`` (m,
+    base frame) and turned by ``dyaw_rad`` about the base z axis through the object's centre."""
+    if goal.target_pose is not None:
+        return as_pose(goal.target_pose)
+    delta = torch.tensor([goal.dx_m, goal.dy_m, 0.0, 0.0, 0.0, goal.dyaw_rad], dtype=torch.float64)
+    return se3.retract(start_pose, delta)
+
+
+@dataclass
+class PlannerCore:
+    """The planner's model, solver factory and geometry for one stack config.
+
+    model: the compiled task scene at the planner's spacing, contact model and dtype. arms: for each config arm,
+    its body index in the model. sensors: the model's sensor bodies (``tactile.sensor_bodies``). fixed_poses:
+    ``(M, 7)`` the scene's body poses (unactuated bodies stay there). metric_points: ``(N, 3)`` object-frame
+    points (5 mm spacing) on which the ADD error is measured.
+    """
+
+    config: StackConfig
+    task: object
+    settings: PlannerSettings
+    model: object
+    dynamics: object
+    arms: dict[str, int]
+    sensors: torch.Tensor
+    fixed_poses: torch.Tensor
+    metric_points: torch.Tensor
+    membranes: dict[str, Ellipsoid] = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, config: StackConfig) -> PlannerCore:
+        """Compile the planner's model for ``config`` (raises ValueError naming an arm that is not a scene body)."""
+        pc = config.planner
+        task = make_task(config.scene.task)
+        settings = PlannerSettings(model=pc.model, spacing=pc.spacing, samples=pc.samples, elites=pc.elites,
+                                   horizon=pc.horizon, grad_steps=pc.grad_steps, dtype=getattr(torch, pc.dtype),
+                                   seed=pc.seed, compile=pc.compile)
+        model, state, _ = compile_scene(with_contact(task.scene, pc.model, pc.spacing), dtype=settings.dtype)
+        arms = {}
+        for arm in config.arms:
+            if arm.name not in model.body_names:
+                raise ValueError(f"arms: {arm.name!r} is not a body of the {task.name} scene "
+                                 f"(bodies: {', '.join(model.body_names)})")
+            arms[arm.name] = model.body_names.index(arm.name)
+        dynamics = CompiledStep(model, dynamic=False) if pc.compile else functools.partial(step, model)
+        metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
+        membranes = {name: model.bodies[index] for name, index in arms.items()}
+        return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
+                   metric, membranes)
+
+    def solver(self, goal_pose: torch.Tensor) -> CemGd:
+        """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode)."""
+        task = self.task
+        low, high = task.bounds(self.model.body_names, self.model.dtype)
+        stage, terminal = task.costs(self.model, goal_pose)
+        return CemGd(self.dynamics, stage, terminal, low, high, config=self.settings.config(self.settings.horizon, 1),
+                     dtype=self.model.dtype)
+
+    def error_mm(self, object_pose: torch.Tensor, goal_pose: torch.Tensor) -> float:
+        """ADD error (mm) of ``object_pose (7,)`` against ``goal_pose (7,)``."""
+        return 1e3 * float(mean_point_distance(self.metric_points, object_pose.double(), goal_pose.double()))
+
+    def body_poses(self, arm_poses: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``(M, 7)`` float64: the arms' TCP poses on their bodies, the scene's poses elsewhere."""
+        poses = self.fixed_poses.clone()
+        for name, index in self.arms.items():
+            poses[index] = arm_poses[name]
+        return poses
+
+    def observation(self, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor],
+                    penetration: torch.Tensor) -> TactileObservation:
+        """The ``TactileObservation`` (B = 1, the model's dtype) of a tag pose, TCP poses and per-sensor
+        penetration depths ``(S, N)`` (m, in ``sensors`` order)."""
+        dtype = self.model.dtype
+        return TactileObservation(object_pose.to(dtype).unsqueeze(0), self.body_poses(arm_poses).to(dtype).unsqueeze(0),
+                                  penetration.to(dtype).unsqueeze(0))
+
+    def points_in_bubble(self, object_pose: torch.Tensor, arm_pose: torch.Tensor) -> np.ndarray:
+        """The planner's surface points ``(N, 3)`` (m) in an arm's bubble frame, at the sensed poses."""
+        world = se3.transform_points(object_pose, self.model.points.double())
+        return se3.transform_points(se3.inverse(arm_pose), world).numpy()
+
+
+def targets_from_plan(core: PlannerCore, arm_poses: dict[str, torch.Tensor], plan: torch.Tensor,
+                      steps: int) -> dict[str, torch.Tensor]:
+    """Absolute TCP targets ``(7,)`` per arm: each arm's current pose moved by the plan's first ``steps`` actions
+    (``plan (K, M, 6)``, world-frame increments as ``dynamics.step`` applies them)."""
+    targets = {}
+    for name, index in core.arms.items():
+        pose = arm_poses[name].clone()
+        for k in range(min(steps, plan.shape[0])):
+            pose = se3.retract(pose, plan[k, index].double())
+        targets[name] = pose
+    return targets
+
+
+def predict(core: PlannerCore, state: State, plan: torch.Tensor, steps: int) -> State:
+    """The planner model's prediction ``(B = 1)`` after ``steps`` plan actions (eager, no gradient): the carry-over
+    for the next state estimate."""
+    with torch.no_grad():
+        for k in range(min(steps, plan.shape[0])):
+            state = step(core.model, state, plan[k].unsqueeze(0))
+    return State(*(t.detach() for t in state[:3]))
+
+
+@dataclass
+class Episode:
+    """One goal being pursued."""
+
+    goal: msg.Goal
+    target: torch.Tensor
+    solver: CemGd
+    started_s: float
+    prediction: State | None = None
+    within_since: float | None = None
+    solve_s: list[float] = field(default_factory=list)
+    error_mm: float = math.nan
+    outcome: msg.Outcome = "running"
+    reason: str = ""
+
+    def finish(self, outcome: msg.Outcome, reason: str = "") -> None:
+        if self.outcome == "running":
+            self.outcome, self.reason = outcome, reason
+
+
+class Planner:
+    """The service's state: the core, the goal, the current episode and the input subscribers."""
+
+    def __init__(self, service: Service, config: StackConfig, core: PlannerCore) -> None:
+        self.service, self.config, self.core = service, config, core
+        self.goal: msg.Goal | None = None
+        self.plan_seq = 0
+        self.episode: Episode | None = None
+        self.last_outcome: Episode | None = None
+        ages = config.planner.max_age_s
+        self.max_age = {kind: ages.get(kind, 0.5) for kind in ("object_pose", "arm_state", "deformation")}
+        self.inputs = service.subscriber(
+            [config.endpoint("tag_tracker")] + [config.endpoint(f"arm_commander-{a.name}") for a in config.arms]
+            + [config.endpoint(f"bubble_camera-{a.name}") for a in config.arms],
+            topics=["object_pose/", "arm_state/", "deformation/"], background=True)
+        self.out = service.publisher(config.endpoint("planner"))
+
+    # --- client API ---
+
+    async def handle(self, request: msg.Request) -> msg.Reply:
+        if isinstance(request, msg.SetGoal):
+            if request.goal.task != self.config.scene.task:
+                return msg.CommandReply(ok=False, error=f"unknown task {request.goal.task!r} for this stack: it serves "
+                                                        f"{self.config.scene.task!r} (see the config's scene.task)")
+            self.goal = request.goal
+            return msg.CommandReply(ok=True)
+        if isinstance(request, msg.Start):
+            return self.start()
+        if isinstance(request, msg.Stop):
+            if self.episode is not None:
+                self.episode.finish("stopped", request.reason)
+                self._end_episode()
+            return msg.CommandReply(ok=True)
+        if isinstance(request, msg.GetStatus):
+            return self.status_reply()
+        return msg.CommandReply(ok=False, error=f"unsupported request {type(request).__name__}")
+
+    def start(self) -> msg.CommandReply:
+        if self.goal is None:
+            return msg.CommandReply(ok=False, error="no goal: send SetGoal first")
+        try:
+            start_pose = as_pose(self.inputs.latest("object_pose/object", self.max_age["object_pose"]).value.pose)
+        except Stale as err:
+            return msg.CommandReply(ok=False, error=f"no fresh object pose to start from ({err})")
+        target = resolve_target(self.goal, start_pose)
+        episode = Episode(self.goal, target, self.core.solver(target), time.monotonic())
+        task = self.core.task
+        if not task.reachable(start_pose, target, int(self.goal.timeout_s / self.core.model.dt)):
+            episode.finish("failed", f"unreachable: the goal lies beyond what the action bounds allow within "
+                                     f"{self.goal.timeout_s} s")
+        else:
+            ws_lo, ws_hi = self.config.limits.workspace_min, self.config.limits.workspace_max
+            shift = target[:3] - start_pose[:3]
+            for name, index in self.core.arms.items():
+                moved = self.core.fixed_poses[index, :3] + shift
+                if any(not lo <= float(v) <= hi for v, lo, hi in zip(moved, ws_lo, ws_hi)):
+                    episode.finish("failed", f"unreachable: arm {name} would leave the workspace box to get there")
+        episode.error_mm = self.core.error_mm(start_pose, target)
+        if episode.outcome == "running":
+            self.episode = episode
+        else:
+            self.last_outcome = episode
+        return msg.CommandReply(ok=True)
+
+    def status_reply(self) -> msg.StatusReply:
+        episode = self.episode or self.last_outcome
+        if episode is None:
+            return msg.StatusReply(ok=True, goal=self.goal, status=self.service.status())
+        goal = msgspec.structs.replace(episode.goal, target_pose=episode.target.numpy(), dx_m=0.0, dy_m=0.0,
+                                       dyaw_rad=0.0)
+        solves = len(episode.solve_s)
+        return msg.StatusReply(
+            ok=True, running=episode.outcome == "running", goal=goal, status=self.service.status(),
+            outcome=episode.outcome, outcome_reason=episode.reason,
+            error_mm=episode.error_mm if math.isfinite(episode.error_mm) else 0.0,
+            elapsed_s=time.monotonic() - episode.started_s, solves=solves,
+            mean_solve_ms=1e3 * sum(episode.solve_s) / solves if solves else 0.0)
+
+    def _end_episode(self) -> None:
+        self.last_outcome, self.episode = self.episode, None
+        task = asyncio.get_running_loop().create_task(self._halt_arms())
+        self._halting = task  # held: the loop keeps only weak references to tasks
+
+    async def _halt_arms(self) -> None:
+        """Tell every commander to stop now: a target at the arm's current pose whose deadline has passed (the
+        last real target would otherwise stay valid, and the arm keep moving, until its own deadline)."""
+        for arm in self.config.arms:
+            try:
+                pose = self.inputs.latest(f"arm_state/{arm.name}", 1.0).value.tcp_pose
+            except Stale:
+                continue
+            self.plan_seq += 1
+            await self.out.send(msg.ArmTarget(arm=arm.name, tcp_pose=np.array(pose), deadline_ns=time.monotonic_ns(),
+                                              plan_seq=self.plan_seq), topic=f"arm_target/{arm.name}")
+
+    # --- the loop ---
+
+    def fresh_inputs(self) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, msg.MembraneDeformation]]:
+        """The newest object pose, TCP poses and deformation images, each within its maximum age (else Stale)."""
+        object_pose = as_pose(self.inputs.latest("object_pose/object", self.max_age["object_pose"]).value.pose)
+        arms, deformations = {}, {}
+        for arm in self.config.arms:
+            state = self.inputs.latest(f"arm_state/{arm.name}", self.max_age["arm_state"]).value
+            arms[arm.name] = as_pose(state.tcp_pose)
+            deformations[arm.name] = self.inputs.latest(f"deformation/{arm.name}", self.max_age["deformation"]).value
+        return object_pose, arms, deformations
+
+    def penetration(self, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor],
+                    deformations: dict[str, msg.MembraneDeformation]) -> torch.Tensor:
+        """Per sensor body, the depth ``(S, N)`` (m) of each planner point inside the nominal membrane, from the
+        deformation images (``drivers.bubble.deformation``)."""
+        rows = []
+        for index in self.core.sensors.tolist():
+            name = self.core.model.body_names[index]
+            depth = self.config.arm(name).depth
+            camera = PinholeDepth(depth.width, depth.height, depth.fx, depth.fy, depth.cx, depth.cy)
+            rows.append(torch.as_tensor(penetration_from_deformation(
+                deformations[name].deformation, camera, self.core.membranes[name].radii, depth.camera_in_bubble(),
+                self.core.points_in_bubble(object_pose, arm_poses[name]))))
+        return torch.stack(rows)
+
+    async def tick(self) -> None:
+        """One planning cycle of the running episode (or nothing when none runs)."""
+        episode = self.episode
+        if episode is None:
+            await asyncio.sleep(IDLE_PERIOD_S)
+            return
+        if time.monotonic() - episode.started_s > episode.goal.timeout_s:
+            episode.finish("timeout", f"not reached within {episode.goal.timeout_s} s")
+            self._end_episode()
+            return
+        try:
+            object_pose, arm_poses, deformations = self.fresh_inputs()
+        except Stale as err:
+            self.service.count_error("stale_input", str(err))
+            await asyncio.sleep(IDLE_PERIOD_S)
+            return
+        episode.error_mm = self.core.error_mm(object_pose, episode.target)
+        now = time.monotonic()
+        if episode.error_mm > episode.goal.tolerance_mm:
+            episode.within_since = None
+        elif episode.within_since is None:
+            episode.within_since = now
+        elif now - episode.within_since >= SETTLE_S:
+            episode.finish("reached")
+            self._end_episode()
+            return
+        loop = asyncio.get_running_loop()
+        penetration = await loop.run_in_executor(None, self.penetration, object_pose, arm_poses, deformations)
+        observation = self.core.observation(object_pose, arm_poses, penetration)
+        state = estimate_state(self.core.model, observation, self.core.sensors, episode.prediction)
+        tic = time.perf_counter()
+        result = await loop.run_in_executor(None, episode.solver.solve, state)
+        solve_s = time.perf_counter() - tic
+        if self.episode is not episode or episode.outcome != "running":
+            return  # stopped while solving: send nothing
+        episode.solve_s.append(solve_s)
+        if result.status != "ok":
+            self.service.count_error("no_finite_plan", "no sample had a finite cost; no target sent")
+            return
+        steps = max(1, round(solve_s / self.core.model.dt))
+        targets = targets_from_plan(self.core, arm_poses, result.plan.detach(), steps)
+        deadline_ns = time.monotonic_ns() + int(self.config.planner.target_lead_s * 1e9)
+        plan_seq = self.plan_seq = self.plan_seq + 1
+        for name, pose in targets.items():
+            await self.out.send(msg.ArmTarget(arm=name, tcp_pose=pose.numpy(), deadline_ns=deadline_ns,
+                                              plan_seq=plan_seq), topic=f"arm_target/{name}")
+        plan = await loop.run_in_executor(None, self.plan_message, result, state)
+        await self.out.send(plan, topic=f"plan/{self.config.scene.task}")
+        episode.prediction = await loop.run_in_executor(None, predict, self.core, state, result.plan.detach(), steps)
+
+    def plan_message(self, result, state: State) -> msg.Plan:
+        """The Plan message of a solve: actions, predicted object poses and the first step's contact forces."""
+        with torch.no_grad():
+            states, s = [], state
+            for k in range(result.plan.shape[0]):
+                s = step(self.core.model, s, result.plan[k].unsqueeze(0))
+                states.append(s)
+        dtype = np.float32 if self.core.model.dtype == torch.float32 else np.float64
+        poses = torch.stack([s.object_pose[0] for s in states]).double()
+        poses[:, 3:] = torch.nn.functional.normalize(poses[:, 3:], dim=-1)
+        return msg.Plan(task=self.config.scene.task, actions=result.plan.detach().numpy().astype(dtype),
+                        predicted_object_poses=poses.numpy().astype(dtype),
+                        predicted_forces=states[0].forces[0].detach().numpy().astype(dtype),
+                        cost=float(result.cost) if math.isfinite(result.cost) else 0.0,
+                        solve_ms=1e3 * sum(result.timings.values()))
+
+
+async def run(service: Service, config: StackConfig) -> None:
+    """The planner's loop: build (and compile) the model, serve the client API, plan while a goal runs."""
+    loop = asyncio.get_running_loop()
+    core = await loop.run_in_executor(None, PlannerCore.build, config)
+    if config.planner.compile:
+        service.log.info("compiling the planner step (the first solve)")
+        warm = core.solver(core.task.initial_pose())
+        _, initial, _ = compile_scene(with_contact(core.task.scene, config.planner.model, config.planner.spacing),
+                                      dtype=core.model.dtype)
+        await loop.run_in_executor(None, warm.solve, initial)
+    planner = Planner(service, config, core)
+    server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
+    serving = asyncio.create_task(server.serve(), name="planner.serve")
+    await service.ready()
+    try:
+        while True:
+            await planner.tick()
+    finally:
+        serving.cancel()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.planner", description=__doc__.split("\n")[0])
+    parser.add_argument("config", help="the stack's TOML config")
+    parser.add_argument("--name", default="planner", help="service name (default planner)")
+    args = parser.parse_args(argv)
+    config = load_config(args.config)
+    return run_service(args.name, config.runtime(args.name), functools.partial(run, config=config))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,89 @@
+"""The renderer puts tag edges where the camera model projects them (distortion included), and only tags that face
+the camera; noise is seeded."""
+
+import numpy as np
+import pytest
+
+from hydrosoft.drivers.camera.config import CameraIntrinsics
+from hydrosoft.drivers.poses import rvec_tvec_from_pose
+from hydrosoft.drivers.camera.render import Renderer, RenderOptions
+from hydrosoft.drivers.camera.tags import Tag, TagLayout, box_layout
+
+FACING_CAMERA = np.array([0.0, 1.0, 0.0, 0.0])  # 180 deg about x: the tag's z points back at the camera
+
+
+def one_tag(size_m: float = 0.08) -> TagLayout:
+    return TagLayout((Tag(0, size_m, np.array([0, 0, 0, 1.0, 0, 0, 0])),))
+
+
+def edge_position(profile: np.ndarray, high: float, low: float) -> float:
+    """Sub-pixel position of a step from ``high`` (left) to ``low`` (right) in a profile of area-averaged pixels:
+    the number of pixels' worth of ``high`` it holds, counted from the first pixel's left boundary (-0.5). Exact for
+    area-averaged pixels whatever the edge's phase, unlike a linearly interpolated 50 % crossing (up to 0.09 px
+    off when the samples do not sit symmetrically on the one-pixel ramp)."""
+    return -0.5 + float(np.sum((profile - low) / (high - low)))
+
+
+@pytest.mark.parametrize("distortion", [np.zeros(5), np.array([-0.25, 0.08, 0.001, -0.001, 0.0])])
+def test_left_edge_of_the_black_square_is_where_the_model_projects_it(distortion):
+    import cv2
+
+    intrinsics = CameraIntrinsics(640, 480, 600.0, 600.0, 319.5, 239.5, distortion)
+    options = RenderOptions(ambient=1.0)
+    renderer = Renderer(intrinsics, options)
+    T_camera_tag = np.concatenate([[0.09, 0.05, 0.5], FACING_CAMERA])  # off-centre: distortion matters
+    image = renderer.render(T_camera_tag, one_tag())[:, :, 0].astype(float)
+    # the black square's left edge in the tag frame (facing the camera, tag x is image right), projected densely
+    edge = np.column_stack([np.full(2001, -0.04), np.linspace(-0.04, 0.04, 2001), np.zeros(2001)])
+    projected, _ = cv2.projectPoints(edge, *rvec_tvec_from_pose(T_camera_tag), intrinsics.camera_matrix, distortion)
+    projected = projected.reshape(-1, 2)
+    order = np.argsort(projected[:, 1])
+    for row in range(int(projected[:, 1].min()) + 5, int(projected[:, 1].max()) - 5, 7):
+        expected_u = np.interp(row, projected[order, 1], projected[order, 0])
+        start = int(expected_u) - 4  # nine pixels: quiet zone (white) on the left, black border on the right
+        measured_u = start + edge_position(image[row, start:start + 9], options.white_level, options.black_level)
+        assert measured_u == pytest.approx(expected_u, abs=0.02)
+
+
+def test_tags_facing_away_are_not_drawn():
+    intrinsics = CameraIntrinsics(320, 240, 300.0, 300.0, 159.5, 119.5)
+    options = RenderOptions()
+    image = Renderer(intrinsics, options).render(np.array([0, 0, 0.4, 1.0, 0, 0, 0]), one_tag(0.05))
+    assert np.all(image == round(options.background))
+
+
+def test_cube_on_table_shows_tags_faces_and_table():
+    intrinsics = CameraIntrinsics(320, 240, 300.0, 300.0, 159.5, 119.5)
+    options = RenderOptions(ambient=1.0)
+    T_camera_object = np.concatenate([[0.0, 0.0, 0.3], FACING_CAMERA])  # object z (top face) towards the camera
+    T_camera_table = np.concatenate([[0.0, 0.0, 0.325], FACING_CAMERA])
+    image = Renderer(intrinsics, options).render(T_camera_object, box_layout((0.05,) * 3, 0.03), None,
+                                                 T_camera_table)[:, :, 0]
+    assert image.shape == (240, 320) and image.dtype == np.uint8
+    # top face 0.275 m away: half-widths 16.4 px (black square), 20.5 px (quiet zone), 27.3 px (face)
+    assert image[5, 5] == round(options.table_grey)
+    assert image[119, 159 + 24] == round(options.face_grey)
+    assert image[119, 159 + 19] == round(options.white_level)
+    assert image[119, 159 + 16] == round(options.black_level)
+    assert image[119, 159 + 30] == round(options.table_grey)
+
+
+def test_noise_is_seeded_and_needs_a_generator():
+    intrinsics = CameraIntrinsics(160, 120, 150.0, 150.0, 79.5, 59.5)
+    renderer = Renderer(intrinsics, RenderOptions(noise_std=3.0, blur_sigma_px=0.5))
+    pose = np.concatenate([[0.0, 0.0, 0.3], FACING_CAMERA])
+    a = renderer.render(pose, one_tag(0.05), np.random.default_rng(7))
+    b = renderer.render(pose, one_tag(0.05), np.random.default_rng(7))
+    c = renderer.render(pose, one_tag(0.05), np.random.default_rng(8))
+    np.testing.assert_array_equal(a, b)
+    assert np.any(a != c)
+    assert 1.5 < float(np.std(a[:10, :10].astype(float))) < 4.5
+    with pytest.raises(ValueError, match="rng"):
+        renderer.render(pose, one_tag(0.05))
+
+
+def test_options_are_checked():
+    with pytest.raises(ValueError, match="black_level"):
+        RenderOptions(black_level=200.0, white_level=100.0)
+    with pytest.raises(ValueError, match="supersample"):
+        RenderOptions(supersample=0)

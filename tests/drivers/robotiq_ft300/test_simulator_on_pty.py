@@ -1,0 +1,137 @@
+"""The simulator on its pty, seen by a raw serial client: it answers and streams as the device does."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from hydrosoft.drivers.robotiq_ft300.protocol import (
+    FC_WRITE_MULTIPLE_REGISTERS,
+    STOP_BURST,
+    WRITE_REPLY_SIZE,
+    FrameScanner,
+    exception_reply,
+    start_stream_reply,
+    start_stream_request,
+    write_registers_request,
+)
+from hydrosoft.drivers.robotiq_ft300.sensor import FT300Sensor
+from hydrosoft.drivers.robotiq_ft300.simulator import SimulatedFT300
+
+from .support import fast_config, run_async, wait_for_sample
+
+READ_TIMEOUT_S = 0.5
+PROCESS_TIMEOUT_S = 10.0
+
+
+def open_client(path: str) -> serial.Serial:
+    return serial.Serial(path, 19200, timeout=READ_TIMEOUT_S)
+
+
+def read_frames(port: serial.Serial, count: int, timeout_s: float = 2.0) -> list[np.ndarray]:
+    scanner = FrameScanner()
+    found: list[np.ndarray] = []
+    deadline = time.monotonic() + timeout_s
+    while len(found) < count and time.monotonic() < deadline:
+        found += scanner.feed(port.read(port.in_waiting or 1))
+    return found
+
+
+def test_idle_until_started_then_streams_then_stops_on_the_burst(make_simulator):
+    wrench = np.array([1.5, -2.25, 30.0, 0.125, -0.5, 1.0])
+    simulator = make_simulator(wrench_source=lambda: wrench)
+    with open_client(simulator.port_path) as port:
+        assert port.read(1) == b""  # idle: nothing until asked
+        port.write(start_stream_request())
+        assert port.read(WRITE_REPLY_SIZE) == start_stream_reply()
+        frames = read_frames(port, 20)
+        assert len(frames) == 20
+        np.testing.assert_array_equal(frames[-1], wrench)
+        port.write(STOP_BURST)
+        deadline = time.monotonic() + READ_TIMEOUT_S
+        while simulator.streaming and time.monotonic() < deadline:
+            time.sleep(0.001)
+        port.reset_input_buffer()
+        assert port.read(1) == b""  # silent once it has read the burst
+    stats = simulator.stats()
+    assert not simulator.streaming
+    assert (stats.start_requests, stats.stop_bursts) == (1, 1)
+    assert stats.frames_sent >= 20
+
+
+def test_unknown_register_gets_a_modbus_exception(make_simulator):
+    simulator = make_simulator()
+    with open_client(simulator.port_path) as port:
+        port.write(write_registers_request(9, 411, [1]))
+        assert port.read(5) == exception_reply(9, FC_WRITE_MULTIPLE_REGISTERS, 2)
+        port.write(start_stream_request(slave=5))  # another slave's request: no answer
+        assert port.read(1) == b""
+        port.write(b"\x09\x10\x01\x9a\x00\x01\x02\x02\x00\x00\x00")  # bad CRC: ignored
+        assert port.read(1) == b""
+    assert simulator.stats().bad_request_bytes > 0
+    assert not simulator.streaming
+
+
+def test_rate_is_close_to_the_setting(make_simulator):
+    simulator = make_simulator(rate_hz=100.0)
+    with open_client(simulator.port_path) as port:
+        port.write(start_stream_request())
+        port.read(WRITE_REPLY_SIZE)
+        start = time.monotonic()
+        frames = read_frames(port, 50)
+        elapsed_s = time.monotonic() - start
+    assert len(frames) == 50
+    assert 0.4 < elapsed_s < 0.8  # 50 frames at 100 Hz; loose for two shared cores
+
+
+def test_link_is_refused_over_a_regular_file(tmp_path):
+    occupied = tmp_path / "taken"
+    occupied.write_text("not a link")
+    with pytest.raises(FileExistsError, match="not a symlink"):
+        SimulatedFT300(link=occupied).start()
+    assert occupied.read_text() == "not a link"
+
+
+def read_line(process: subprocess.Popen, timeout_s: float) -> str:
+    ready, _, _ = select.select([process.stdout], [], [], timeout_s)
+    if not ready:
+        raise TimeoutError(f"no output from pid {process.pid} within {timeout_s} s")
+    return process.stdout.readline()
+
+
+def test_command_line_simulator_serves_the_real_driver_and_stops_on_sigint(tmp_path):
+    link = tmp_path / "ft300"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "hydrosoft.drivers.robotiq_ft300.simulator", "--link", str(link),
+         "--wrench", "1.5,-2,3,0.1,0.2,-0.3"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        banner = read_line(process, PROCESS_TIMEOUT_S)
+        assert str(link) in banner and "/dev/pts/" in banner
+
+        async def read_once():
+            async with FT300Sensor(fast_config(str(link))) as sensor:
+                return await wait_for_sample(sensor)
+
+        sample = run_async(read_once())
+        np.testing.assert_allclose(sample.wrench, [1.5, -2, 3, 0.1, 0.2, -0.3], atol=1e-9)
+        process.send_signal(signal.SIGINT)
+        assert process.wait(PROCESS_TIMEOUT_S) == 0
+        rest = process.stdout.read()
+        assert "stopped:" in rest and "start_requests=1" in rest and "stop_bursts=1" in rest
+        assert not os.path.lexists(link)
+    finally:
+        if process.poll() is None:
+            os.kill(process.pid, signal.SIGKILL)
+            process.wait(PROCESS_TIMEOUT_S)

@@ -1,0 +1,37 @@
+"""``hydrosoft-stack bench tracker --quick --json`` runs and prints one JSON document of rows with sane figures."""
+
+import argparse
+import json
+
+from hydrosoft.services.benchmarks.tracker import add_arguments, run
+
+
+def parse(argv):
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_quick_json_rows(capsys):
+    assert run(parse(["--quick", "--json"])) == 0
+    document = json.loads(capsys.readouterr().out)
+    rows = document["rows"]
+    assert [(row["distance_m"], row["view_angle_deg"]) for row in rows] == [(0.3, 0.0), (0.3, 60.0), (1.0, 0.0),
+                                                                            (1.0, 60.0)]
+    for row in rows:
+        assert row["images"] == 3 and 0.0 <= row["detection_rate"] <= 1.0
+        for key in ("pos_err_mm_median", "pos_err_mm_p95", "pos_err_mm_max", "rot_err_deg_median",
+                    "rot_err_deg_p95", "rot_err_deg_max", "tags_per_pose", "rejections", "render_ms", "track_ms"):
+            assert key in row
+    near_oblique = rows[1]  # 0.3 m, 60 deg: two or three faces in view
+    assert near_oblique["detection_rate"] == 1.0 and near_oblique["tags_per_pose"] >= 2
+    assert near_oblique["pos_err_mm_max"] < 1.0 and near_oblique["rot_err_deg_max"] < 0.5
+    far_head_on = rows[2]  # 1 m straight down: one small tag seen head-on is ambiguous, so it is rejected
+    assert far_head_on["detection_rate"] < 1.0 and "ambiguous" in far_head_on["rejections"]
+    assert document["config"]["tag_size_m"] == 0.032
+
+
+def test_bad_options_exit_with_status_2(capsys):
+    assert run(parse(["--quick", "--distances", "0.3,x"])) == 2
+    assert "--distances" in capsys.readouterr().err
+    assert run(parse(["--quick", "--angles", "95"])) == 2

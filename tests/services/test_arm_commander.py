@@ -1,0 +1,568 @@
+"""The arm commander: its decisions without sockets, then the real service process driving a simulated UR controller.
+
+The process tests run ``python -m hydrosoft.services.arm_commander CONFIG`` against a simulated controller
+subprocess (``python -m hydrosoft.drivers.ur.simulator``) on a 127.0.0.N of their own, with a config written to
+tmp. The test plays the planner (targets, heartbeats) and the F/T reader (wrenches) on their endpoints and reads
+the TCP through the simulator's inspection port. Every wait has a timeout; every process is stopped by its pid.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hydrosoft.drivers.base import ArmState
+from hydrosoft.drivers.ur.config import RTDE_PORT, SIM_CONTROL_PORT, URArmConfig
+from hydrosoft.services import messages as msg
+from hydrosoft.services.arm_commander import NO_TARGET, ServoLogic
+from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
+from hydrosoft.services.config import LimitsConfig, load_config
+
+# --- the decisions, without sockets --------------------------------------------------------------------------------
+
+LIMITS = LimitsConfig(workspace_min=(0.1, -0.4, 0.1), workspace_max=(0.5, 0.0, 0.5), max_speed_m_s=0.1,
+                      max_angular_speed_rad_s=1.0, max_force_n=40.0, servo_rate_hz=125.0, heartbeat_timeout_s=0.3,
+                      state_timeout_s=0.2)
+HOME = np.array([0.3, -0.2, 0.4, 0.0, 0.0, 1.0, 0.0])  # the simulator's default TCP: 0.4 m up, tool down
+S = 1_000_000_000
+PERIOD_NS = S // 125
+T0 = 100 * S
+
+
+def target(pose, stamp_ns: int, lead_s: float = 1.0, arm: str = "bubble") -> msg.ArmTarget:
+    return msg.ArmTarget(arm=arm, tcp_pose=np.asarray(pose, dtype=np.float64), deadline_ns=stamp_ns + int(lead_s * S),
+                         plan_seq=1, seq=1, stamp_ns=stamp_ns, source="planner")
+
+
+def state(now_ns: int, pose=HOME, speed=np.zeros(6)) -> ArmState:
+    return ArmState(tcp_pose=np.asarray(pose, dtype=np.float64), tcp_speed=np.asarray(speed, dtype=np.float64),
+                    running=True, protective_stop=False, emergency_stop=False, stamp_ns=now_ns, hw_stamp_ns=now_ns)
+
+
+def step(logic: ServoLogic, now_ns: int, pose=HOME, speed=np.zeros(6), heartbeat_ns=None, force_n=0.0, **kwargs):
+    reading = state(now_ns, pose, speed)
+    logic.observe(reading)
+    return logic.decide(now_ns, reading, None, now_ns if heartbeat_ns is None else heartbeat_ns, force_n, **kwargs)
+
+
+def servoing_logic() -> ServoLogic:
+    logic = ServoLogic(LIMITS, "bubble")
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0)) is None
+    assert step(logic, T0).command is not None
+    return logic
+
+
+def test_servo_commands_step_from_the_measured_pose_then_from_the_last_command():
+    logic = ServoLogic(LIMITS, "bubble")
+    first = step(logic, T0)
+    assert first.command is None and first.reason == NO_TARGET and not first.stop
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0))
+    a = step(logic, T0, pose=HOME + [0.001, 0, 0, 0, 0, 0, 0])
+    b = step(logic, T0 + PERIOD_NS, pose=HOME)  # the arm lags: the next step still starts at the last command
+    assert a.reason == "" and logic.servoing
+    assert np.isclose(a.command[0] - HOME[0], 0.001 + 0.1 / 125) and np.isclose(b.command[0] - a.command[0], 0.1 / 125)
+    burst = step(logic, T0 + PERIOD_NS + S // 1000)  # a tick right after the last: a step for 1 ms only
+    assert np.isclose(burst.command[0] - b.command[0], 0.1 * 0.001)
+    late = step(logic, T0 + PERIOD_NS + S // 2)  # a tick 0.5 s late moves no further than two periods allow
+    assert np.isclose(late.command[0] - burst.command[0], 2 * 0.1 / 125)
+
+
+def test_a_refused_target_stops_the_arm_and_drops_the_valid_one():
+    logic = servoing_logic()
+    reason = logic.offer(target(HOME + [0.5, 0, 0, 0, 0, 0, 0], T0 + 1))
+    assert "outside the workspace" in reason
+    decision = step(logic, T0 + PERIOD_NS)
+    assert decision.command is None and decision.stop and decision.reason.startswith("target refused")
+    assert logic.target is None
+    assert "not 'bubble'" in logic.offer(target(HOME, T0 + 2, arm="other"))
+
+
+def test_a_stop_spends_the_target_and_only_a_fresh_target_with_a_fresh_heartbeat_resumes():
+    logic = servoing_logic()
+    stale_ns = T0 - int(0.31 * S)
+    decision = step(logic, T0 + PERIOD_NS, heartbeat_ns=stale_ns)
+    assert decision.stop and "heartbeat" in decision.reason
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0)) is None  # the same target again: ignored
+    assert step(logic, T0 + 2 * PERIOD_NS).command is None  # fresh heartbeat, no fresh target: hold
+    assert "heartbeat" in logic.reason
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 3 * PERIOD_NS))  # fresh target, stale heartbeat:
+    assert step(logic, T0 + 3 * PERIOD_NS, heartbeat_ns=stale_ns).command is None  # spent, not kept for later
+    assert step(logic, T0 + 4 * PERIOD_NS).command is None
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 5 * PERIOD_NS))
+    assert step(logic, T0 + 5 * PERIOD_NS).command is not None
+
+
+def test_the_stop_is_sent_once_and_again_only_when_the_arm_moves():
+    logic = servoing_logic()
+    late_ns = T0 + int(1.1 * S)  # past the 1 s deadline
+    moving = np.array([0.05, 0, 0, 0, 0, 0])
+    assert step(logic, late_ns, speed=moving).stop
+    assert not step(logic, late_ns + PERIOD_NS, speed=moving, stopping=True).stop  # its stop is still in flight
+    assert not step(logic, late_ns + 2 * PERIOD_NS).stop  # at rest
+    assert step(logic, late_ns + 3 * PERIOD_NS, speed=moving).stop  # pushed or drifting: stop again
+    assert "deadline passed" in logic.reason
+
+
+def test_driver_errors_a_frozen_state_and_the_force_rules_stop_the_arm():
+    logic = servoing_logic()
+    decision = logic.decide(T0 + PERIOD_NS, None, "arm driver: stale", T0, 0.0)
+    assert decision.stop and decision.reason == "arm driver: stale"
+
+    logic = servoing_logic()
+    frozen = state(T0)  # the controller's stamp does not advance
+    for k in range(1, 30):
+        logic.observe(frozen)
+        decision = logic.decide(T0 + k * PERIOD_NS, frozen, None, T0 + k * PERIOD_NS, 0.0)
+        if decision.command is None:
+            break
+    assert "not advancing" in decision.reason and 0.2 * S < k * PERIOD_NS <= 0.2 * S + PERIOD_NS
+
+    logic = servoing_logic()
+    assert "above the limit" in step(logic, T0 + PERIOD_NS, force_n=40.5).reason
+    logic = servoing_logic()
+    assert step(logic, T0 + PERIOD_NS, force_n=None).reason == "no fresh F/T reading"
+
+
+def test_a_fresh_target_during_a_stop_waits_for_its_end():
+    logic = servoing_logic()
+    late_ns = T0 + int(1.1 * S)
+    step(logic, late_ns)
+    logic.offer(target(HOME, late_ns))
+    decision = step(logic, late_ns + PERIOD_NS, stopping=True)
+    assert decision.command is None and "deadline passed" in decision.reason
+    assert step(logic, late_ns + 2 * PERIOD_NS).command is not None
+
+
+# --- the service process against a simulated controller -----------------------------------------------------------
+
+ARM = "bubble"
+NAME = f"arm_commander-{ARM}"
+SIM_READY_TIMEOUT_S = 10.0
+COMMANDER_READY_TIMEOUT_S = 40.0  # imports and connect on two busy cores
+PROCESS_STOP_TIMEOUT_S = 5.0
+SCENARIO_TIMEOUT_S = 30.0
+SOCKET_TIMEOUT_S = 2.0
+HEARTBEAT_PERIOD_S = 0.05
+WRENCH_PERIOD_S = 0.01
+REPLAN_PERIOD_S = 0.1  # the played planner re-sends its target this often
+TARGET_LEAD_S = 1.0
+IMPOSE_SETTLE_S = 0.05  # after putting the TCP at HOME, how long it must stay there
+PROBE_LEAD_S = 0.1  # the target at HOME that shows the commander hears the played planner
+ARM_STATE_MAX_AGE_S = 0.1  # the commander publishes every 8 ms
+STATUS_MAX_AGE_S = 2.0  # the runtime publishes the status every 1 s
+POLL_PERIOD_S = 0.005  # how often the test reads the simulated TCP
+AT_REST_M_S = 1e-4
+#: Scheduling allowance of the timing bounds on two shared cores (the loop, the bus, the test's own polling), s.
+SCHEDULING_SLACK_S = 0.15
+#: How long the arm takes to stop from max speed at the driver's stop deceleration, s.
+STOP_TIME_S = LIMITS.max_speed_m_s / URArmConfig(host="x").stop_decel_m_s2
+SERVO_PERIOD_S = 1.0 / LIMITS.servo_rate_hz
+#: Speeds are the simulator's own TCP twist (the test's read stamps would jitter with its scheduling). The simulated
+#: servoL tracks each command with a first-order lag (tau = 0.1 s at the driver's lookahead and gain): right after
+#: each command its speed peaks at (period / tau) / (1 - exp(-period / tau)) = 1.04 x the commanded path's speed;
+#: allow that ripple and a little delivery jitter.
+SERVO_RIPPLE = 0.06
+
+
+def free_loopback_host() -> str:
+    """A 127.0.0.N where the RTDE and inspection ports are free (N from the pid, away from other tests' ranges)."""
+    for k in range(120):
+        host = f"127.0.0.{130 + (os.getpid() + k) % 120}"
+        try:
+            for port in (RTDE_PORT, SIM_CONTROL_PORT):
+                with socket.socket() as probe:
+                    probe.bind((host, port))
+        except OSError:
+            continue
+        return host
+    raise RuntimeError("no free 127.0.0.N for a simulated UR controller")
+
+
+def wait_for_line(proc: subprocess.Popen, prefix: str, timeout_s: float) -> str:
+    """The first stdout line of ``proc`` starting with ``prefix``; TimeoutError after ``timeout_s``."""
+    deadline_s = time.monotonic() + timeout_s
+    with selectors.DefaultSelector() as selector:
+        selector.register(proc.stdout, selectors.EVENT_READ)
+        while (left_s := deadline_s - time.monotonic()) > 0:
+            if selector.select(left_s):
+                line = proc.stdout.readline()
+                if line.startswith(prefix):
+                    return line
+                if not line:
+                    raise RuntimeError(f"{proc.args} exited ({proc.wait(PROCESS_STOP_TIMEOUT_S)}) before {prefix!r}")
+    raise TimeoutError(f"{proc.args} printed no {prefix!r} within {timeout_s} s")
+
+
+def stop_process(proc: subprocess.Popen, sig: int = signal.SIGTERM) -> int:
+    """Signal ``proc`` by pid, SIGKILL it after ``PROCESS_STOP_TIMEOUT_S``; its exit code."""
+    if proc.poll() is None:
+        os.kill(proc.pid, sig)
+        try:
+            proc.wait(PROCESS_STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(PROCESS_STOP_TIMEOUT_S)
+    return proc.returncode
+
+
+class Rig:
+    """A simulated controller and the commander process on its own 127.0.0.N, with the config in ``tmp``."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.host = free_loopback_host()
+        run_dir = tmp / "run"
+        run_dir.mkdir()
+        self.config_path = tmp / "stack.toml"
+        self.config_path.write_text(f"""
+run_dir = "{run_dir}"
+mode = "sim"
+[[arms]]
+name = "{ARM}"
+ur_host = "{self.host}"
+[limits]
+workspace_min = {list(LIMITS.workspace_min)}
+workspace_max = {list(LIMITS.workspace_max)}
+max_speed_m_s = {LIMITS.max_speed_m_s}
+max_force_n = {LIMITS.max_force_n}
+servo_rate_hz = {LIMITS.servo_rate_hz}
+heartbeat_timeout_s = {LIMITS.heartbeat_timeout_s}
+state_timeout_s = {LIMITS.state_timeout_s}
+[planner]
+heartbeat_period_s = {HEARTBEAT_PERIOD_S}
+""")
+        self.config = load_config(self.config_path)
+        self.log_path = tmp / "commander.log"
+        self.simulator = subprocess.Popen(
+            [sys.executable, "-m", "hydrosoft.drivers.ur.simulator", "--host", self.host, "--unlock-delay-s", "0"],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        self.commander: subprocess.Popen | None = None
+        wait_for_line(self.simulator, "UR simulator ready", SIM_READY_TIMEOUT_S)
+
+    def start_commander(self) -> subprocess.Popen:
+        """The commander process, started (and READY) unless it runs already."""
+        if self.commander is None or self.commander.poll() is not None:
+            with self.log_path.open("a") as log:
+                self.commander = subprocess.Popen(
+                    [sys.executable, "-m", "hydrosoft.services.arm_commander", str(self.config_path)],
+                    stdout=subprocess.PIPE, stderr=log, text=True)
+            line = wait_for_line(self.commander, "READY", COMMANDER_READY_TIMEOUT_S)
+            assert line.split() == ["READY", NAME, str(self.commander.pid)]
+        return self.commander
+
+    def sim_state(self) -> dict:
+        """The simulator's inspection snapshot (pose, twist, counters, ...)."""
+        with socket.create_connection((self.host, SIM_CONTROL_PORT), timeout=SOCKET_TIMEOUT_S) as conn:
+            conn.sendall(b'{"op": "state"}\n')
+            return json.loads(conn.makefile().readline())
+
+    def stop(self) -> None:
+        for proc in (self.commander, self.simulator):
+            if proc is not None:
+                stop_process(proc)
+                proc.stdout.close()
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    rig = Rig(tmp_path_factory.mktemp("arm_commander"))
+    try:
+        yield rig
+    finally:
+        rig.stop()
+
+
+class SimTcp:
+    """The simulated TCP read through the inspection port from asyncio, one persistent connection."""
+
+    def __init__(self, host: str) -> None:
+        self.host = host
+
+    async def __aenter__(self) -> SimTcp:
+        self._reader, self._writer = await asyncio.wait_for(
+            asyncio.open_connection(self.host, SIM_CONTROL_PORT), SOCKET_TIMEOUT_S)
+        return self
+
+    async def __aexit__(self, *exc_info) -> None:
+        self._writer.close()
+
+    async def request(self, op: str, **fields) -> dict:
+        self._writer.write((json.dumps({"op": op, **fields}) + "\n").encode())
+        reply = json.loads(await asyncio.wait_for(self._reader.readline(), SOCKET_TIMEOUT_S))
+        assert reply["ok"], reply
+        return reply
+
+    async def read(self) -> tuple[int, np.ndarray, np.ndarray]:
+        """``(now_ns, pose (7,), twist (6,))`` of the simulated TCP."""
+        reply = await self.request("state")
+        return time.monotonic_ns(), np.array(reply["pose"]), np.array(reply["twist"])
+
+
+class PlayedPlanner:
+    """Plays the planner (targets re-sent every ``REPLAN_PERIOD_S`` towards ``goal``, heartbeats while
+    ``heartbeats``) and the F/T reader (a wrench of ``force_n`` along z, none while it is None), and listens to the
+    commander's ArmState and status."""
+
+    def __init__(self, rig: Rig) -> None:
+        config = rig.config
+        self.bus = Bus()
+        self.targets = Publisher(self.bus, config.endpoint("planner"), source="planner")
+        self.health = Publisher(self.bus, config.endpoint("planner", "status"), source="planner")
+        self.wrenches = Publisher(self.bus, config.endpoint(f"ft_reader-{ARM}"), source=f"ft_reader-{ARM}")
+        self.listener = LatestSubscriber(self.bus, [config.endpoint(NAME), config.endpoint(NAME, "status")],
+                                         topics=[f"arm_state/{ARM}", f"status/{NAME}"])
+        self.goal: np.ndarray | None = None
+        self.heartbeats = True
+        self.force_n: float | None = 0.0
+        self.last_heartbeat_ns = 0
+        self._tasks: list[asyncio.Task] = []
+
+    async def __aenter__(self) -> PlayedPlanner:
+        self._tasks = [asyncio.create_task(coro) for coro in
+                       (self.listener.run(), self._heartbeat(), self._wrench(), self._replan())]
+        return self
+
+    async def __aexit__(self, *exc_info) -> None:
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self.bus.close()
+
+    async def _heartbeat(self) -> None:
+        while True:
+            if self.heartbeats:
+                sent = await self.health.send(msg.Heartbeat(period_s=HEARTBEAT_PERIOD_S), "heartbeat/planner")
+                self.last_heartbeat_ns = sent.stamp_ns
+            await asyncio.sleep(HEARTBEAT_PERIOD_S)
+
+    async def _wrench(self) -> None:
+        while True:
+            if self.force_n is not None:
+                await self.wrenches.send(msg.Wrench(sensor=ARM, wrench=np.array([0, 0, self.force_n, 0, 0, 0.0]),
+                                                    tared=True), f"wrench/{ARM}")
+            await asyncio.sleep(WRENCH_PERIOD_S)
+
+    async def _replan(self) -> None:
+        while True:
+            if self.goal is not None:
+                await self.send_target(self.goal, TARGET_LEAD_S)
+            await asyncio.sleep(REPLAN_PERIOD_S)
+
+    async def send_target(self, pose, lead_s: float) -> msg.ArmTarget:
+        return await self.targets.send(msg.ArmTarget(
+            arm=ARM, tcp_pose=np.asarray(pose, dtype=np.float64), deadline_ns=time.monotonic_ns() + int(lead_s * S),
+            plan_seq=1), f"arm_target/{ARM}")
+
+    def arm_state(self) -> msg.ArmState | None:
+        try:
+            return self.listener.latest(f"arm_state/{ARM}", ARM_STATE_MAX_AGE_S, msg.ArmState).value
+        except Stale:
+            return None
+
+    def status(self) -> msg.ServiceStatus | None:
+        try:
+            return self.listener.latest(f"status/{NAME}", STATUS_MAX_AGE_S, msg.ServiceStatus).value
+        except Stale:
+            return None
+
+
+async def until(condition, timeout_s: float, what: str):
+    """Poll ``condition()`` every ``POLL_PERIOD_S`` until it returns something truthy; fail after ``timeout_s``."""
+    deadline_s = time.monotonic() + timeout_s
+    while not (result := condition()):
+        assert time.monotonic() < deadline_s, f"{what} did not happen within {timeout_s} s"
+        await asyncio.sleep(POLL_PERIOD_S)
+    return result
+
+
+async def start_at_home(planner: PlayedPlanner, tcp: SimTcp) -> None:
+    """Wait until the commander holds the arm, put the TCP at HOME, and make sure the commander hears the played
+    planner: a short target at HOME (no motion) must make it servo, then stop again at its deadline."""
+    await until(lambda: (s := planner.arm_state()) is not None and not s.servo_active, 5.0, "the commander holding")
+    deadline_s = time.monotonic() + 2.0
+    while True:  # until it stays there: a servo command still under way would pull it back towards its target
+        await tcp.request("impose_pose", pose=HOME.tolist())
+        await asyncio.sleep(IMPOSE_SETTLE_S)
+        _, pose, twist = await tcp.read()
+        if np.array_equal(pose, HOME) and not twist.any():
+            break
+        assert time.monotonic() < deadline_s, "the TCP did not stay at HOME within 2 s"
+    await until(lambda: np.allclose(planner.arm_state().tcp_pose, HOME, atol=1e-6), 2.0, "the ArmState at HOME")
+    deadline_s = time.monotonic() + 5.0
+    while not planner.arm_state().servo_active:
+        assert time.monotonic() < deadline_s, "the commander did not take a target within 5 s"
+        await planner.send_target(HOME, PROBE_LEAD_S)
+        await asyncio.sleep(PROBE_LEAD_S / 2)
+    await until(lambda: not planner.arm_state().servo_active, 2.0, "the commander holding after the probe")
+
+
+async def moving_at_speed(tcp: SimTcp, timeout_s: float = 3.0) -> None:
+    deadline_s = time.monotonic() + timeout_s
+    while np.linalg.norm((await tcp.read())[2][:3]) < 0.8 * LIMITS.max_speed_m_s:
+        assert time.monotonic() < deadline_s, f"the TCP did not reach 80 % of max speed within {timeout_s} s"
+        await asyncio.sleep(POLL_PERIOD_S)
+
+
+async def at_rest(tcp: SimTcp, timeout_s: float) -> tuple[int, np.ndarray]:
+    """Poll until the TCP is at rest; its ``(now_ns, pose)`` then."""
+    deadline_s = time.monotonic() + timeout_s
+    while True:
+        now_ns, pose, twist = await tcp.read()
+        if np.linalg.norm(twist) < AT_REST_M_S:
+            return now_ns, pose
+        assert time.monotonic() < deadline_s, f"the TCP was not at rest within {timeout_s} s"
+        await asyncio.sleep(POLL_PERIOD_S)
+
+
+def scenario(coro_fn, rig: Rig):
+    """Run ``coro_fn(planner, tcp)`` against the running commander, within ``SCENARIO_TIMEOUT_S``."""
+    rig.start_commander()
+
+    async def main():
+        async with PlayedPlanner(rig) as planner, SimTcp(rig.host) as tcp:
+            await start_at_home(planner, tcp)
+            return await coro_fn(planner, tcp)
+
+    return asyncio.run(asyncio.wait_for(main(), SCENARIO_TIMEOUT_S))
+
+
+def test_the_tcp_moves_to_a_valid_target_no_faster_than_max_speed(rig):
+    distance_m = 0.1
+    goal = HOME + [distance_m, 0, 0, 0, 0, 0, 0]
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = goal
+        samples = [await tcp.read()]
+        while np.linalg.norm(samples[-1][1][:3] - goal[:3]) > 1e-4:
+            assert time.monotonic_ns() - samples[0][0] < 10 * S, "the TCP did not reach the target within 10 s"
+            await asyncio.sleep(POLL_PERIOD_S)
+            samples.append(await tcp.read())
+        return samples, planner.arm_state()
+
+    samples, arm_state = scenario(run, rig)
+    poses = np.array([s[1] for s in samples])
+    speeds = np.array([np.linalg.norm(s[2][:3]) for s in samples])  # the simulator's own TCP twist
+    cruising = speeds[np.abs(poses[:, 0] - HOME[0] - distance_m / 2) < distance_m / 4]  # the middle half of the way
+    assert speeds.max() <= LIMITS.max_speed_m_s * (1 + SERVO_RIPPLE), speeds.max()
+    # and it uses the speed it may (less while other processes take the loop's CPU: late ticks make short steps)
+    assert cruising.mean() > 0.5 * LIMITS.max_speed_m_s, cruising.mean()
+    assert np.abs(poses[:, 1:3] - HOME[1:3]).max() < 1e-6  # a straight line along x
+    assert arm_state.servo_active and np.allclose(arm_state.tcp_pose[:3], goal[:3], atol=1e-3)
+
+
+def test_a_target_outside_the_workspace_is_refused_and_never_moved_towards(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = HOME + [0, -0.1, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        errors_before = (await until(planner.status, 3.0, "a status")).errors.get("target_refused", 0)
+        planner.goal = None
+        await planner.send_target(HOME + [0.3, 0, 0, 0, 0, 0, 0], TARGET_LEAD_S)  # x = 0.6 m > 0.5 m
+        poses = []
+        deadline_ns = time.monotonic_ns() + S
+        while time.monotonic_ns() < deadline_ns:
+            poses.append((await tcp.read())[1])
+            await asyncio.sleep(POLL_PERIOD_S)
+        _, rest = await at_rest(tcp, 1.0)
+        status = await until(lambda: (s := planner.status()) and s.errors.get("target_refused", 0) > errors_before
+                             and s, 3.0, "the refusal counted in the status")
+        return np.array(poses), rest, planner.arm_state(), status
+
+    poses, rest, arm_state, status = scenario(run, rig)
+    assert poses[:, 0].max() <= HOME[0] + 1e-6  # never towards +x
+    assert rest[1] > HOME[1] - 0.1 + 0.01  # stopped well short of the valid target it was moving to
+    assert not arm_state.servo_active and arm_state.stop_reason.startswith("target refused")
+    assert "outside the workspace" in status.last_error
+
+
+def test_the_arm_stops_when_the_target_deadline_passes(rig):
+    lead_s = 0.4
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        sent = await planner.send_target(HOME + [0.15, 0, 0, 0, 0, 0, 0], lead_s)
+        await moving_at_speed(tcp)
+        rest_ns, rest = await at_rest(tcp, 2.0)
+        return sent, rest_ns, rest, planner.arm_state()
+
+    sent, rest_ns, rest, arm_state = scenario(run, rig)
+    late_s = (rest_ns - sent.deadline_ns) * 1e-9
+    assert late_s < SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S, late_s
+    assert rest[0] - HOME[0] < LIMITS.max_speed_m_s * (lead_s + SCHEDULING_SLACK_S)
+    assert not arm_state.servo_active and "deadline passed" in arm_state.stop_reason
+
+
+def test_the_arm_stops_in_bounded_time_when_heartbeats_stop_and_waits_for_a_fresh_target(rig):
+    bound_s = LIMITS.heartbeat_timeout_s + SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        planner.heartbeats = False
+        last_heartbeat_ns = planner.last_heartbeat_ns
+        rest_ns, rest = await at_rest(tcp, 2.0)
+        planner.goal = None
+        reason = planner.arm_state().stop_reason
+        planner.heartbeats = True
+        await asyncio.sleep(0.5)
+        _, still, twist = await tcp.read()
+        held = planner.arm_state()
+        await planner.send_target(HOME, TARGET_LEAD_S)
+        resumed = await until(lambda: (s := planner.arm_state()) and s.servo_active and s, 1.0, "servoing again")
+        return (rest_ns - last_heartbeat_ns) * 1e-9, reason, np.linalg.norm(still - rest), held, resumed
+
+    latency_s, reason, drift_m, held, resumed = scenario(run, rig)
+    print(f"last heartbeat to the arm at rest: {latency_s:.3f} s (bound {bound_s:.3f} s)")
+    assert LIMITS.heartbeat_timeout_s < latency_s < bound_s, latency_s
+    assert "heartbeat" in reason
+    assert drift_m < 1e-6 and not held.servo_active  # a fresh heartbeat alone does not resume
+    assert resumed.stop_reason == ""
+
+
+def test_the_arm_stops_when_the_force_exceeds_the_limit_or_the_ft_goes_silent(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        planner.force_n = LIMITS.max_force_n + 1.0
+        tic_ns = time.monotonic_ns()
+        rest_ns, _ = await at_rest(tcp, 1.0)
+        over_limit = planner.arm_state().stop_reason, (rest_ns - tic_ns) * 1e-9
+        planner.force_n = 0.0
+        await until(lambda: (s := planner.arm_state()) and s.servo_active, 1.0, "servoing again")
+        planner.goal = HOME + [0, 0, -0.15, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        planner.force_n = None
+        await at_rest(tcp, 1.0)
+        return over_limit, planner.arm_state().stop_reason
+
+    (reason, stop_s), silent_reason = scenario(run, rig)
+    assert "above the limit" in reason
+    assert stop_s < WRENCH_PERIOD_S + SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S, stop_s
+    assert silent_reason == "no fresh F/T reading"
+
+
+def test_sigint_stops_the_arm_then_exits_0_and_stops_the_script(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        counters = (await tcp.request("state"))["counters"]
+        exit_code = await asyncio.to_thread(stop_process, rig.commander, signal.SIGINT)
+        after = await tcp.request("state")
+        return counters, exit_code, after
+
+    before, exit_code, after = scenario(run, rig)
+    log = rig.log_path.read_text()
+    assert exit_code == 0, log[-2000:]
+    assert np.linalg.norm(after["twist"]) < AT_REST_M_S
+    assert after["counters"].get("commands[16]", 0) > before.get("commands[16]", 0)  # servoStop
+    assert after["counters"].get("stop_script", 0) == before.get("stop_script", 0) + 1
+    assert after["runtime_state"] != 2  # the program no longer plays
+    assert log.rindex("arm stopped and at rest") < log.rindex("stopped (exit 0)")

@@ -1,0 +1,355 @@
+"""The bus on real sockets (ipc:// and tcp://127.0.0.1 only): endpoint policy, CURVE, latest-value subscribers,
+malformed traffic and the request/reply pair. Every test runs under a deadline."""
+
+import asyncio
+import logging
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+import zmq.auth
+
+from hydrosoft.services import bus as b
+from hydrosoft.services import messages as m
+
+TEST_TIMEOUT_S = 20.0
+#: How long a test waits for a subscription to reach its publisher (slow joiner), s.
+CONNECT_TIMEOUT_S = 5.0
+#: How long a test listens to show that nothing arrives, s.
+SILENCE_S = 0.5
+
+WRENCH = m.Wrench(sensor="ft", wrench=np.array([1.0, 2.0, 3.0, 0.1, 0.2, 0.3]), tared=True)
+
+
+def run(coroutine, timeout_s: float = TEST_TIMEOUT_S):
+    """Run ``coroutine`` in a fresh loop; a hang fails the test after ``timeout_s``."""
+    return asyncio.run(asyncio.wait_for(coroutine, timeout_s))
+
+
+@pytest.fixture
+def ipc_dir():
+    with tempfile.TemporaryDirectory(prefix="hs-bus-") as path:  # short: ipc paths are limited to ~100 bytes
+        yield Path(path)
+
+
+async def connected(publisher: b.Publisher, subscriber: b.LatestSubscriber) -> bool:
+    """Send heartbeats until ``subscriber`` (subscribed to ``heartbeat``) receives one; False on timeout."""
+    deadline_s = time.monotonic() + CONNECT_TIMEOUT_S
+    while time.monotonic() < deadline_s:
+        await publisher.send(m.Heartbeat(period_s=1.0), "heartbeat/probe")
+        if "heartbeat/probe" in await subscriber.wait(0.02):
+            return True
+    return False
+
+
+# --- endpoint policy ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("endpoint", ["ipc:///tmp/x.ipc", "inproc://bus", "tcp://127.0.0.1:5555", "tcp://127.4.5.6:*"])
+def test_local_endpoints_need_no_keys(endpoint):
+    assert b.is_local_endpoint(endpoint)
+    b.check_endpoint(endpoint, None)
+
+
+@pytest.mark.parametrize("endpoint", ["tcp://0.0.0.0:5555", "tcp://*:5555", "tcp://192.168.1.20:5555",
+                                      "tcp://localhost:5555", "tcp://eth0:5555", "tcp://[::]:5555"])
+def test_other_endpoints_need_curve_keys(endpoint):
+    assert not b.is_local_endpoint(endpoint)
+    with pytest.raises(b.BusConfigError, match="CURVE keys"):
+        b.check_endpoint(endpoint, None)
+    b.check_endpoint(endpoint, b.CurveServer(Path("server.key_secret"), Path("clients")))
+
+
+@pytest.mark.parametrize("endpoint, reason", [("127.0.0.1:5555", "no transport"), ("pgm://eth0;239.1.1.1:5555",
+                                              "not supported"), ("tcp://127.0.0.1", "no port")])
+def test_malformed_endpoints_are_refused(endpoint, reason):
+    with pytest.raises(b.BusConfigError, match=reason):
+        b.is_local_endpoint(endpoint)
+
+
+def test_binding_all_interfaces_without_keys_is_refused_before_any_socket_exists():
+    with b.Bus() as bus:
+        with pytest.raises(b.BusConfigError, match="expose the bus beyond this host"):
+            b.Publisher(bus, "tcp://0.0.0.0:*", source="test")
+        assert bus._sockets == []
+
+
+@pytest.fixture
+def keys(ipc_dir):
+    """Certificates: a server, an authorized client, and an intruder whose key the server does not know."""
+    paths = {}
+    for name in ("server", "client", "intruder"):
+        folder = ipc_dir / name
+        folder.mkdir()
+        public, secret = zmq.auth.create_certificates(folder, name)
+        paths[name] = (Path(public), Path(secret))
+    return paths
+
+
+def test_curve_admits_the_authorized_client_only(keys):
+    server = b.CurveServer(keys["server"][1], keys["client"][0].parent)
+
+    async def scenario():
+        with b.Bus() as bus:
+            publisher = b.Publisher(bus, "tcp://127.0.0.1:*", source="test", curve=server)
+            client = b.LatestSubscriber(bus, publisher.endpoint, curve=b.CurveClient(keys["client"][1],
+                                                                                     keys["server"][0]))
+            intruder = b.LatestSubscriber(bus, publisher.endpoint, curve=b.CurveClient(keys["intruder"][1],
+                                                                                       keys["server"][0]))
+            wrong_server_key = b.LatestSubscriber(bus, publisher.endpoint, curve=b.CurveClient(
+                keys["client"][1], keys["intruder"][0]))
+            plain = b.LatestSubscriber(bus, publisher.endpoint)
+            assert await connected(publisher, client)
+            for _ in range(round(SILENCE_S / 0.05)):
+                await publisher.send(WRENCH)
+                await asyncio.sleep(0.05)
+            assert client.latest("wrench", 1.0, m.Wrench).value.sensor == "ft"
+            for outsider in (intruder, wrong_server_key, plain):
+                assert not outsider.drain() and not outsider.received
+
+    run(scenario())
+
+
+def test_curve_configuration_errors_say_what_is_missing(keys, ipc_dir):
+    empty = ipc_dir / "empty"
+    empty.mkdir()
+    with b.Bus() as bus:
+        with pytest.raises(b.BusConfigError, match="no secret key"):
+            b.Publisher(bus, "tcp://127.0.0.1:*", source="t", curve=b.CurveServer(keys["server"][0], empty))
+        with pytest.raises(b.BusConfigError, match="holds no public .key"):
+            b.Publisher(bus, "tcp://127.0.0.1:*", source="t", curve=b.CurveServer(keys["server"][1], empty))
+        with pytest.raises(b.BusConfigError, match="cannot read CURVE certificate"):
+            b.LatestSubscriber(bus, "tcp://127.0.0.1:5", curve=b.CurveClient(ipc_dir / "none", keys["server"][0]))
+
+
+def test_a_second_bind_to_the_same_endpoint_is_a_config_error():
+    with b.Bus() as bus:
+        first = b.Publisher(bus, "tcp://127.0.0.1:*", source="t")
+        with pytest.raises(b.BusConfigError, match="cannot bind"):
+            b.Publisher(bus, first.endpoint, source="t")
+
+
+# --- streams -----------------------------------------------------------------------------------------------------
+
+
+def test_publisher_stamps_each_topic_and_the_subscriber_hands_out_the_newest(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            publisher = b.Publisher(bus, f"ipc://{ipc_dir}/pub", source="ft_reader")
+            subscriber = b.LatestSubscriber(bus, publisher.endpoint, ["heartbeat", "wrench"])
+            assert await connected(publisher, subscriber)
+            before_ns = time.monotonic_ns()
+            sent = [await publisher.send(WRENCH, "wrench/left") for _ in range(3)]
+            sent.append(await publisher.send(WRENCH, "wrench/right"))
+            assert [msg.seq for msg in sent] == [1, 2, 3, 1]
+            assert all(msg.source == "ft_reader" and msg.stamp_ns >= before_ns for msg in sent)
+            while subscriber.received["wrench/left"] < 3 or subscriber.received["wrench/right"] < 1:
+                assert await subscriber.wait(1.0)
+            left = subscriber.latest("wrench/left", 1.0, m.Wrench)
+            assert left.value.seq == 3 and left.stamp_ns == sent[2].stamp_ns
+            assert 0 <= left.age_s < 1.0
+            np.testing.assert_array_equal(left.value.wrench, WRENCH.wrench)
+            assert subscriber.latest("wrench/right", 1.0).value.seq == 1
+            with pytest.raises(TypeError, match="not DepthFrame"):
+                subscriber.latest("wrench/left", 1.0, m.DepthFrame)
+            with pytest.raises(b.Stale, match="nothing received"):
+                subscriber.latest("wrench/middle", 1.0)
+            await asyncio.sleep(0.05)
+            with pytest.raises(b.Stale, match="old, limit 0.010 s"):
+                subscriber.latest("wrench/left", 0.01)
+
+    run(scenario())
+
+
+def test_wait_returns_nothing_after_its_timeout(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            subscriber = b.LatestSubscriber(bus, f"ipc://{ipc_dir}/nobody")
+            start_s = time.monotonic()
+            assert await subscriber.wait(0.2) == set()
+            assert 0.15 < time.monotonic() - start_s < 2.0
+
+    run(scenario())
+
+
+def test_a_flooded_subscriber_stays_bounded_and_gets_the_newest_message():
+    flood = 20_000
+
+    async def scenario():
+        with b.Bus() as bus:
+            publisher = b.Publisher(bus, "tcp://127.0.0.1:*", source="test")
+            subscriber = b.LatestSubscriber(bus, publisher.endpoint, ["heartbeat", "wrench"])
+            assert await connected(publisher, subscriber)
+            for _ in range(flood):  # back to back, while the subscriber does not read
+                await publisher.send(WRENCH)
+            while await subscriber.wait(0.2):  # read the backlog until quiet
+                pass
+            queued = subscriber.received["wrench"]
+            # HWMs plus socket buffers held a few thousand small messages at most; the publisher dropped the rest
+            assert 0 < queued < flood / 4
+            final = await publisher.send(WRENCH)
+            assert "wrench" in await subscriber.wait(2.0)
+            newest = subscriber.latest("wrench", 1.0)
+            assert newest.value.seq == final.seq == flood + 1
+            assert subscriber.received["wrench"] == queued + 1
+
+    run(scenario())
+
+
+def test_a_background_reader_excludes_a_second_waiter(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            subscriber = b.LatestSubscriber(bus, f"ipc://{ipc_dir}/nobody")
+            reader = asyncio.create_task(subscriber.run())
+            await asyncio.sleep(0.01)
+            with pytest.raises(RuntimeError, match="already waits"):
+                await subscriber.wait(0.1)
+            reader.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await reader
+            assert await subscriber.wait(0.01) == set()  # free again once the reader stopped
+
+    run(scenario())
+
+
+def test_malformed_traffic_is_counted_and_valid_messages_still_arrive(ipc_dir):
+    endpoint = f"ipc://{ipc_dir}/raw"
+    valid = m.encode(msg=m.Wrench(sensor="ft", wrench=np.zeros(6), tared=False, seq=1, stamp_ns=1))
+    future = m.encode(m.Wrench(sensor="ft", wrench=np.zeros(6), tared=False, seq=2, stamp_ns=time.monotonic_ns()
+                               + 10**12))
+    bad = [
+        [b"wrench", b"\xc1 garbage", bytes(48)],
+        [b"torque", valid[1], bytes(48)],
+        [b"wrench", valid[1], bytes(40)],
+        [b"wrench", valid[1]],
+        future,
+    ]
+
+    async def scenario():
+        with b.Bus() as bus:
+            raw = bus.socket(zmq.PUB, endpoint, bind=True)
+            subscriber = b.LatestSubscriber(bus, endpoint)
+            deadline_s = time.monotonic() + CONNECT_TIMEOUT_S
+            while not subscriber.received and time.monotonic() < deadline_s:  # slow joiner
+                await raw.send_multipart(valid)
+                await subscriber.wait(0.02)
+            assert subscriber.received["wrench"] >= 1
+            for frames in bad * 3:
+                await raw.send_multipart(frames)
+            await raw.send_multipart(m.encode(m.Wrench(sensor="last", wrench=np.zeros(6), tared=False,
+                                                       stamp_ns=time.monotonic_ns())))
+            while subscriber.latest("wrench", math.inf).value.sensor != "last":
+                assert await subscriber.wait(2.0)
+            assert subscriber.errors.counts == {"garbage": 3, "unknown_topic": 3, "length": 3, "frame_count": 3,
+                                                "future_stamp": 3}
+            assert "future" in subscriber.errors.last_error
+
+    run(scenario())
+
+
+def test_errors_are_logged_once_per_n(caplog):
+    counter = b.ErrorCounter(logging.getLogger("test.errors"), log_every=3)
+    with caplog.at_level(logging.WARNING, logger="test.errors"):
+        for i in range(7):
+            counter.count("schema", f"bad {i}")
+        counter.count("garbage", "junk")
+    assert [r.getMessage().split(":")[-1].strip() for r in caplog.records] == ["bad 0", "bad 3", "bad 6", "junk"]
+    assert counter.counts == {"schema": 7, "garbage": 1} and counter.last_error == "garbage: junk"
+
+
+def test_latest_holder_refuses_stale_values():
+    now_ns = [1_000_000_000]
+    holder = b.Latest("wrench", max_age_s=0.1, clock_ns=lambda: now_ns[0])
+    with pytest.raises(b.Stale, match="nothing received"):
+        holder.get()
+    holder.put("new", stamp_ns=now_ns[0] - 50_000_000)
+    holder.put("older", stamp_ns=now_ns[0] - 80_000_000)  # out of order: ignored
+    got = holder.get()
+    assert got.value == "new" and got.age_s == pytest.approx(0.05)
+    now_ns[0] += 60_000_000
+    with pytest.raises(b.Stale, match="0.110 s old, limit 0.100 s"):
+        holder.get()
+    assert holder.get(max_age_s=0.2).value == "new"
+    with pytest.raises(ValueError, match="max_age_s"):
+        b.Latest("x", max_age_s=0.0)
+
+
+# --- requests ----------------------------------------------------------------------------------------------------
+
+
+async def handler(request: m.Request) -> m.Reply:
+    if isinstance(request, m.GetStatus):
+        return m.StatusReply(ok=True, running=False)
+    if isinstance(request, m.Stop):
+        if request.reason == "boom":
+            raise RuntimeError("cannot stop")
+        if request.reason == "slow":
+            await asyncio.sleep(0.5)
+        if request.reason == "confused":
+            return m.StatusReply(ok=True)
+    return m.CommandReply(ok=True)
+
+
+def test_requests_get_their_replies_and_failures_become_error_replies(ipc_dir):
+    endpoint = f"ipc://{ipc_dir}/api"
+
+    async def scenario():
+        with b.Bus() as bus:
+            server = b.RequestServer(bus, endpoint, handler, source="planner")
+            serving = asyncio.create_task(server.serve())
+            client = b.RequestClient(bus, endpoint, source="client", timeout_s=2.0)
+            reply = await client.request(m.Start())
+            assert isinstance(reply, m.CommandReply) and reply.ok and reply.source == "planner"
+            assert isinstance(await client.request(m.GetStatus()), m.StatusReply)
+            failed = await client.request(m.Stop(reason="boom"))
+            assert not failed.ok and "cannot stop" in failed.error
+            confused = await client.request(m.Stop(reason="confused"))
+            assert not confused.ok and "not CommandReply" in confused.error
+            assert server.errors.counts == {"handler": 2}
+            with pytest.raises(TimeoutError, match="no reply to Stop"):
+                await client.request(m.Stop(reason="slow"), timeout_s=0.1)
+            assert (await client.request(m.Start())).ok  # the late reply to Stop was dropped, not taken for this
+            serving.cancel()
+
+    run(scenario())
+
+
+def test_malformed_and_expired_requests_get_error_replies(ipc_dir):
+    endpoint = f"ipc://{ipc_dir}/api"
+    expired = m.encode(m.Start(deadline_ns=time.monotonic_ns() - 1))
+
+    async def scenario():
+        with b.Bus() as bus:
+            server = b.RequestServer(bus, endpoint, handler, source="planner")
+            serving = asyncio.create_task(server.serve())
+            raw = bus.socket(zmq.DEALER, endpoint, bind=False)
+            replies = {}
+            for request_id, frames in [(b"1", [b"cmd/start", b"\xc1"]), (b"2", m.encode(m.Heartbeat(period_s=1.0))),
+                                       (b"3", expired)]:
+                await raw.send_multipart([request_id, *frames])
+                answer = await raw.recv_multipart()
+                replies[answer[0]] = m.decode(answer[1:])[1]
+            assert all(isinstance(reply, m.Reply) and not reply.ok for reply in replies.values())
+            assert replies[b"1"].error.startswith("garbage:")
+            assert "not a request topic" in replies[b"2"].error
+            assert "after its deadline" in replies[b"3"].error
+            assert server.errors.counts == {"garbage": 1, "unknown_topic": 1, "expired_request": 1}
+            serving.cancel()
+
+    run(scenario())
+
+
+def test_a_request_without_a_server_times_out(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            client = b.RequestClient(bus, f"ipc://{ipc_dir}/nobody", source="client", timeout_s=0.2)
+            start_s = time.monotonic()
+            with pytest.raises(TimeoutError, match="within 0.2 s"):
+                await client.request(m.GetStatus())
+            assert time.monotonic() - start_s < 2.0
+
+    run(scenario())

@@ -1,0 +1,51 @@
+"""The stack config: the shipped files load, bad keys are named, endpoints stay local without CURVE keys."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from hydrosoft.services.config import ConfigError, load_config, parse_config
+
+DEPLOY = Path(__file__).parents[2] / "deploy"
+ONE_ARM = 'arms = [{ name = "bubble" }]\n'
+
+
+@pytest.mark.parametrize("name", ["sim.toml", "sim-bimanual.toml"])
+def test_the_shipped_configs_load(name):
+    config = load_config(DEPLOY / name)
+    names = config.service_names()
+    assert names[0] == "sim_world" and names[-1] == "planner"
+    assert all(f"arm_commander-{arm.name}" in names for arm in config.arms)
+    assert config.endpoint("planner", "cmd").startswith("ipc://")
+
+
+@pytest.mark.parametrize("text, key", [
+    (ONE_ARM + "[limits]\nmax_speed_m_s = 0\n", "limits.max_speed_m_s"),
+    (ONE_ARM + "[limits]\nworkspace_min = [0.2, 0, 0]\n", "limits.workspace_min"),
+    (ONE_ARM + "colour = 1\n", "colour"),
+    (ONE_ARM + "[planner]\nheartbeat_period_s = 0.3\n", "planner.heartbeat_period_s"),
+    (ONE_ARM + "[services.nope]\nrestart = \"always\"\n", "services.nope"),
+    (ONE_ARM + "[sim]\nrate_hz = 20\n", "sim.rate_hz"),
+    ('arms = [{ name = "a" }, { name = "a" }]\n', "arms"),
+])
+def test_a_bad_key_is_named(text, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        parse_config(text, "test.toml")
+
+
+def test_a_non_local_endpoint_needs_curve_keys():
+    with pytest.raises(ConfigError, match="endpoints.planner.data.*CURVE"):
+        parse_config(ONE_ARM + '[endpoints]\n"planner.data" = "tcp://0.0.0.0:5555"\n', "test.toml")
+    config = parse_config(ONE_ARM + '[endpoints]\n"planner.data" = "tcp://127.0.0.1:5555"\n', "test.toml")
+    assert config.endpoint("planner") == "tcp://127.0.0.1:5555"
+
+
+def test_per_arm_service_names():
+    config = parse_config(ONE_ARM, "test.toml")
+    assert config.arm_service("ft_reader", None) == ("ft_reader-bubble", "bubble")
+    with pytest.raises(ConfigError, match="expected ft_reader-ARM"):
+        config.arm_service("ft_reader", "planner")
+    with pytest.raises(ConfigError, match="no arm named 'left'"):
+        config.arm_service("ft_reader", "ft_reader-left")

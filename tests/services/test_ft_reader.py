@@ -1,0 +1,200 @@
+"""The F/T reader service: its plain parts (tare, messages, polling a fake sensor) and the service as a real process
+reading a ``SimulatedFT300`` the test starts behind the config's ``ft_port``: it waits for the port, tares,
+publishes the simulator's wrench minus the tare, rejects corrupted frames and publishes nothing while the sensor
+stalls.
+
+The process gets a private run_dir and is stopped by its pid; the simulator is stopped by the test; every wait has
+a timeout.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+from service_process import ServiceProcess
+
+from hydrosoft.drivers.base import WrenchSample
+from hydrosoft.drivers.errors import NotConnected, ProtocolError, Stale
+from hydrosoft.drivers.robotiq_ft300.simulator import FT300Faults, SimulatedFT300
+from hydrosoft.services import bus as bus_layer
+from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import Bus, LatestSubscriber
+from hydrosoft.services.config import load_config
+from hydrosoft.services.ft_reader import (
+    bias_of,
+    error_kind,
+    next_sample,
+    tare,
+    wait_for_port,
+    wrench_message,
+)
+
+SCENARIO_TIMEOUT_S = 40.0
+TEST_TIMEOUT_S = 10.0
+BIAS = np.array([1.5, -2.0, 3.25, 0.1, -0.2, 0.3])  # what the sensor reads at rest, N and N m
+PUSH = np.array([0.5, 0.25, -4.0, 0.02, 0.0, -0.01])  # the contact wrench applied after the tare
+FORCE_ATOL_N, TORQUE_ATOL_NM = 0.011, 0.0011  # one unit of the frame's 0.01 N / 0.001 N m resolution
+STALL_S = 0.4  # below the driver's restart_after_s (0.5 s): the link stays up, the samples stop
+
+
+class ScriptedSensor:
+    """A ``ForceTorqueSensor`` whose ``read`` returns or raises the scripted items in turn, then repeats the last."""
+
+    def __init__(self, *items) -> None:
+        self.items = list(items)
+        self.reads = 0
+
+    async def connect(self) -> None:
+        return None
+
+    async def read(self) -> WrenchSample:
+        item = self.items[min(self.reads, len(self.items) - 1)]
+        self.reads += 1
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    async def close(self) -> None:
+        return None
+
+
+def sample(stamp_ns: int, value: float = 0.0) -> WrenchSample:
+    return WrenchSample(np.full(6, value), stamp_ns, None)
+
+
+def run(coroutine):
+    return asyncio.run(asyncio.wait_for(coroutine, TEST_TIMEOUT_S))
+
+
+def assert_wrench_near(wrench: np.ndarray, expected: np.ndarray) -> None:
+    np.testing.assert_allclose(wrench[:3], expected[:3], atol=FORCE_ATOL_N)
+    np.testing.assert_allclose(wrench[3:], expected[3:], atol=TORQUE_ATOL_NM)
+
+
+# --- plain parts ---------------------------------------------------------------------------------------------------
+
+
+def test_the_bias_is_the_mean_and_the_message_subtracts_it():
+    bias = bias_of([BIAS - 0.1, BIAS + 0.1, BIAS])
+    np.testing.assert_allclose(bias, BIAS, atol=1e-12)
+    message = wrench_message(WrenchSample(BIAS + PUSH, 5, None), bias, "left")
+    np.testing.assert_allclose(message.wrench, PUSH, atol=1e-12)
+    assert message.tared and message.sensor == "left" and message.hw_stamp_ns is None
+    msg.encode(message, "wrench/left")
+    with pytest.raises(ValueError, match="at least one"):
+        bias_of([])
+    with pytest.raises(ValueError, match="finite"):
+        bias_of([np.array([np.nan, 0, 0, 0, 0, 0])])
+
+
+def test_next_sample_skips_a_sample_it_has_seen_and_raises_the_drivers_error_after_the_timeout():
+    sensor = ScriptedSensor(sample(10), sample(10), Stale("old"), sample(20))
+    assert run(next_sample(sensor, after_ns=10, poll_s=0.001)).stamp_ns == 20
+    assert sensor.reads == 4
+    with pytest.raises(NotConnected, match="unplugged"):
+        run(next_sample(ScriptedSensor(NotConnected("unplugged")), after_ns=0, timeout_s=0.05, poll_s=0.01))
+    tic_s = time.monotonic()
+    with pytest.raises(Stale, match="no new F/T sample"):  # the same sample again and again is stale too
+        run(next_sample(ScriptedSensor(sample(10)), after_ns=10, timeout_s=0.1, poll_s=0.01))
+    assert time.monotonic() - tic_s >= 0.1
+
+
+def test_the_tare_averages_new_samples_over_its_duration_and_fails_on_a_silent_sensor():
+    class Counting(ScriptedSensor):
+        async def read(self) -> WrenchSample:
+            self.reads += 1
+            return sample(time.monotonic_ns(), float(self.reads % 2))  # alternating 0 and 1
+
+    bias = run(tare(Counting(), duration_s=0.05))
+    np.testing.assert_allclose(bias, 0.5, atol=0.1)
+    with pytest.raises(Stale):
+        run(tare(ScriptedSensor(Stale("silent")), duration_s=0.05))
+
+
+def test_error_kinds_and_the_port_wait():
+    assert [error_kind(e) for e in (Stale("x"), NotConnected("x"), ProtocolError("x"))] == [
+        "stale", "not_connected", "protocol"]
+    tic_s = time.monotonic()
+    with pytest.raises(NotConnected, match="did not appear within 0.2 s"):
+        run(wait_for_port("/nonexistent/ft300", timeout_s=0.2))
+    assert time.monotonic() - tic_s >= 0.2
+
+
+# --- the service as a process ------------------------------------------------------------------------------------
+
+
+def test_the_service_publishes_the_simulators_wrench_minus_the_tare_and_nothing_while_it_stalls(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    port = run_dir / "ft300-bubble"
+    config_path = tmp_path / "sim.toml"
+    config_path.write_text(f'run_dir = "{run_dir}"\nmode = "sim"\n[[arms]]\nname = "bubble"\nft_port = "{port}"\n')
+    config = load_config(config_path)
+    name = "ft_reader-bubble"
+    applied = {"wrench": BIAS}
+    simulator = SimulatedFT300(lambda: applied["wrench"], link=port)
+
+    async def scenario() -> dict[str, object]:
+        seen: dict[str, object] = {}
+        with Bus() as bus:
+            wrenches = LatestSubscriber(bus, config.endpoint(name), ["wrench/bubble"])
+            status = LatestSubscriber(bus, config.endpoint(name, "status"), [f"status/{name}"])
+
+            async def collect(duration_s: float) -> list[msg.Wrench]:
+                """Every wrench message received within ``duration_s`` (the subscriber keeps only the newest
+                per topic, so it is read after each arrival)."""
+                received, end_s = [], time.monotonic() + duration_s
+                while (left_s := end_s - time.monotonic()) > 0:
+                    if await wrenches.wait(left_s):
+                        received.append(wrenches.latest("wrench/bubble", 1.0, msg.Wrench).value)
+                return received
+
+            async def status_until(condition) -> msg.ServiceStatus:
+                while True:
+                    await status.wait(1.5)
+                    try:
+                        report = status.latest(f"status/{name}", 3.0, msg.ServiceStatus).value
+                    except bus_layer.Stale:  # none received yet
+                        continue
+                    if condition(report):
+                        return report
+
+            await collect(0.5)  # let the subscription come up
+            applied["wrench"] = BIAS + PUSH
+            await collect(0.1)  # frames already under way carry the old wrench
+            seen["pushed"] = await collect(1.0)
+            simulator.set_faults(FT300Faults(bit_flip_rate=0.005, garbage_rate=0.2))
+            seen["faulty"] = await collect(1.5)
+            seen["crc"] = await status_until(lambda s: s.errors.get("crc", 0) > 0)
+            simulator.set_faults(FT300Faults())
+            stall_s = time.monotonic()
+            simulator.stall(STALL_S)
+            seen["during_stall"] = [(m.stamp_ns * 1e-9 - stall_s) for m in await collect(STALL_S)]
+            seen["degraded"] = await status_until(lambda s: s.state == "degraded" or s.errors.get("stale", 0) > 0)
+            seen["after_stall"] = await collect(0.5)
+            seen["recovered"] = await status_until(lambda s: s.state == "ready")
+        return seen
+
+    process = ServiceProcess("ft_reader", name, config_path, tmp_path / "ft_reader.log")
+    try:
+        time.sleep(0.5)  # the service waits for the port to appear
+        assert process.proc.poll() is None, process.log()
+        simulator.start()
+        process.wait_ready()
+        seen = asyncio.run(asyncio.wait_for(scenario(), SCENARIO_TIMEOUT_S))
+    finally:
+        rc = process.stop()
+        simulator.stop()
+    assert rc == 0, process.log()
+    assert len(seen["pushed"]) >= 40, len(seen["pushed"])  # the sensor's ~100 Hz, on two busy cores
+    for message in seen["pushed"] + seen["faulty"] + seen["after_stall"]:
+        assert message.tared and message.sensor == "bubble" and message.source == name
+        assert_wrench_near(message.wrench, PUSH)  # tared, and no corrupted frame gets through
+    assert len({m.seq for m in seen["pushed"]}) == len(seen["pushed"])
+    assert len(seen["faulty"]) >= 40 and len(seen["after_stall"]) >= 20
+    assert seen["crc"].errors["crc"] >= 1
+    assert not [t for t in seen["during_stall"] if 0.15 < t < STALL_S - 0.05], seen["during_stall"]
+    assert seen["degraded"].errors.get("stale", 0) >= 1

@@ -1,0 +1,64 @@
+"""The planner's plain functions: goals resolved to target poses, plans turned into TCP targets, the model built
+from the stack config, the client API's refusals."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+import torch
+
+from hydrosoft.geometry import se3
+from hydrosoft.services import messages as msg
+from hydrosoft.services.config import load_config
+from hydrosoft.services.planner import PlannerCore, resolve_target, targets_from_plan
+
+SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+
+
+@pytest.fixture(scope="module")
+def core():
+    return PlannerCore.build(load_config(SIM_TOML))
+
+
+def test_a_displacement_goal_moves_and_turns_the_start_pose():
+    start = torch.tensor([0.01, 0.02, 0.024, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    goal = msg.Goal(task="pushing", dx_m=0.04, dy_m=-0.01, dyaw_rad=math.radians(30), tolerance_mm=5, timeout_s=10)
+    target = resolve_target(goal, start)
+    assert torch.allclose(target[:3], torch.tensor([0.05, 0.01, 0.024], dtype=torch.float64))
+    assert math.degrees(float(se3.angle_between(target[3:], start[3:]))) == pytest.approx(30.0)
+    absolute = msgspec.structs.replace(goal, target_pose=np.array([0.1, 0, 0.02, 1, 0, 0, 0.0]), dx_m=0.0, dy_m=0.0,
+                                       dyaw_rad=0.0)
+    assert resolve_target(absolute, start).tolist() == [0.1, 0, 0.02, 1, 0, 0, 0.0]
+
+
+def test_the_core_follows_the_config(core):
+    assert core.model.dtype == torch.float32 and core.model.body_names == ("bubble", "table")
+    assert core.arms == {"bubble": 0} and core.sensors.tolist() == [0]
+    start = core.task.initial_pose()
+    assert core.error_mm(start, start) == 0.0
+    assert core.error_mm(start, resolve_target(msg.Goal(task="pushing", dx_m=0.04, tolerance_mm=5, timeout_s=1),
+                                               start)) == pytest.approx(40.0, rel=1e-9)
+
+
+def test_an_arm_that_is_not_a_scene_body_is_refused_by_name(tmp_path):
+    text = SIM_TOML.read_text().replace('name = "bubble"', 'name = "gripper"')
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match="'gripper' is not a body of the pushing scene"):
+        PlannerCore.build(load_config(path))
+
+
+def test_targets_apply_the_first_plan_steps_to_the_current_tcp(core):
+    tcp = core.fixed_poses[0].clone()
+    plan = torch.zeros(6, 2, 6)
+    plan[:, 0, 0] = 0.002
+    plan[:, 0, 1] = -0.001
+    targets = targets_from_plan(core, {"bubble": tcp}, plan, steps=3)
+    assert torch.allclose(targets["bubble"][:3], tcp[:3] + torch.tensor([0.006, -0.003, 0.0], dtype=torch.float64))
+    assert torch.allclose(targets_from_plan(core, {"bubble": tcp}, plan, steps=99)["bubble"][:2],
+                          tcp[:2] + torch.tensor([0.012, -0.006], dtype=torch.float64))

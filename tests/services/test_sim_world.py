@@ -1,0 +1,311 @@
+"""sim_world: the plant's tick and wrench (plain functions), then sim_world as a real process with a private config:
+it becomes READY, publishes images, depth and truth at their rates, its UR simulator answers the real ur_rtde
+client with the bubble's pose, its FT 300 pty streams the bubble's push to the real serial driver, and moving the
+simulated TCP drags the cube.
+
+The process is started with a private run_dir and a 127.0.0.N of its own, and stopped by its pid in teardown.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+import torch
+
+from hydrosoft.drivers.ur.config import RTDE_PORT, SIM_CONTROL_PORT
+from hydrosoft.dynamics import body_wrenches
+from hydrosoft.geometry import se3
+from hydrosoft.scene import compile_scene
+from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import Bus, LatestSubscriber
+from hydrosoft.services.config import load_config, parse_config
+from hydrosoft.services.sim_world import (
+    DurationStats,
+    PlantStepError,
+    SimPlant,
+    body_control,
+    plant_model,
+)
+from hydrosoft.tasks import make_task
+from hydrosoft.tasks.evaluation import with_contact
+
+READY_TIMEOUT_S = 90.0  # import torch, compile the plant, bind the devices: a few s, more on a busy machine
+STOP_TIMEOUT_S = 10.0
+RECEIVE_WINDOW_S = 3.0
+SOCKET_TIMEOUT_S = 2.0
+DRAG_SETTLE_S = 3.0  # the cube may trail the bubble this long after it stopped
+CAMERA_FPS = 15.0
+DEPTH_FPS = 5.0
+BUBBLE_POSE = np.array([0.0, 0.0, 0.074215, 1.0, 0.0, 0.0, 0.0])  # pushing.toml's bubble
+CUBE_POSE = np.array([0.0, 0.0, 0.024215, 1.0, 0.0, 0.0, 0.0])  # pushing.toml's cube
+
+
+def pushing_config(**tables: str):
+    return parse_config('[[arms]]\nname = "bubble"\n' + "".join(tables.values()))
+
+
+# --- the plant, without sockets -----------------------------------------------------------------------------------
+
+
+def test_body_control_carries_each_body_to_its_target_in_one_retract():
+    rng = np.random.default_rng(3)
+    previous = torch.tensor(np.concatenate([rng.normal(0, 0.1, (4, 3)), rng.normal(0, 1, (4, 4))], axis=1))
+    previous[:, 3:] = torch.nn.functional.normalize(previous[:, 3:], dim=-1)
+    delta = torch.tensor(np.concatenate([rng.normal(0, 0.01, (4, 3)), rng.normal(0, 0.05, (4, 3))], axis=1))
+    target = se3.retract(previous, delta)
+    target[1, 3:] = -target[1, 3:]  # the same rotation written with the other quaternion sign
+    u = body_control(previous, target)
+    torch.testing.assert_close(u, delta, atol=1e-12, rtol=0)
+
+
+def test_the_plant_ticks_at_the_sim_rate_with_the_scenes_mobility_and_shorter_sub_steps():
+    model, _ = plant_model(pushing_config(sim="[sim]\nrate_hz = 50.0\nspacing_factor = 0.5\n"))
+    scene = make_task("pushing").scene
+    assert model.dt == pytest.approx(0.02)
+    assert model.dt / model.epsilon == pytest.approx(scene.dt / scene.epsilon)
+    scene_model, _, _ = compile_scene(with_contact(scene, "nh", 0.0125))
+    assert model.dt / model.substeps <= scene.dt / (2 * scene_model.substeps) + 1e-12  # the evaluation plant's
+    assert model.n_points > scene_model.n_points  # finer than the planner's surface
+
+
+def test_moving_the_tcp_drags_the_cube_and_the_bubble_lands_exactly_on_the_tcp():
+    plant = SimPlant.from_config(pushing_config())
+    tcp = BUBBLE_POSE.copy()
+    for _ in range(30):
+        tcp[0] += 0.0005  # 0.5 mm per 20 ms tick: 2.5 cm/s
+        plant.step_to({"bubble": tcp})
+        np.testing.assert_array_equal(plant.snapshot.tcp_poses["bubble"], tcp)
+    cube = plant.snapshot.object_pose
+    assert 0.005 < cube[0] < 0.015, cube  # it follows the 15 mm push, lagging while the shear builds up
+    assert abs(cube[1]) < 1e-6 and cube[2] == pytest.approx(CUBE_POSE[2], abs=1e-6)
+
+
+def test_the_tcp_wrench_is_the_objects_push_on_the_bubble_in_the_tcp_frame():
+    plant = SimPlant.from_config(pushing_config())
+    world = body_wrenches(plant.model, plant.state)[0, plant.arm_index["bubble"]].numpy()
+    np.testing.assert_allclose(plant.tcp_wrench("bubble"), world)  # TCP axes = world axes here
+    assert plant.tcp_wrench("bubble")[2] > 1.0  # the cube pushes the pressing bubble up: +Fz (about 1.9 N)
+
+    scene = make_task("pushing").scene
+    flipped_bubble = msgspec.structs.replace(scene.bodies[0], pose=[*BUBBLE_POSE[:3].tolist(), 0.0, 1.0, 0.0, 0.0])
+    flipped_scene = msgspec.structs.replace(scene, bodies=[flipped_bubble, *scene.bodies[1:]])  # 180 deg about x
+    model, state, _ = compile_scene(with_contact(flipped_scene, "nh", 0.00625))
+    flipped = SimPlant(model, state, ["bubble"])  # the ellipsoid is symmetric: the same contact, TCP z down
+    np.testing.assert_allclose(flipped.tcp_wrench("bubble")[2], -plant.tcp_wrench("bubble")[2], rtol=1e-6)
+
+
+def test_a_failed_tick_is_reported_by_kind_and_keeps_the_state():
+    plant = SimPlant.from_config(pushing_config())
+    before = plant.snapshot
+    bad = BUBBLE_POSE.copy()
+    bad[0] = math.nan
+    for tcp, kind in (({"bubble": bad}, "bad_tcp_pose"), ({}, "bad_tcp_pose")):
+        with pytest.raises(PlantStepError) as caught:
+            plant.step_to(tcp)
+        assert caught.value.kind == kind
+    unstable = SimPlant(replace(plant.model, max_substeps=1), plant.state, ["bubble"])
+    with pytest.raises(PlantStepError) as caught:
+        unstable.step_to({"bubble": BUBBLE_POSE})
+    assert caught.value.kind == "unstable_step"
+    forces = plant.state.forces.clone()
+    forces[0, 0, 0, 0] = math.nan
+    plant.state = plant.state._replace(forces=forces)
+    with pytest.raises(PlantStepError) as caught:
+        plant.step_to({"bubble": BUBBLE_POSE})
+    assert caught.value.kind == "non_finite_step"
+    assert plant.snapshot is before and plant.state.forces is forces
+
+
+def test_an_arm_must_be_an_actuated_body_of_the_plant():
+    model, state = plant_model(pushing_config())
+    with pytest.raises(ValueError, match="not bodies"):
+        SimPlant(model, state, ["left"])
+    with pytest.raises(ValueError, match="does not actuate"):
+        SimPlant(model, state, ["table"])
+
+
+def test_duration_stats_give_rate_mean_and_max_then_start_over():
+    stats = DurationStats("physics")
+    for duration_s in (0.002, 0.004, 0.009):
+        stats.add(duration_s)
+    assert stats.summary(0.5) == "physics 6.0 Hz, 5.0 ms mean, 9.0 ms max"
+    assert stats.summary(1.0) == "physics 0.0 Hz, 0.0 ms mean, 0.0 ms max"
+
+
+# --- sim_world as a process ---------------------------------------------------------------------------------------
+
+
+def free_loopback_host() -> str:
+    """A 127.0.0.N (N in 100..249, from the pid) whose RTDE and control ports are free now."""
+    for offset in range(150):
+        host = f"127.0.0.{100 + (os.getpid() * 13 + offset) % 150}"
+        try:
+            for port in (RTDE_PORT, SIM_CONTROL_PORT):
+                with socket.socket() as probe:
+                    probe.bind((host, port))
+        except OSError:
+            continue
+        return host
+    raise RuntimeError("no free 127.0.0.N for the simulated UR controller")
+
+
+class SimWorldProcess:
+    """``python -m hydrosoft.services.sim_world CONFIG``; waits for READY, stops by pid."""
+
+    def __init__(self, config_path: Path, log_path: Path) -> None:
+        self.log_path = log_path
+        self._log = log_path.open("wb")
+        self.proc = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.sim_world", str(config_path)],
+                                     stdout=subprocess.PIPE, stderr=self._log)
+        with selectors.DefaultSelector() as selector:
+            selector.register(self.proc.stdout, selectors.EVENT_READ)
+            ready = selector.select(READY_TIMEOUT_S)
+            line = self.proc.stdout.readline().decode() if ready else ""
+        if not line.startswith(f"READY sim_world {self.proc.pid}"):
+            self.stop()
+            raise AssertionError(f"sim_world not READY within {READY_TIMEOUT_S} s ({line!r}):\n{self.log()}")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")[-4000:]
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(STOP_TIMEOUT_S)
+        self._log.close()
+        return self.proc.returncode
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("sim_world")
+    run_dir = tmp / "run"
+    run_dir.mkdir()
+    host = free_loopback_host()
+    config_path = tmp / "sim.toml"
+    config_path.write_text(f'run_dir = "{run_dir}"\nmode = "sim"\n[scene]\ntask = "pushing"\n'
+                           f'[camera]\nfps = {CAMERA_FPS}\n[sim]\nrate_hz = 50.0\n'
+                           f'[[arms]]\nname = "bubble"\nur_host = "{host}"\nft_port = "{run_dir}/ft300-bubble"\n'
+                           f'depth = {{ fps = {DEPTH_FPS} }}\n')
+    process = SimWorldProcess(config_path, tmp / "sim_world.log")
+    try:
+        yield load_config(config_path), process
+    finally:
+        rc = process.stop()
+    assert rc == 0, process.log()
+
+
+def receive(config, topics: tuple[str, ...], window_s: float) -> dict[str, list[msg.Message]]:
+    """Every message on ``topics`` from sim_world during ``window_s`` s (after the first one arrived)."""
+
+    async def collect() -> dict[str, list[msg.Message]]:
+        got: dict[str, list[msg.Message]] = {topic: [] for topic in topics}
+        with Bus() as bus:
+            sub = LatestSubscriber(bus, config.endpoint("sim_world"), topics)
+            deadline_s = None
+            while deadline_s is None or time.monotonic() < deadline_s:
+                updated = await sub.wait(window_s)
+                if not updated:
+                    break
+                deadline_s = deadline_s or time.monotonic() + window_s
+                for topic in updated:
+                    got[topic].append(sub.latest(topic, max_age_s=window_s).value)
+        return got
+
+    return asyncio.run(asyncio.wait_for(collect(), 3 * window_s + 5.0))
+
+
+def rate_hz(messages: list[msg.Message]) -> float:
+    """The publisher's rate from the first and last message's seq and stamp (robust to messages we missed)."""
+    first, last = messages[0], messages[-1]
+    return (last.seq - first.seq) / ((last.stamp_ns - first.stamp_ns) * 1e-9)
+
+
+def test_sim_world_publishes_images_depth_and_truth_at_their_rates(world):
+    config, process = world
+    got = receive(config, ("image/tag_camera", "depth/bubble", "eval/object_pose", "eval/contact_forces"),
+                  RECEIVE_WINDOW_S)
+    images, depths, poses = got["image/tag_camera"], got["depth/bubble"], got["eval/object_pose"]
+    assert len(images) >= 5 and len(poses) >= 5 and len(depths) >= 2, {k: len(v) for k, v in got.items()}
+    assert rate_hz(images) == pytest.approx(CAMERA_FPS, rel=0.35), process.log()
+    assert rate_hz(poses) == pytest.approx(10.0, rel=0.3), process.log()
+    assert rate_hz(depths) == pytest.approx(DEPTH_FPS, rel=0.5), process.log()
+    image = images[-1]
+    assert image.camera == "tag_camera" and image.image.shape == (480, 640, 3) and image.image.dtype == np.uint8
+    assert image.hw_stamp_ns <= image.stamp_ns
+    assert 50 < float(image.image.mean()) < 200  # a lit scene, not a blank frame
+    np.testing.assert_allclose(poses[-1].pose, CUBE_POSE, atol=1e-4)
+    depth = depths[-1]
+    assert depth.depth.shape == (120, 160) and np.count_nonzero(depth.depth) > 0.9 * depth.depth.size
+    forces = got["eval/contact_forces"][-1]
+    assert forces.bodies == ("bubble", "table") and forces.forces[0, :, 2].sum() < -1.0  # the bubble presses down
+
+
+def test_its_ur_simulator_answers_the_real_rtde_client_with_the_bubble_pose(world):
+    import rtde_receive
+
+    config, _ = world
+    receiver = rtde_receive.RTDEReceiveInterface(config.arms[0].ur_host, -1.0, ["timestamp", "actual_TCP_pose"])
+    try:
+        np.testing.assert_allclose(receiver.getActualTCPPose(), [*BUBBLE_POSE[:3], 0.0, 0.0, 0.0], atol=1e-9)
+    finally:
+        receiver.disconnect()
+
+
+def test_its_ft300_streams_the_bubbles_push_to_the_real_driver(world):
+    from hydrosoft.drivers.robotiq_ft300.config import FT300Config
+    from hydrosoft.drivers.robotiq_ft300.sensor import FT300Sensor
+
+    config, _ = world
+
+    async def read_force() -> np.ndarray:
+        async with FT300Sensor(FT300Config(port=config.arms[0].ft_port)) as sensor:
+            await asyncio.sleep(0.1)
+            return (await sensor.read()).wrench
+
+    wrench = asyncio.run(asyncio.wait_for(read_force(), 10.0))
+    assert 1.0 < wrench[2] < 3.0, wrench  # about 1.9 N: the bubble pressing 5 mm into the cube
+    assert np.all(np.abs(wrench[:2]) < 0.1), wrench
+
+
+def control(host: str, **request) -> dict:
+    with socket.create_connection((host, SIM_CONTROL_PORT), timeout=SOCKET_TIMEOUT_S) as conn:
+        conn.sendall((json.dumps(request) + "\n").encode())
+        reply = json.loads(conn.makefile().readline())
+    assert reply["ok"], reply
+    return reply
+
+
+def test_moving_the_simulated_tcp_drags_the_cube(world):
+    config, process = world
+    host = config.arms[0].ur_host
+    start = receive(config, ("eval/object_pose",), 0.3)["eval/object_pose"][-1].pose
+    tcp = BUBBLE_POSE.copy()
+    for _ in range(40):  # 20 mm in 0.8 s, through the controller's inspection port
+        tcp[1] -= 0.0005
+        control(host, op="impose_pose", pose=tcp.tolist())
+        time.sleep(0.02)
+    deadline_s = time.monotonic() + DRAG_SETTLE_S
+    moved = np.zeros(3)
+    while moved[1] > -0.008 and time.monotonic() < deadline_s:  # it lags the bubble while the shear builds up
+        moved = receive(config, ("eval/object_pose",), 0.2)["eval/object_pose"][-1].pose[:3] - start[:3]
+    assert moved[1] < -0.008, (moved, process.log())  # pushed along -y by most of the 20 mm
+    assert abs(moved[0]) < 0.002 and abs(moved[2]) < 1e-4, moved

@@ -1,0 +1,98 @@
+"""``hydrosoft-stack status``: the report and table functions without sockets, and ``status --json`` against fake
+services run by the real launcher (stopped by pid in teardown)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from fakes.stack_run import LauncherRun, remove_tree, short_run_root, write_config
+
+from hydrosoft.services import status
+from hydrosoft.services.messages import ServiceStatus
+
+#: Longest a status call may take here, s (its window plus a Python start on a busy machine).
+STATUS_TIMEOUT_S = 30.0
+
+
+@pytest.fixture
+def root():
+    path = short_run_root()
+    yield path
+    remove_tree(path)
+
+
+def run_status(config, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "hydrosoft.services.status", str(config), *args],
+                          capture_output=True, text=True, timeout=STATUS_TIMEOUT_S)
+
+
+def test_report_carries_every_field_and_none_means_no_status():
+    message = ServiceStatus(state="degraded", pid=42, uptime_s=12.3456, published_hz={"wrench/a": 99.987},
+                            received_hz={"arm_state/a": 10.0}, errors={"schema": 2}, last_error="schema: bad",
+                            restarts=3)
+    report = status.report_for(message, 0.0512)
+    assert report == {"state": "degraded", "pid": 42, "uptime_s": 12.346, "published_hz": {"wrench/a": 99.99},
+                      "received_hz": {"arm_state/a": 10.0}, "restarts": 3, "errors": {"schema": 2},
+                      "last_error": "schema: bad", "heartbeat_age_s": 0.051}
+    assert status.report_for(None, 0.1) is None
+    table = status.format_table({"ft_reader-a": report, "planner": None})
+    row = next(line for line in table.splitlines() if line.startswith("ft_reader-a"))
+    assert row.split()[1:4] == ["degraded", "42", "12.3s"] and row.split()[-2:] == ["3", "2"]
+    assert "errors: schema 2; last: schema: bad" in table
+    assert "wrench/a 100.0" in table
+    assert any(line.split() == ["planner", "no", "status"] for line in table.splitlines())
+
+
+def test_nothing_running_lists_every_service_as_null_and_exits_0(root):
+    config = write_config(root, ["a"])
+    tic_s = time.monotonic()
+    result = run_status(config, "--json", "--wait", "0.3")
+    assert result.returncode == 0, result.stderr
+    document = json.loads(result.stdout)
+    assert document == {"services": dict.fromkeys(["sim_world", "arm_commander-a", "ft_reader-a", "bubble_camera-a",
+                                                   "tag_tracker", "planner"])}
+    assert time.monotonic() - tic_s < STATUS_TIMEOUT_S
+
+
+def test_bad_config_or_window_exits_2(root):
+    config = write_config(root, ["a"], "[planner]\nsamples = 0\n")
+    result = run_status(config)
+    assert result.returncode == 2 and "planner.samples" in result.stderr
+    result = run_status(write_config(root, ["a"]), "--wait", "-1")
+    assert result.returncode == 2 and "--wait" in result.stderr
+
+
+def test_status_json_reports_each_running_service(root):
+    config = write_config(root, ["a"])
+    run = LauncherRun(config, "--only", "sim_world,tag_tracker", modes={"tag_tracker": "errors"})
+    try:
+        run.wait_for("[launcher] stack ready")
+        pids = {name: int(run.wait_for(f"[launcher] {name} ready (pid")[1].rsplit(" ", 1)[1].rstrip(")"))
+                for name in ("sim_world", "tag_tracker")}
+        result = run_status(config, "--json", "--wait", "3")
+        assert result.returncode == 0, result.stderr
+        services = json.loads(result.stdout)["services"]
+        assert set(services) == {"sim_world", "arm_commander-a", "ft_reader-a", "bubble_camera-a", "tag_tracker",
+                                 "planner"}
+        assert all(services[name] is None for name in ("arm_commander-a", "ft_reader-a", "bubble_camera-a", "planner"))
+        for name, pid in pids.items():
+            report = services[name]
+            assert report["state"] == "ready" and report["pid"] == pid and report["restarts"] == 0, report
+            assert report["uptime_s"] > 0 and 0 <= report["heartbeat_age_s"] < 1.0, report
+            assert report["published_hz"][f"heartbeat/{name}-data"] > 5.0, report  # the fake publishes at 20 Hz
+        assert services["tag_tracker"]["errors"] == {"fake_input": 1}
+        assert "malformed" in services["tag_tracker"]["last_error"]
+        assert services["sim_world"]["errors"] == {} and services["sim_world"]["last_error"] == ""
+
+        table = run_status(config, "--wait", "3").stdout
+        assert next(line for line in table.splitlines() if line.startswith("sim_world")).split()[1] == "ready"
+    finally:
+        if run.process.poll() is None:
+            run.process.send_signal(signal.SIGINT)
+            run.wait_exit()
+        run.cleanup()

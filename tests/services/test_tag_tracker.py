@@ -1,0 +1,249 @@
+"""The tag tracker: the object's tag layout, tracking rendered images (no sockets), the bus-fed camera, and the
+service as a real process fed by a test publisher of rendered ``CameraImage``s.
+
+The process gets a private run_dir and is stopped by its pid in teardown; every wait has a timeout.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import selectors
+import signal
+import subprocess
+import sys
+import time
+
+import msgspec
+import numpy as np
+import pytest
+
+from hydrosoft.drivers.errors import NotConnected, Stale
+from hydrosoft.drivers.poses import rotation_angle_rad
+from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher
+from hydrosoft.services.config import load_config, parse_config
+from hydrosoft.services.sim_devices import BusCamera, image_topic
+from hydrosoft.services.sim_world_render import tag_camera
+from hydrosoft.services.tag_tracker import (
+    TagTracker,
+    detections_message,
+    largest_cap_tag_m,
+    object_layout,
+    pose_message,
+    rejection_kind,
+)
+from hydrosoft.tasks import make_task
+
+READY_TIMEOUT_S = 60.0
+STOP_TIMEOUT_S = 10.0
+SCENARIO_TIMEOUT_S = 60.0
+CAMERA_PERIOD_S = 1.0 / 15.0
+POSES_PER_IMAGE = 3  # tracked poses awaited per shown object pose
+BLANK_S = 1.0  # how long blank images are shown
+CAMERA_POSE = np.array([0.35, -0.2, 0.35, 0.376141, -0.778837, -0.451977, 0.218283])  # the default, 45 deg down
+POSE_A = np.array([0.0, 0.0, 0.024215, 1.0, 0.0, 0.0, 0.0])
+POSE_B = np.array([0.03, -0.02, 0.024215, math.cos(0.25), 0.0, 0.0, math.sin(0.25)])  # moved and turned 29 deg
+
+
+def pushing_config():
+    return parse_config('[[arms]]\nname = "bubble"\n[scene]\ntask = "pushing"\n')
+
+
+def render(config, pose: np.ndarray) -> np.ndarray:
+    """What sim_world's tag camera shows of the object at ``pose`` (base frame), noise and blur included."""
+    return tag_camera(config, lambda: pose).render(pose)
+
+
+def assert_near(pose: np.ndarray, truth: np.ndarray, mm: float, deg: float) -> None:
+    assert np.linalg.norm(pose[:3] - truth[:3]) < mm * 1e-3, (pose, truth)
+    assert math.degrees(rotation_angle_rad(pose[3:], truth[3:])) < deg, (pose, truth)
+
+
+# --- layout and tracking, without sockets -------------------------------------------------------------------------
+
+
+def test_the_cube_carries_tags_on_the_faces_the_camera_sees_with_fixed_ids():
+    layout = object_layout(make_task("pushing").scene.object, 0.032, CAMERA_POSE)
+    assert layout.ids == (0, 1, 4)  # +z, +x, -y of BOX_TAG_FACES: the camera is at +x, -y and above
+    assert all(tag.size_m == 0.032 for tag in layout.tags)
+    behind = CAMERA_POSE.copy()
+    behind[:2] = -behind[:2]  # a camera at -x, +y sees the top, -x and +y: the ids stay those of their faces
+    assert object_layout(make_task("pushing").scene.object, 0.032, behind).ids == (0, 2, 3)
+
+
+def test_a_cylinder_carries_the_largest_tag_that_fits_on_the_cap_facing_the_camera():
+    spec = make_task("rolling").scene.object  # radius 25 mm, its axis along base -y: the +z cap faces -y
+    assert largest_cap_tag_m(0.025) == pytest.approx(0.028)
+    layout = object_layout(spec, 0.032, CAMERA_POSE)
+    assert layout.ids == (0,) and layout.tags[0].size_m == pytest.approx(0.028)
+    assert object_layout(spec, 0.02, CAMERA_POSE).tags[0].size_m == 0.02
+
+
+def test_a_plate_carries_a_tag_only_where_one_fits_and_other_shapes_have_no_layout():
+    plate = msgspec.structs.replace(make_task("pushing").scene.object, shape="plate",
+                                    params={"length": 0.1, "width": 0.08, "thickness": 0.005})
+    assert object_layout(plate, 0.032, CAMERA_POSE).ids == (0,)  # its 5 mm rims hold no tag
+    prism = msgspec.structs.replace(plate, shape="triangle_prism", params={})
+    with pytest.raises(ValueError, match="no AprilTag layout"):
+        object_layout(prism, 0.032, CAMERA_POSE)
+
+
+def test_the_tracker_finds_the_rendered_cube_within_a_millimetre_and_publishes_its_tags():
+    config = pushing_config()
+    tracker = TagTracker.from_config(config)
+    tracked = tracker.track(render(config, POSE_B))
+    assert_near(tracked.result.T_base_object, POSE_B, mm=1.5, deg=1.0)
+    detections = detections_message(tracked, "tag_camera", 42)
+    assert set(detections.ids) == set(tracked.result.tag_ids) and len(detections.ids) >= 2
+    assert detections.poses.shape == (len(detections.ids), 7) and detections.hw_stamp_ns == 42
+    pose = pose_message(tracked.result, 42)
+    assert pose.object == "object" and 0.5 < pose.quality <= 1.0 and pose.tags_used == tracked.result.tag_ids
+    msg.encode(detections, "tags/tag_camera")  # both pass the bus's checks
+    msg.encode(pose, "object_pose/object")
+
+
+def test_an_image_without_the_object_is_a_counted_rejection_and_a_non_image_an_error():
+    tracker = TagTracker.from_config(pushing_config())
+    tracked = tracker.track(np.full((480, 640, 3), 90, np.uint8))
+    assert tracked.tags == () and rejection_kind(tracked.result.reason) == "rejected_no_object_tag"
+    assert detections_message(tracked, "tag_camera", None).ids.shape == (0,)
+    with pytest.raises(ValueError):
+        tracker.track(np.zeros((4, 4, 2), np.uint8))
+
+
+@pytest.mark.parametrize("reason, kind", [
+    ("no tag of the object seen (its ids: [0, 1])", "rejected_no_object_tag"),
+    ("no usable tag: 0: too small", "rejected_no_usable_tag"),
+    ("ambiguous: a pose more than 2 deg away fits", "rejected_ambiguous_pose"),
+    ("joint fit failed: no finite pose in front of the camera", "rejected_fit_failed"),
+    ("tag 3 fits with RMS 2.50 px > 2.0 px", "rejected_inconsistent_tag"),
+    ("something new", "rejected_other"),
+])
+def test_rejection_reasons_map_to_short_kinds(reason, kind):
+    assert rejection_kind(reason) == kind
+
+
+# --- the bus-fed camera -------------------------------------------------------------------------------------------
+
+
+def test_bus_camera_returns_the_newest_new_image_once_then_goes_stale(tmp_path):
+    endpoint = f"ipc://{tmp_path}/sim_world.data"
+    bgr = np.arange(4 * 5 * 3, dtype=np.uint8).reshape(4, 5, 3)
+
+    async def scenario() -> None:
+        with Bus() as bus:
+            out = Publisher(bus, endpoint, source="test")
+            camera = BusCamera(LatestSubscriber(bus, endpoint, [image_topic("cam")]), "cam", timeout_s=0.3)
+            with pytest.raises(NotConnected):
+                await camera.read()
+            await camera.connect()
+            while True:  # until the subscription is up
+                await out.send(msg.CameraImage.of("cam", np.zeros((4, 5), np.uint8), 1), image_topic("cam"))
+                try:
+                    await camera.read()
+                    break
+                except Stale:
+                    pass
+            with pytest.raises(Stale):
+                while True:  # the warm-up images still queued, then nothing new
+                    await camera.read()
+            await out.send(msg.CameraImage.of("cam", np.zeros_like(bgr), 10), image_topic("cam"))
+            await out.send(msg.CameraImage.of("cam", bgr, 20), image_topic("cam"))
+            frame = await camera.read()
+            assert frame.hw_stamp_ns == 20 and frame.stamp_ns <= time.monotonic_ns()
+            np.testing.assert_array_equal(frame.image, bgr)
+            tic_s = time.monotonic()
+            with pytest.raises(Stale, match="no new image"):
+                await camera.read()  # the newest image was returned already: never handed out twice
+            assert time.monotonic() - tic_s >= 0.29
+            await out.send(msg.CameraImage.of("cam", bgr[..., 0].copy(), 30), image_topic("cam"))
+            assert (await camera.read()).image.shape == (4, 5)
+            await camera.close()
+            with pytest.raises(NotConnected):
+                await camera.read()
+
+    asyncio.run(asyncio.wait_for(scenario(), 20.0))
+
+
+# --- the service as a process -------------------------------------------------------------------------------------
+
+
+class TrackerProcess:
+    """``python -m hydrosoft.services.tag_tracker CONFIG``; waits for READY, stops by pid."""
+
+    def __init__(self, config_path, log_path) -> None:
+        self.log_path = log_path
+        self._log = log_path.open("wb")
+        self.proc = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.tag_tracker", str(config_path)],
+                                     stdout=subprocess.PIPE, stderr=self._log)
+        with selectors.DefaultSelector() as selector:
+            selector.register(self.proc.stdout, selectors.EVENT_READ)
+            line = self.proc.stdout.readline().decode() if selector.select(READY_TIMEOUT_S) else ""
+        if not line.startswith(f"READY tag_tracker {self.proc.pid}"):
+            self.stop()
+            raise AssertionError(f"tag_tracker not READY within {READY_TIMEOUT_S} s ({line!r}):\n{self.log()}")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")[-4000:]
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(STOP_TIMEOUT_S)
+        self._log.close()
+        return self.proc.returncode
+
+
+def test_the_tracker_process_follows_rendered_images_and_counts_rejections(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    config_path = tmp_path / "sim.toml"
+    config_path.write_text(f'run_dir = "{run_dir}"\nmode = "sim"\n[scene]\ntask = "pushing"\n'
+                           '[[arms]]\nname = "bubble"\n')
+    config = load_config(config_path)
+    images = {"A": render(config, POSE_A), "B": render(config, POSE_B), "blank": np.full((480, 640, 3), 90, np.uint8)}
+
+    async def scenario(process: TrackerProcess) -> dict[str, list[msg.ObjectPose]]:
+        poses: dict[str, list[msg.ObjectPose]] = {"A": [], "B": []}
+        stamps: dict[int, str] = {}
+        with Bus() as bus:
+            camera = Publisher(bus, config.endpoint("sim_world"), source="test")
+            tracked = LatestSubscriber(bus, config.endpoint("tag_tracker"), ["object_pose/object"])
+            status = LatestSubscriber(bus, config.endpoint("tag_tracker", "status"), ["status/tag_tracker"])
+
+            async def show(name: str) -> None:
+                """Publish one image, and keep the pose the tracker found in any image shown so far."""
+                image = msg.CameraImage.of("tag_camera", images[name], time.monotonic_ns())
+                stamps[image.hw_stamp_ns] = name
+                await camera.send(image, image_topic("tag_camera"))
+                if await tracked.wait(CAMERA_PERIOD_S):
+                    pose = tracked.latest("object_pose/object", 1.0, msg.ObjectPose).value
+                    poses[stamps[pose.hw_stamp_ns]].append(pose)
+
+            for name in ("A", "B"):
+                while len(poses[name]) < POSES_PER_IMAGE:
+                    await show(name)
+            blank_until_s = time.monotonic() + BLANK_S
+            while time.monotonic() < blank_until_s:
+                await show("blank")
+            while True:  # the status counts the blank images' rejections (published every second)
+                await status.wait(1.5)
+                errors = status.latest("status/tag_tracker", 3.0, msg.ServiceStatus).value.errors
+                if errors.get("rejected_no_object_tag", 0) > 0:
+                    return poses
+
+    process = TrackerProcess(config_path, tmp_path / "tag_tracker.log")
+    try:
+        poses = asyncio.run(asyncio.wait_for(scenario(process), SCENARIO_TIMEOUT_S))
+    finally:
+        rc = process.stop()
+    assert rc == 0, process.log()
+    for name, truth in (("A", POSE_A), ("B", POSE_B)):
+        for pose in poses[name]:
+            assert_near(pose.pose, truth, mm=3.0, deg=1.5)
+            assert pose.source == "tag_tracker" and pose.tags_used
