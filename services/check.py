@@ -3,9 +3,10 @@ the arm.
 
 Per arm: the UR controller's dashboard (29999) and script (30003) ports and one RTDE data package (no control
 script is uploaded, so nothing can move); the FT 300 (the port opens, the stream starts, one wrench arrives, the
-stream is stopped again); per stack: the tag camera (one frame, lab mode). The Soft Bubbles' depth cameras have no
-real driver yet and are reported as such. In sim mode the same probes run against a running ``sim_world``'s
-simulated devices. Exit status 0 when every probe answered, 1 otherwise.
+stream is stopped again); per stack: the tag camera (one frame, lab mode) and its calibration file (lab mode: it
+loads, with intrinsics and ``T_base_camera``). The Soft Bubbles' depth cameras have no real driver yet and are
+reported as such. In sim mode the same probes run against a running ``sim_world``'s simulated devices. Exit
+status 0 when every probe answered, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -84,6 +85,16 @@ async def _camera(config: StackConfig) -> str:
     return f"{source}: frame {frame.image.shape[1]}x{frame.image.shape[0]}"
 
 
+async def _calibration(config: StackConfig) -> str:
+    from hydrosoft.drivers.camera.config import load_calibration
+
+    if not config.camera.calibration:
+        raise ValueError("camera.calibration is not set: the lab's tag camera needs its calibration file")
+    calibration = load_calibration(config.camera.calibration, require_extrinsics=True)
+    i = calibration.intrinsics
+    return f"{config.camera.calibration}: {i.width}x{i.height} px, fx {i.fx:.1f} px, T_base_camera set"
+
+
 async def check(config: StackConfig) -> list[Probe]:
     """Probe every device of ``config`` (never the arm's motion)."""
     probes = []
@@ -96,6 +107,7 @@ async def check(config: StackConfig) -> list[Probe]:
     if config.mode == "lab":
         probes.append(await _timed("tag camera", _camera(config)) if config.camera.device
                       else Probe("tag camera", False, "camera.device is not set", 0.0))
+        probes.append(await _timed("calibration", _calibration(config)))
     else:
         probes.append(Probe("tag camera", True, "rendered by sim_world", 0.0))
     return probes
