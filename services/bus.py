@@ -72,6 +72,12 @@ PUB_SNDHWM = 16
 #: Messages a SUB socket holds for its reader (beyond that they wait in the OS buffers, then in the publisher);
 #: small, as only the newest counts and each can be a 600 kB depth frame.
 SUB_RCVHWM = 4
+#: Largest frame a receiving socket accepts (libzmq's ``MAXMSGSIZE``), bytes. libzmq drops the connection that
+#: carries a larger frame and does not connect it again, which would cut a subscriber off its publisher for good.
+#: So it sits well above ``MAX_FRAME_BYTES``: a frame between the two arrives and is rejected by ``decode`` as
+#: ``oversized_frame`` (counted, the link stays up); only a frame past this bound (a broken or hostile sender,
+#: never one of ours, as ``encode`` refuses them) drops the link, and memory stays bounded.
+MAX_RECEIVE_BYTES = 4 * MAX_FRAME_BYTES
 #: Most messages one ``drain`` call decodes (~10 us each), so that a flood cannot hold the event loop for long.
 MAX_DRAIN_MESSAGES = 1000
 #: A received ``stamp_ns`` may lie this far in the future of the receiver's clock (same host: scheduling only).
@@ -100,6 +106,13 @@ class FutureStamp(MessageError):
     """A received message's ``stamp_ns`` lies in the future of this host's monotonic clock."""
 
     kind = "future_stamp"
+
+
+class StaleStamp(MessageError):
+    """A received message is stamped before the newest one already held for its topic (a replayed or forged old
+    message: one publisher's stamps only grow)."""
+
+    kind = "stale_stamp"
 
 
 # --- errors and latest values ------------------------------------------------------------------------------------
@@ -381,9 +394,10 @@ class LatestSubscriber:
     Read it in one of two ways: await ``wait`` in the service's loop (an event-driven service), or start ``run``
     as a task and call ``latest`` whenever an input is needed (a service whose loop does other work). Only one
     coroutine may wait on a subscriber at a time. ``drain`` (called by both and by ``latest``) reads everything
-    queued without blocking; invalid messages are counted in ``errors`` by kind (logged once per
-    ``LOG_EVERY_N``) and dropped, never raised. ``received`` counts valid messages per topic. Topics are matched
-    by prefix, as ZeroMQ subscriptions are (``""``: all).
+    queued without blocking; invalid messages (and those stamped in the future, or before the newest one held
+    for their topic) are counted in ``errors`` by kind (logged once per ``LOG_EVERY_N``) and dropped, never
+    raised. ``received`` counts valid messages per topic. Topics are matched by prefix, as ZeroMQ subscriptions
+    are (``""``: all).
 
     A subscriber that is not reading when a publisher exits can lose that publisher's last messages: libzmq
     discards what it had not yet read from a closed connection (seen with a final ``stopping`` status). Read
@@ -404,7 +418,7 @@ class LatestSubscriber:
         self.received: Counter[str] = Counter()
         self._latest: dict[str, Latest[Message]] = {}
         self._waiting = False
-        options: list[tuple[int, int | bytes]] = [(zmq.RCVHWM, rcvhwm), (zmq.MAXMSGSIZE, MAX_FRAME_BYTES)]
+        options: list[tuple[int, int | bytes]] = [(zmq.RCVHWM, rcvhwm), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)]
         options += [(zmq.SUBSCRIBE, topic.encode()) for topic in topics]
         self._sock = bus.socket(zmq.SUB, endpoints, bind=False, curve=curve, options=options)
 
@@ -422,10 +436,13 @@ class LatestSubscriber:
                 if msg.stamp_ns > received_ns + FUTURE_STAMP_TOLERANCE_NS:
                     raise FutureStamp(f"{topic!r} seq {msg.seq} from {msg.source!r} is stamped "
                                       f"{(msg.stamp_ns - received_ns) * 1e-6:.1f} ms in the future")
+                slot = self._latest.get(topic)
+                if slot is not None and msg.stamp_ns < slot.stamp_ns:
+                    raise StaleStamp(f"{topic!r} seq {msg.seq} from {msg.source!r} is stamped "
+                                     f"{(slot.stamp_ns - msg.stamp_ns) * 1e-6:.1f} ms before the newest one held")
             except MessageError as error:
                 self.errors.count(error.kind, str(error))
                 continue
-            slot = self._latest.get(topic)
             if slot is None:
                 slot = self._latest[topic] = Latest(topic, math.inf)
             slot.put(msg, msg.stamp_ns)
@@ -503,7 +520,7 @@ class RequestServer:
         self._handler = handler
         self._replies = 0
         self._sock = bus.socket(zmq.ROUTER, endpoint, bind=bind, curve=curve,
-                                options=[(zmq.MAXMSGSIZE, MAX_FRAME_BYTES)])
+                                options=[(zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)])
 
     @property
     def endpoint(self) -> str:
@@ -576,7 +593,7 @@ class RequestClient:
         self._ids = itertools.count(1)
         self._lock = asyncio.Lock()
         self._sock = bus.socket(zmq.DEALER, endpoint, bind=False, curve=curve,
-                                options=[(zmq.IMMEDIATE, 1), (zmq.MAXMSGSIZE, MAX_FRAME_BYTES)])
+                                options=[(zmq.IMMEDIATE, 1), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)])
 
     async def request(self, request: Request, timeout_s: float | None = None) -> Reply:
         """Send ``request`` and return the server's reply (check its ``ok``). Raises TimeoutError when no reply

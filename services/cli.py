@@ -17,7 +17,10 @@ GROUPS = {
         "tradeoff": ("hydrosoft.bench.tradeoff", "solve time against closed-loop error over the planner's knobs"),
         "bus": ("hydrosoft.services.benchmarks.bus", "one-way bus latency between two processes: wrench and 640x480 depth frames over tcp loopback and ipc"),
         "tracker": ("hydrosoft.services.benchmarks.tracker", "AprilTag tracker accuracy on rendered images: position/orientation error and detection rate per camera distance and view angle"),
+        "recording": ("hydrosoft.services.benchmarks.recording", "the sim stack's plan rate and bus latency without, with and again without a recorder attached, in one run"),
+        "wrench": ("hydrosoft.bench.wrench", "wrench RMSE per object and contact model on collected recordings (paper Table II)"),
     }),
+    "collect": ("record benchmark data with the arm (see `collect DATASET --help`)", {"wrench": ("hydrosoft.services.collect_wrench", "press-and-shear trajectories on the benchmark objects: bubble pose, object pose and F/T wrench to MCAP (paper Table II)")}),
     "simulate": ("run a simulated device on its own until Ctrl-C (see `simulate DEVICE --help`)", {
         "ur": ("hydrosoft.drivers.ur.simulator", "simulated UR e-Series controller (RTDE 30004, dashboard 29999, script 30003) on a 127.0.0.N address"),
         "ft300": ("hydrosoft.drivers.robotiq_ft300.simulator", "simulated Robotiq FT 300 streaming real frames on a pseudo-terminal"),
@@ -34,6 +37,9 @@ COMMANDS = {
     "launch": ("hydrosoft.services.launcher", "start the stack's services from a config, keep them up, stop them safely on Ctrl-C"),
     "status": ("hydrosoft.services.status", "show each running service's state, pid, uptime, message rates, restarts and errors"),
     "check": ("hydrosoft.services.check", "probe every device a stack config names and say what answers, without moving the arm"),
+    "replay": ("hydrosoft.services.replay", "publish an MCAP recording back onto the bus with its original timing (stands in for the services that sent it)"),
+    "view": ("hydrosoft.services.view", "serve a running stack's scene and topics live to Foxglove over WebSocket on 127.0.0.1"),
+    "plot": ("hydrosoft.services.plot", "PNG plots of a recorded run: object error, contact forces, planner solve time and rate, watchdog events"),
 }
 
 

@@ -160,7 +160,9 @@ class PlannerConfig(Strict):
     B, elites, horizon K, gradient steps G, dtype, compile (compile the step during start-up), seed.
     max_age_s: per input topic kind, the oldest sample the planner acts on (s). heartbeat_period_s: its heartbeat
     period (must be under half the commander's heartbeat_timeout_s). target_lead_s: how long each target stays
-    valid (its deadline)."""
+    valid (its deadline). threads: torch intra-op threads of the solve (1 by default: with the other services on
+    a small machine, two threads that wait for each other at every kernel's barrier were several times slower
+    than one under load; raise it on a machine with cores to spare)."""
 
     model: Literal["nh", "snh", "pf", "pff"] = "nh"
     spacing: float = 0.0125
@@ -175,9 +177,11 @@ class PlannerConfig(Strict):
         default_factory=lambda: {"object_pose": 0.5, "arm_state": 0.2, "deformation": 0.5})
     heartbeat_period_s: float = 0.1
     target_lead_s: float = 0.5
+    threads: int = 1
 
     def __post_init__(self) -> None:
-        _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s")
+        _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s",
+                  "threads")
         for key, value in self.max_age_s.items():
             _require(value > 0, f"planner.max_age_s.{key}", f"must be > 0 s, got {value}")
 

@@ -27,6 +27,10 @@ the remaining services are killed together.
 Each step is logged as ``stopping NAME`` / ``stopped NAME (...)``; an arm commander's line says ``(arm stopped)``
 when it exited 0 and ``(arm stop NOT confirmed)`` otherwise.
 
+Recording and live view. ``--record PATH.mcap`` and ``--view [--view-port P]`` add the ``recorder`` service
+(``services/recorder.py``): it starts first and stops last, so the file holds every service's start and shutdown,
+and it is supervised like the others (a restarted recorder writes ``PATH.restartN.mcap``).
+
 Exit codes: 0 after a requested stop, 1 when the launch failed or no service was left running, 2 for a bad config
 or ``--only`` name.
 """
@@ -85,6 +89,8 @@ EXIT_FAILED = 1
 EXIT_USAGE = 2
 
 CommandFor = Callable[[str, str], list[str]]
+#: The name of the recorder service that ``--record`` and ``--view`` add.
+RECORDER = "recorder"
 
 
 class LaunchError(Exception):
@@ -104,6 +110,34 @@ def command_for(name: str, config_path: str) -> list[str]:
     module named by ``$HYDROSOFT_SERVICE_MODULE`` for every service when that is set."""
     module = os.environ.get(SERVICE_MODULE_ENV) or f"{SERVICE_PACKAGE}.{module_for(name)}"
     return [sys.executable, "-m", module, config_path, "--name", name]
+
+
+@dataclass(frozen=True)
+class RecorderLaunch:
+    """What the recorder service of a launch does: record to ``path`` (None: not), serve the live view (``view``) on
+    ``view_port`` (None: the recorder's default)."""
+
+    path: Path | None = None
+    view: bool = False
+    view_port: int | None = None
+
+    @property
+    def wanted(self) -> bool:
+        """Whether the launch runs the recorder at all."""
+        return self.path is not None or self.view
+
+    def command(self, config_path: str) -> list[str]:
+        """The recorder's command line (always the real recorder, also when ``$HYDROSOFT_SERVICE_MODULE`` is set)."""
+        command = [sys.executable, "-m", f"{SERVICE_PACKAGE}.{RECORDER}", config_path, "--name", RECORDER]
+        if self.path is not None:
+            command += ["--record", str(self.path)]
+        if self.view:
+            command += ["--view"] + ([] if self.view_port is None else ["--view-port", str(self.view_port)])
+        return command
+
+    def with_recorder(self, command: CommandFor) -> CommandFor:
+        """``command``, with the recorder's command line for the service ``RECORDER``."""
+        return lambda name, config_path: self.command(config_path) if name == RECORDER else command(name, config_path)
 
 
 def select_services(config: StackConfig, only: str | None) -> list[str]:
@@ -553,15 +587,19 @@ async def serve_stack(config: StackConfig, config_path: str, names: Sequence[str
 
 
 def launch(config_path: str | Path, *, only: str | None = None, log_dir: str | Path | None = None,
-           command: CommandFor = command_for) -> int:
+           command: CommandFor = command_for, recorder: RecorderLaunch = RecorderLaunch()) -> int:
     """Run the stack of the config file ``config_path`` until SIGINT/SIGTERM (see the module docstring); the exit
     code (0 stopped on request, 1 launch failed or nothing left running, 2 bad config or ``only``).
     ``only``: comma-separated service names to run instead of all. ``log_dir``: also write each service's output
-    to ``LOG_DIR/NAME.log``. ``command``: the command line of a service (name, config path), for tests."""
+    to ``LOG_DIR/NAME.log``. ``command``: the command line of a service (name, config path), for tests.
+    ``recorder``: add the recorder service (``--record``, ``--view``)."""
     sink = LogSink(Path(log_dir) if log_dir is not None else None)
     try:
         config = load_config(config_path)
         names = select_services(config, only)
+        if recorder.wanted:
+            names = [RECORDER, *names]
+            command = recorder.with_recorder(command)
         sockets = ipc_paths(config, names)
         check_ipc_paths(sockets)
     except (ConfigError, LaunchError) as err:
@@ -585,18 +623,25 @@ def launch(config_path: str | Path, *, only: str | None = None, log_dir: str | P
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--only NAMES] [--log-dir DIR]."""
+    """Arguments: CONFIG [--only NAMES] [--log-dir DIR] [--record PATH.mcap] [--view [--view-port P]]."""
     parser.add_argument("config", help="the stack's TOML config (deploy/sim.toml, deploy/lab.toml)")
     parser.add_argument("--only", default=None, metavar="NAMES",
                         help="comma-separated services to run (e.g. sim_world,arm_commander-bubble); default all")
     parser.add_argument("--log-dir", default=None, metavar="DIR",
                         help="also append each service's output to DIR/NAME.log (and the launcher's to "
                         "DIR/launcher.log)")
+    parser.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
+                        help="record every bus message to this MCAP file (the recorder service starts first)")
+    parser.add_argument("--view", action="store_true",
+                        help="serve the live view over Foxglove's WebSocket on 127.0.0.1 (the recorder service)")
+    parser.add_argument("--view-port", type=int, default=None, metavar="P",
+                        help="the live view's port (default 8765)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``hydrosoft-stack launch``; the exit code."""
-    return launch(args.config, only=args.only, log_dir=args.log_dir)
+    recorder = RecorderLaunch(args.record.resolve() if args.record is not None else None, args.view, args.view_port)
+    return launch(args.config, only=args.only, log_dir=args.log_dir, recorder=recorder)
 
 
 def main(argv: list[str] | None = None) -> int:

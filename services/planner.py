@@ -6,7 +6,7 @@ pose from its commander, and each bubble's membrane deformation image from its b
 membrane), which ``hydrosoft.tactile.estimate_state`` turns into the planner's state, carrying shear over from the
 planner's own prediction of the last plan. ``CemGd`` then plans; the plan's first actions, applied to the arms'
 current TCP poses, are the absolute TCP targets sent to the commanders, each with a deadline. Stale inputs mean no
-solve and no target: the commander's watchdog then stops the arm.
+solve and no target, also when an input went stale during the solve: the commander's watchdog then stops the arm.
 
 The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. A goal ends ``reached`` (the
 tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed`` (with a reason: an unknown task,
@@ -202,14 +202,20 @@ class Planner:
     # --- client API ---
 
     async def handle(self, request: msg.Request) -> msg.Reply:
+        """The reply to one client request; a refused one is counted (``unknown_task``, ``start_refused``)."""
         if isinstance(request, msg.SetGoal):
             if request.goal.task != self.config.scene.task:
-                return msg.CommandReply(ok=False, error=f"unknown task {request.goal.task!r} for this stack: it serves "
-                                                        f"{self.config.scene.task!r} (see the config's scene.task)")
+                error = (f"unknown task {request.goal.task!r} for this stack: it serves {self.config.scene.task!r} "
+                         "(see the config's scene.task)")
+                self.service.count_error("unknown_task", error)
+                return msg.CommandReply(ok=False, error=error)
             self.goal = request.goal
             return msg.CommandReply(ok=True)
         if isinstance(request, msg.Start):
-            return self.start()
+            reply = self.start()
+            if not reply.ok:
+                self.service.count_error("start_refused", reply.error)
+            return reply
         if isinstance(request, msg.Stop):
             if self.episode is not None:
                 self.episode.finish("stopped", request.reason)
@@ -243,6 +249,7 @@ class Planner:
         if episode.outcome == "running":
             self.episode = episode
         else:
+            self.service.count_error("unreachable_goal", episode.reason)
             self.last_outcome = episode
         return msg.CommandReply(ok=True)
 
@@ -330,7 +337,12 @@ class Planner:
             self._end_episode()
             return
         loop = asyncio.get_running_loop()
-        penetration = await loop.run_in_executor(None, self.penetration, object_pose, arm_poses, deformations)
+        try:
+            penetration = await loop.run_in_executor(None, self.penetration, object_pose, arm_poses, deformations)
+        except ValueError as err:  # a deformation image that does not fit its camera: no solve on it
+            self.service.count_error("bad_input", str(err))
+            await asyncio.sleep(IDLE_PERIOD_S)
+            return
         observation = self.core.observation(object_pose, arm_poses, penetration)
         state = estimate_state(self.core.model, observation, self.core.sensors, episode.prediction)
         tic = time.perf_counter()
@@ -341,6 +353,11 @@ class Planner:
         episode.solve_s.append(solve_s)
         if result.status != "ok":
             self.service.count_error("no_finite_plan", "no sample had a finite cost; no target sent")
+            return
+        try:
+            self.fresh_inputs()  # a sensor that died during the solve: its plan is not acted on
+        except Stale as err:
+            self.service.count_error("stale_input", f"after the solve: {err}; no target sent")
             return
         steps = max(1, round(solve_s / self.core.model.dt))
         targets = targets_from_plan(self.core, arm_poses, result.plan.detach(), steps)
@@ -373,6 +390,7 @@ class Planner:
 async def run(service: Service, config: StackConfig) -> None:
     """The planner's loop: build (and compile) the model, serve the client API, plan while a goal runs."""
     loop = asyncio.get_running_loop()
+    torch.set_num_threads(config.planner.threads)
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
         service.log.info("compiling the planner step (the first solve)")

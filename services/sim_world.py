@@ -51,7 +51,7 @@ from hydrosoft.drivers.ur.config import URSimulatorConfig
 from hydrosoft.drivers.ur.simulator import SimulatedURController
 from hydrosoft.dynamics import Model, State, UnstableStepError, body_wrenches, step
 from hydrosoft.geometry import se3
-from hydrosoft.scene import compile_scene
+from hydrosoft.scene import Scene, compile_scene
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Publisher
 from hydrosoft.services.config import ConfigError, StackConfig, load_config
@@ -82,15 +82,16 @@ class PlantStepError(Exception):
 # --- the plant --------------------------------------------------------------------------------------------------
 
 
-def plant_model(config: StackConfig) -> tuple[Model, State]:
+def plant_model(config: StackConfig, scene: Scene | None = None) -> tuple[Model, State]:
     """The plant's compiled model and initial state (B = 1, float64) for ``config``.
 
-    The task scene with ``PLANT.model`` contact at spacing ``planner.spacing * sim.spacing_factor`` (m), one step per
-    tick: ``dt = 1 / sim.rate_hz`` s, ``epsilon`` scaled by ``dt / scene.dt`` (the mobility ``dt / epsilon``
-    kept), and ``ceil(substeps * PLANT.substep_factor * dt / scene.dt)`` sub-steps (sub-steps no longer than the
-    evaluation plant's; the step adds more when the contacts need them).
+    The task scene (or ``scene``, e.g. a wrench benchmark object's) with ``PLANT.model`` contact at spacing
+    ``planner.spacing * sim.spacing_factor`` (m), one step per tick: ``dt = 1 / sim.rate_hz`` s, ``epsilon`` scaled
+    by ``dt / scene.dt`` (the mobility ``dt / epsilon`` kept), and ``ceil(substeps * PLANT.substep_factor * dt /
+    scene.dt)`` sub-steps (sub-steps no longer than the evaluation plant's; the step adds more when the contacts need
+    them).
     """
-    scene = make_task(config.scene.task).scene
+    scene = make_task(config.scene.task).scene if scene is None else scene
     spacing_m = config.planner.spacing * config.sim.spacing_factor
     model, state, _ = compile_scene(with_contact(scene, PLANT.model, spacing_m))
     dt_s = 1.0 / config.sim.rate_hz
@@ -140,6 +141,7 @@ class SimPlant:
         if unactuated:
             raise ValueError(f"arms {unactuated} carry bodies the scene does not actuate")
         self.snapshot = self._snapshot()
+        self._at_rest = False  # the last tick moved no body and changed nothing: the state is a fixed point
 
     @classmethod
     def from_config(cls, config: StackConfig) -> SimPlant:
@@ -149,7 +151,8 @@ class SimPlant:
 
     def step_to(self, tcp_poses: Mapping[str, np.ndarray]) -> None:
         """One tick: move each arm's body to ``tcp_poses[arm]`` (``(7,)``, base frame) over one step, then set the
-        body poses exactly to them, and update ``snapshot``.
+        body poses exactly to them, and update ``snapshot``. At rest (no body moves and the last such tick left
+        the state exactly as it was) the step is a fixed point and is skipped: only the snapshot's stamp advances.
 
         Raises:
             PlantStepError: for a missing or malformed TCP pose, an ``UnstableStepError``, a numerical failure
@@ -165,6 +168,10 @@ class SimPlant:
             except ValueError as error:
                 raise PlantStepError("bad_tcp_pose", str(error)) from error
             target[0, index] = torch.as_tensor(pose, dtype=self.model.dtype)
+        still = torch.equal(target, self.state.body_poses)
+        if still and self._at_rest:
+            self.snapshot = replace(self.snapshot, stamp_ns=time.monotonic_ns())
+            return
         u = body_control(self.state.body_poses[0], target[0]).unsqueeze(0)
         with torch.no_grad():
             try:
@@ -175,6 +182,8 @@ class SimPlant:
                 raise PlantStepError("step_failed", f"{type(error).__name__}: {error}") from error
         if not all(bool(torch.isfinite(t).all()) for t in nxt[:3]):
             raise PlantStepError("non_finite_step", "the plant step gave non-finite poses or forces; state kept")
+        self._at_rest = (still and torch.equal(nxt.object_pose, self.state.object_pose)
+                         and torch.equal(nxt.forces, self.state.forces))
         self.state = State(nxt.object_pose, target, nxt.forces)
         self.snapshot = self._snapshot()
 

@@ -8,6 +8,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 import zmq
@@ -176,12 +177,14 @@ def test_wait_returns_nothing_after_its_timeout(ipc_dir):
     run(scenario())
 
 
-def test_a_flooded_subscriber_stays_bounded_and_gets_the_newest_message():
+def test_a_flooded_subscriber_stays_bounded_and_gets_the_newest_message(ipc_dir):
     flood = 20_000
 
     async def scenario():
         with b.Bus() as bus:
-            publisher = b.Publisher(bus, "tcp://127.0.0.1:*", source="test")
+            # ipc: a Unix socket's buffers are fixed (~200 kB); loopback TCP autotunes its buffers up to megabytes,
+            # enough on some hosts to hold the whole flood
+            publisher = b.Publisher(bus, f"ipc://{ipc_dir}/flood", source="test")
             subscriber = b.LatestSubscriber(bus, publisher.endpoint, ["heartbeat", "wrench"])
             assert await connected(publisher, subscriber)
             for _ in range(flood):  # back to back, while the subscriber does not read
@@ -351,5 +354,27 @@ def test_a_request_without_a_server_times_out(ipc_dir):
             with pytest.raises(TimeoutError, match="within 0.2 s"):
                 await client.request(m.GetStatus())
             assert time.monotonic() - start_s < 2.0
+
+    run(scenario())
+
+
+def test_an_oversized_frame_is_counted_the_link_stays_up_and_older_stamps_are_dropped(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            endpoint = f"ipc://{ipc_dir}/big"
+            raw = bus.socket(zmq.PUB, endpoint, bind=True)
+            subscriber = b.LatestSubscriber(bus, endpoint, ["wrench"])
+            newest = m.encode(msgspec.structs.replace(WRENCH, seq=2, stamp_ns=time.monotonic_ns()))
+            older = m.encode(msgspec.structs.replace(WRENCH, seq=1, stamp_ns=time.monotonic_ns() - 1_000_000))
+            while "wrench" not in await subscriber.wait(0.02):  # slow joiner
+                await raw.send_multipart(newest)
+            await raw.send_multipart([b"wrench", b"\x80", bytes(m.MAX_FRAME_BYTES + 1)])  # above the frame limit
+            await raw.send_multipart(older)
+            deadline_s = time.monotonic() + CONNECT_TIMEOUT_S
+            while subscriber.errors.counts["stale_stamp"] == 0:  # the link carried both after the big frame
+                assert time.monotonic() < deadline_s, subscriber.errors.counts
+                await subscriber.wait(0.02)
+            assert subscriber.errors.counts[m.OversizedFrame.kind] == 1
+            assert subscriber.latest("wrench", 1.0).value.seq == 2
 
     run(scenario())

@@ -29,6 +29,7 @@ from fakes.stack_run import (
 
 from hydrosoft.services import launcher
 from hydrosoft.services.config import ServiceConfig, load_config
+from hydrosoft.services.recording import read_recording
 from hydrosoft.services.launcher import (
     LaunchError,
     _OutputProtocol,
@@ -280,3 +281,39 @@ def test_a_killed_launcher_takes_its_services_with_it(root, runs):
     run.wait_exit()
     assert wait_until(lambda: not any(alive(pid) for pid in pids), 5.0), [pid for pid in pids if alive(pid)]
 
+
+
+# --- recording (--record, --view) --------------------------------------------------------------------------------
+
+#: The recorder compiles the task scene (torch) before it reports READY.
+RECORDER_READY_S = 90.0
+
+
+def test_the_recorder_command_is_the_real_recorder_with_the_options(monkeypatch):
+    monkeypatch.setenv(launcher.SERVICE_MODULE_ENV, "fake_service")
+    recorder = launcher.RecorderLaunch(Path("/r/run.mcap"), view=True, view_port=9000)
+    command = recorder.with_recorder(command_for)
+    assert command("recorder", "c.toml")[1:] == ["-m", "hydrosoft.services.recorder", "c.toml", "--name", "recorder",
+                                                 "--record", "/r/run.mcap", "--view", "--view-port", "9000"]
+    assert command("planner", "c.toml")[1:3] == ["-m", "fake_service"]
+    assert not launcher.RecorderLaunch().wanted
+    assert launcher.RecorderLaunch(view=True).command("c.toml")[-1] == "--view"
+
+
+def test_record_starts_the_recorder_first_and_stops_it_last_so_the_file_holds_every_shutdown(root, runs):
+    only = ["sim_world", "arm_commander-a", "planner"]
+    path = root / "run.mcap"
+    run = runs(write_config(root, ["a"]), "--only", ",".join(only), "--record", str(path))
+    run.wait_for("[launcher] stack ready", timeout_s=RECORDER_READY_S)
+    time.sleep(1.0)
+    run.process.send_signal(signal.SIGINT)
+    assert run.wait_exit() == 0, run.text()[-4000:]
+    assert run.index("[launcher] recorder ready") < run.index("[launcher] sim_world ready")
+    assert max(run.index(f"[launcher] stopped {name}") for name in only) < run.index("[launcher] stopping recorder")
+    messages, reader = read_recording(path)
+    assert not reader.truncated
+    for name in only:
+        states = [m.message.state for m in messages if m.topic == f"status/{name}"]
+        assert states[-1] == "stopping", (name, states)
+        assert sum(m.topic == f"heartbeat/{name}-data" for m in messages) >= 5  # 20 Hz for a second and more
+    assert_nothing_left(run)

@@ -1,0 +1,93 @@
+"""The whole sim stack as processes for the end-to-end tests: a private copy of ``deploy/sim.toml``, the launcher
+as a subprocess in its own session, and the check that none of its processes is left.
+
+Every process is stopped by its pid (the launcher's process group; the launcher stops its services by theirs).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from hydrosoft.drivers.ur.config import RTDE_PORT, SIM_CONTROL_PORT
+from hydrosoft.services.client import StackClient
+
+SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+READY_TIMEOUT_S = 240.0  # every service up and READY on a busy 2-core machine
+STOP_BOUND_S = 10.0
+
+
+def free_ur_host() -> str:
+    """A 127.0.0.N whose RTDE and simulator inspection ports are free right now (another test's simulated
+    controller may still hold its own)."""
+    for offset in range(60):
+        host = f"127.0.0.{60 + (os.getpid() + offset) % 60}"
+        try:
+            for port in (RTDE_PORT, SIM_CONTROL_PORT):
+                with socket.socket() as probe:
+                    probe.bind((host, port))
+        except OSError:
+            continue
+        return host
+    raise RuntimeError("no free 127.0.0.N for the simulated UR controller")
+
+
+def stack_config(tmp_path: Path) -> Path:
+    """deploy/sim.toml with its run_dir, FT 300 link and UR address made private to this test."""
+    run_dir = tmp_path / "run"
+    text = SIM_TOML.read_text()
+    text = text.replace('"/tmp/hydrosoft-sim/ft300-bubble"', f'"{run_dir}/ft300-bubble"')
+    text = text.replace('"/tmp/hydrosoft-sim"', f'"{run_dir}"').replace('"127.0.0.2"', f'"{free_ur_host()}"')
+    path = tmp_path / "sim.toml"
+    path.write_text(text)
+    return path
+
+
+class Stack:
+    """The launcher as a subprocess in its own session, its output collected to a file."""
+
+    def __init__(self, config: Path, log: Path) -> None:
+        self.config, self.log = config, log
+        self._out = log.open("wb")
+        self.process = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.cli", "launch", str(config)],
+                                        stdout=self._out, stderr=subprocess.STDOUT, start_new_session=True)
+
+    def text(self) -> str:
+        return self.log.read_text(errors="replace")
+
+    def wait_ready(self, client: StackClient) -> None:
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while time.monotonic() < deadline:
+            assert self.process.poll() is None, f"the launcher exited early:\n{self.text()[-4000:]}"
+            try:
+                asyncio.run(asyncio.wait_for(client.status(), 5.0))
+                return
+            except Exception:  # noqa: BLE001 - not up yet
+                time.sleep(1.0)
+        raise AssertionError(f"the stack did not become ready within {READY_TIMEOUT_S} s:\n{self.text()[-4000:]}")
+
+    def stop(self) -> float:
+        """SIGINT the launcher; the seconds until it exited (SIGKILL of its group after the bound)."""
+        if self.process.poll() is not None:
+            return 0.0
+        tic = time.monotonic()
+        os.killpg(self.process.pid, signal.SIGINT)
+        try:
+            self.process.wait(STOP_BOUND_S + 5)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.process.pid, signal.SIGKILL)
+            self.process.wait(5)
+        self._out.close()
+        return time.monotonic() - tic
+
+
+def children_left(session_pid: int) -> list[str]:
+    """Processes still in the launcher's session (``ps``), excluding zombies."""
+    out = subprocess.run(["ps", "-eo", "pid,sid,stat,args"], capture_output=True, text=True).stdout.splitlines()
+    return [line for line in out[1:] if line.split()[1] == str(session_pid) and not line.split()[2].startswith("Z")]
