@@ -596,19 +596,22 @@ def _integrate(model: Model, state: State, u: Tensor, substep, n: int) -> State:
     return state
 
 
-def _checked_step(model: Model, state: State, u: Tensor, substep) -> State:
+def _checked_step(model: Model, state: State, u: Tensor, substep, start_substeps: int | None = None
+                  ) -> tuple[State, int | None]:
     """One step with as many sub-steps as its contacts need, checked at its start and its end.
 
-    The sub-step count is ``substeps_needed`` at the start; if the end state's contacts need more (the step
-    pressed deeper), the step is run again from the same start with that many. A state past the bound never
-    passes silently: beyond ``model.max_substeps`` it raises ``UnstableStepError``.
+    The sub-step count is ``substeps_needed`` at the start (or ``start_substeps`` when the caller already knows
+    it for this very state); if the end state's contacts need more (the step pressed deeper), the step is run
+    again from the same start with that many. A state past the bound never passes silently: beyond
+    ``model.max_substeps`` it raises ``UnstableStepError``. Returns the state and ``substeps_needed`` of that
+    state, which the next step from it would compute again (None after a re-run, whose end was not checked).
     """
-    n = substeps_needed(model, state)
+    n = substeps_needed(model, state) if start_substeps is None else start_substeps
     out = _integrate(model, state, u, substep, n)
     n_end = substeps_needed(model, out)
     if n_end > n:
-        out = _integrate(model, state, u, substep, n_end)
-    return out
+        return _integrate(model, state, u, substep, n_end), None
+    return out, n_end
 
 
 def step(model: Model, state: State, u: Tensor) -> State:
@@ -616,7 +619,7 @@ def step(model: Model, state: State, u: Tensor) -> State:
 
     Sub-steps ``model.substeps`` times, or more when the current contacts need it (``_checked_step``).
     """
-    return _checked_step(model, state, u, functools.partial(_substep, model))
+    return _checked_step(model, state, u, functools.partial(_substep, model))[0]
 
 
 def _bound_substep(model: Model):
@@ -667,6 +670,9 @@ class CompiledStep:
         if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
             options["options"] = {"cpp_wrapper": True}
         self._compiled = torch.compile(_private_copy(_bound_substep(model)), **options)
+        # (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's next step
+        # starts from that state, so its start check is already known (one stability check per step, not two)
+        self._end_check: tuple[Tensor, int] | None = None
 
     @property
     def compiled(self) -> bool:
@@ -679,7 +685,11 @@ class CompiledStep:
             config = torch._dynamo.config  # set and restored by hand: config.patch costs ~16 us per call
             previous, config.fail_on_recompile_limit_hit = config.fail_on_recompile_limit_hit, True
             try:
-                return _checked_step(self.model, state, u, self._compiled)
+                known = self._end_check
+                start = known[1] if known is not None and state.phi is not None and state.phi is known[0] else None
+                out, needed = _checked_step(self.model, state, u, self._compiled, start)
+                self._end_check = None if needed is None else (out.phi, needed)
+                return out
             except UnstableStepError:
                 raise
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager step

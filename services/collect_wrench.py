@@ -478,9 +478,9 @@ async def serve_plant(service, config: StackConfig, name: str, origin, arm_name:
         TORCH_THREADS,
         DurationStats,
         SimPlant,
-        _log_rates_forever,
-        _physics_forever,
-        _start_devices,
+        log_rates_forever,
+        physics_forever,
+        start_devices,
         plant_model,
     )
 
@@ -495,12 +495,12 @@ async def serve_plant(service, config: StackConfig, name: str, origin, arm_name:
     plant = SimPlant(model, state, [arm.name])
     service.log.info("wrench plant: %s, %d surface points, %.0f Hz, %d sub-steps", name, model.n_points,
                      1.0 / model.dt, model.substeps)
-    controllers = await _start_devices(service, single, plant)
+    controllers = await start_devices(service, single, plant)
     stats = DurationStats("physics")
     await service.ready()
     async with asyncio.TaskGroup() as tasks:
-        tasks.create_task(_physics_forever(service, plant, controllers, stats))
-        tasks.create_task(_log_rates_forever(service, [stats]))
+        tasks.create_task(physics_forever(service, plant, controllers, stats))
+        tasks.create_task(log_rates_forever(service, [stats]))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -238,7 +238,7 @@ class DurationStats:
 # --- the service --------------------------------------------------------------------------------------------------
 
 
-async def _start_devices(service: Service, config: StackConfig,
+async def start_devices(service: Service, config: StackConfig,
                          plant: SimPlant) -> dict[str, SimulatedURController]:
     """Start each arm's simulated UR controller (returned by arm) and FT 300; register their shutdown."""
     loop = asyncio.get_running_loop()
@@ -263,7 +263,7 @@ async def _start_devices(service: Service, config: StackConfig,
     return controllers
 
 
-async def _physics_forever(service: Service, plant: SimPlant, controllers: Mapping[str, SimulatedURController],
+async def physics_forever(service: Service, plant: SimPlant, controllers: Mapping[str, SimulatedURController],
                            stats: DurationStats) -> None:
     """Tick the plant at ``1 / plant.model.dt`` Hz towards the controllers' TCP poses (in a thread of its own)."""
     loop = asyncio.get_running_loop()
@@ -331,7 +331,7 @@ async def _truth_forever(plant: SimPlant, out: Publisher) -> None:
         await asyncio.sleep(EVAL_PERIOD_S)
 
 
-async def _log_rates_forever(service: Service, stats: Sequence[DurationStats]) -> None:
+async def log_rates_forever(service: Service, stats: Sequence[DurationStats]) -> None:
     loop = asyncio.get_running_loop()
     since_s = loop.time()
     while True:
@@ -361,7 +361,7 @@ async def serve(service: Service, config: StackConfig) -> None:
     service.log.info("plant: %s task, %d surface points, %s bodies, %.0f Hz, %d sub-steps", config.scene.task,
                      plant.model.n_points, list(plant.model.body_names), 1.0 / plant.model.dt, plant.model.substeps)
     out = service.publisher(config.endpoint(service.name, "data"))
-    controllers = await _start_devices(service, config, plant)
+    controllers = await start_devices(service, config, plant)
     camera = tag_camera(config, lambda: plant.snapshot.object_pose)
     depth_cameras = [BubbleDepthCamera.from_config(config, arm.name, index) for index, arm in enumerate(config.arms)]
     physics_stats = DurationStats("physics")
@@ -370,12 +370,12 @@ async def serve(service: Service, config: StackConfig) -> None:
     await loop.run_in_executor(None, _warm_up, plant, camera, depth_cameras)
     await service.ready()
     async with asyncio.TaskGroup() as tasks:
-        tasks.create_task(_physics_forever(service, plant, controllers, physics_stats))
+        tasks.create_task(physics_forever(service, plant, controllers, physics_stats))
         tasks.create_task(_tag_camera_forever(service, camera, out, image_stats))
         for depth, stats in zip(depth_cameras, depth_stats):
             tasks.create_task(_depth_forever(depth, plant, out, config.arm(depth.arm).depth.fps, stats))
         tasks.create_task(_truth_forever(plant, out))
-        tasks.create_task(_log_rates_forever(service, [physics_stats, image_stats, *depth_stats]))
+        tasks.create_task(log_rates_forever(service, [physics_stats, image_stats, *depth_stats]))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

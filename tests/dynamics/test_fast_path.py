@@ -188,3 +188,25 @@ def test_a_compiled_step_past_the_recompile_limit_says_so(fresh_dynamo):
             expanded = State(*(t.expand(batch, *t.shape[1:]) for t in state[:3]))
             fast(expanded, u.expand(batch, -1, -1))
     assert not fast.compiled and "recompile" in fast.fallback_reason.lower()
+
+
+def test_a_compiled_rollout_checks_stability_once_per_step_with_the_same_result(monkeypatch):
+    """The start check of a step from the state the previous step returned is the end check already done."""
+    import hydrosoft.dynamics as dynamics
+
+    model, state, u = pushing()
+    calls = []
+    original = dynamics.substeps_needed
+    monkeypatch.setattr(dynamics, "substeps_needed", lambda m, s: calls.append(s) or original(m, s))
+    fast = CompiledStep(model, backend="eager")
+    eager = compiled = state
+    for _ in range(5):
+        compiled = fast(compiled, u)
+    assert len(calls) == 5 + 1
+    compiled_again = fast(state, u)  # not the state it returned last: checked afresh
+    assert len(calls) == 6 + 2
+    monkeypatch.setattr(dynamics, "substeps_needed", original)
+    for _ in range(5):
+        eager = step(model, eager, u)
+    assert torch.equal(compiled.forces, eager.forces) and torch.equal(compiled.object_pose, eager.object_pose)
+    assert torch.isfinite(compiled_again.forces).all()

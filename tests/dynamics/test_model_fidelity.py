@@ -43,7 +43,7 @@ def substep_motions(model, state, u, steps):
             run.append((float(dt_sub), s.object_pose[0].clone()))
             return s
 
-        state = _checked_step(model, state, u, recording)
+        state, _ = _checked_step(model, state, u, recording)
         kept = round(model.dt / run[-1][0])
         poses += [pose for _, pose in run[-kept:]]
     return torch.stack(poses)
@@ -167,7 +167,7 @@ def test_no_state_past_the_bound_passes(x, down, steps):
             return _substep(model, s, u_sub, dt_sub)
 
         try:
-            state = _checked_step(model, state, u, counting)
+            state, _ = _checked_step(model, state, u, counting)
         except UnstableStepError:
             return
         n = round(model.dt / used[-1])

@@ -9,14 +9,13 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-from hydrosoft.drivers.ur.config import RTDE_PORT, SIM_CONTROL_PORT
 from hydrosoft.services.client import StackClient
+import loopback
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 READY_TIMEOUT_S = 240.0  # every service up and READY on a busy 2-core machine
@@ -24,18 +23,8 @@ STOP_BOUND_S = 10.0
 
 
 def free_ur_host() -> str:
-    """A 127.0.0.N whose RTDE and simulator inspection ports are free right now (another test's simulated
-    controller may still hold its own)."""
-    for offset in range(60):
-        host = f"127.0.0.{60 + (os.getpid() + offset) % 60}"
-        try:
-            for port in (RTDE_PORT, SIM_CONTROL_PORT):
-                with socket.socket() as probe:
-                    probe.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise RuntimeError("no free 127.0.0.N for the simulated UR controller")
+    """A free 127.0.0.N for this module's simulated UR controllers (``loopback.free_ur_host``)."""
+    return loopback.free_ur_host(60, 60)
 
 
 def stack_config(tmp_path: Path) -> Path:
@@ -66,10 +55,15 @@ class Stack:
         while time.monotonic() < deadline:
             assert self.process.poll() is None, f"the launcher exited early:\n{self.text()[-4000:]}"
             try:
-                asyncio.run(asyncio.wait_for(client.status(), 5.0))
-                return
+                reply = asyncio.run(asyncio.wait_for(client.status(), 5.0))
             except Exception:  # noqa: BLE001 - not up yet
-                time.sleep(1.0)
+                reply = None
+            # up, and the planner receives object poses (the tracker's first detections come after its READY; a
+            # Start before them is refused: "no fresh object pose")
+            status = None if reply is None else reply.status
+            if status is not None and status.received_hz.get("object_pose/object", 0) > 0:
+                return
+            time.sleep(1.0)
         raise AssertionError(f"the stack did not become ready within {READY_TIMEOUT_S} s:\n{self.text()[-4000:]}")
 
     def stop(self) -> float:

@@ -23,11 +23,12 @@ import numpy as np
 import pytest
 
 from hydrosoft.drivers.base import ArmState
-from hydrosoft.drivers.ur.config import RTDE_PORT, SIM_CONTROL_PORT, URArmConfig
+from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT, URArmConfig
 from hydrosoft.services import messages as msg
 from hydrosoft.services.arm_commander import NO_TARGET, ServoLogic
 from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.config import LimitsConfig, load_config
+from loopback import free_ur_host
 
 # --- the decisions, without sockets --------------------------------------------------------------------------------
 
@@ -176,17 +177,8 @@ SERVO_RIPPLE = 0.06
 
 
 def free_loopback_host() -> str:
-    """A 127.0.0.N where the RTDE and inspection ports are free (N from the pid, away from other tests' ranges)."""
-    for k in range(120):
-        host = f"127.0.0.{130 + (os.getpid() + k) % 120}"
-        try:
-            for port in (RTDE_PORT, SIM_CONTROL_PORT):
-                with socket.socket() as probe:
-                    probe.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise RuntimeError("no free 127.0.0.N for a simulated UR controller")
+    """A free 127.0.0.N for this module's simulated UR controllers (``loopback.free_ur_host``)."""
+    return free_ur_host(130, 120)
 
 
 def wait_for_line(proc: subprocess.Popen, prefix: str, timeout_s: float) -> str:

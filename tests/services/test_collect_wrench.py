@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -24,25 +23,16 @@ from mcap.reader import make_reader
 from hydrosoft.bench import wrench
 from hydrosoft.bench.wrench_recording import TOPIC, read_wrench_recording
 from hydrosoft.bench.wrench_scenes import bench_object
-from hydrosoft.drivers.ur.config import RTDE_PORT, SIM_CONTROL_PORT
 from hydrosoft.services import cli
+from loopback import free_ur_host
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 COLLECT_TIMEOUT_S = 240.0  # two plant start-ups and 2 x 2 x 6 samples take ~25 s; a loaded machine is slower
 
 
 def free_loopback_host() -> str:
-    """A 127.0.0.N (N in 190..249, from the pid) whose RTDE and simulator-control ports are free now."""
-    for offset in range(60):
-        host = f"127.0.0.{190 + (os.getpid() * 7 + offset) % 60}"
-        try:
-            for port in (RTDE_PORT, SIM_CONTROL_PORT):
-                with socket.socket() as probe:
-                    probe.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise RuntimeError("no free 127.0.0.N for the simulated UR controller")
+    """A free 127.0.0.N for this module's simulated UR controllers (``loopback.free_ur_host``)."""
+    return free_ur_host(190, 60)
 
 
 def private_config(tmp_path: Path, **replacements: str) -> Path:

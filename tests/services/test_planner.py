@@ -3,7 +3,6 @@ from the stack config, the client API's refusals."""
 
 from __future__ import annotations
 
-import asyncio
 import math
 from pathlib import Path
 

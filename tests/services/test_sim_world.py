@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import os
 import selectors
 import signal
 import socket
@@ -26,7 +25,7 @@ import numpy as np
 import pytest
 import torch
 
-from hydrosoft.drivers.ur.config import RTDE_PORT, SIM_CONTROL_PORT
+from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT
 from hydrosoft.dynamics import body_wrenches
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
@@ -42,6 +41,7 @@ from hydrosoft.services.sim_world import (
 )
 from hydrosoft.tasks import make_task
 from hydrosoft.tasks.evaluation import with_contact
+from loopback import free_ur_host
 
 READY_TIMEOUT_S = 90.0  # import torch, compile the plant, bind the devices: a few s, more on a busy machine
 STOP_TIMEOUT_S = 10.0
@@ -150,17 +150,8 @@ def test_duration_stats_give_rate_mean_and_max_then_start_over():
 
 
 def free_loopback_host() -> str:
-    """A 127.0.0.N (N in 100..249, from the pid) whose RTDE and control ports are free now."""
-    for offset in range(150):
-        host = f"127.0.0.{100 + (os.getpid() * 13 + offset) % 150}"
-        try:
-            for port in (RTDE_PORT, SIM_CONTROL_PORT):
-                with socket.socket() as probe:
-                    probe.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise RuntimeError("no free 127.0.0.N for the simulated UR controller")
+    """A free 127.0.0.N for this module's simulated UR controllers (``loopback.free_ur_host``)."""
+    return free_ur_host(100, 150)
 
 
 class SimWorldProcess:
