@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import functools
 import sys
 import time
 from dataclasses import dataclass
@@ -33,8 +32,9 @@ from hydrosoft.drivers.base import Arm, ArmState
 from hydrosoft.drivers.errors import DriverError
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Received, Stale
-from hydrosoft.services.config import ConfigError, LimitsConfig, StackConfig, load_config
-from hydrosoft.services.runtime import Service, run_service
+from hydrosoft.services.config import LimitsConfig, StackConfig
+from hydrosoft.services import arm_service_main
+from hydrosoft.services.runtime import Service
 from hydrosoft.services.safety import NO_TARGET, check_target, interpolate, is_moving, watchdog
 
 MODULE = "arm_commander"
@@ -297,28 +297,17 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name arm_commander-ARM]."""
-    parser.add_argument("config", help="the stack's TOML config (deploy/sim.toml, deploy/lab.toml)")
-    parser.add_argument("--name", default=None,
-                        help=f"service name {MODULE}-ARM (default: {MODULE}- and the config's first arm)")
+    """Arguments: CONFIG [--name MODULE-ARM] (``arm_service_main``)."""
+    arm_service_main.add_arguments(parser, MODULE)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the service until SIGINT/SIGTERM; the exit code (2: a bad config or name)."""
-    try:
-        config = load_config(args.config)
-        name, arm = config.arm_service(MODULE, args.name)
-    except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    return run_service(name, config.runtime(name), functools.partial(serve, config=config, arm=arm))
+    return arm_service_main.run(args, MODULE, serve)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=f"python -m hydrosoft.services.{MODULE}",
-                                     description=__doc__.split("\n", 1)[0])
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
+    return arm_service_main.main(MODULE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":

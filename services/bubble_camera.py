@@ -18,7 +18,6 @@ Run: ``python -m hydrosoft.services.bubble_camera CONFIG [--name bubble_camera-A
 from __future__ import annotations
 
 import argparse
-import functools
 import sys
 import time
 from dataclasses import dataclass
@@ -30,8 +29,9 @@ from hydrosoft.drivers.bubble.deformation import membrane_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth, reference_depth
 from hydrosoft.drivers.errors import DriverError, NotConnected, ProtocolError, Stale
 from hydrosoft.services import messages as msg
-from hydrosoft.services.config import ConfigError, StackConfig, load_config
-from hydrosoft.services.runtime import Service, run_service
+from hydrosoft.services.config import ConfigError, StackConfig
+from hydrosoft.services import arm_service_main
+from hydrosoft.services.runtime import Service
 from hydrosoft.services.sim_devices import BusDepthCamera, depth_topic
 from hydrosoft.tasks import make_task
 
@@ -150,33 +150,26 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
             await service.set_state("ready")
 
 
+def _sim_only(config: StackConfig, arm: str) -> None:
+    """Refuse lab mode (no real Soft Bubble depth driver yet) and a config without this arm's membrane."""
+    if config.mode != "sim":
+        raise ConfigError(f"mode = {config.mode!r}: no real Soft Bubble depth driver is built yet; "
+                          f"{MODULE} runs in mode = 'sim' only")
+    membrane_radii(config, arm)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name bubble_camera-ARM]."""
-    parser.add_argument("config", help="the stack's TOML config (deploy/sim.toml)")
-    parser.add_argument("--name", default=None,
-                        help=f"service name {MODULE}-ARM (default: {MODULE}- and the config's first arm)")
+    """Arguments: CONFIG [--name MODULE-ARM] (``arm_service_main``)."""
+    arm_service_main.add_arguments(parser, MODULE)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the service until SIGINT/SIGTERM; the exit code (2: a bad config or name, or lab mode)."""
-    try:
-        config = load_config(args.config)
-        name, arm = config.arm_service(MODULE, args.name)
-        if config.mode != "sim":
-            raise ConfigError(f"mode = {config.mode!r}: no real Soft Bubble depth driver is built yet; "
-                              f"{MODULE} runs in mode = 'sim' only")
-        membrane_radii(config, arm)
-    except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    return run_service(name, config.runtime(name), functools.partial(serve, config=config, arm=arm))
+    return arm_service_main.run(args, MODULE, serve, validate=_sim_only)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=f"python -m hydrosoft.services.{MODULE}",
-                                     description=__doc__.split("\n", 1)[0])
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
+    return arm_service_main.main(MODULE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":
