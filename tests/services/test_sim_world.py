@@ -11,14 +11,9 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import selectors
-import signal
 import socket
-import subprocess
-import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -42,9 +37,9 @@ from hydrosoft.services.sim_world import (
 from hydrosoft.tasks import make_task
 from hydrosoft.tasks.evaluation import with_contact
 from loopback import free_ur_host
+from service_process import ServiceProcess
 
 READY_TIMEOUT_S = 90.0  # import torch, compile the plant, bind the devices: a few s, more on a busy machine
-STOP_TIMEOUT_S = 10.0
 RECEIVE_WINDOW_S = 3.0
 SOCKET_TIMEOUT_S = 2.0
 DRAG_SETTLE_S = 3.0  # the cube may trail the bubble this long after it stopped
@@ -154,37 +149,6 @@ def free_loopback_host() -> str:
     return free_ur_host(100, 150)
 
 
-class SimWorldProcess:
-    """``python -m hydrosoft.services.sim_world CONFIG``; waits for READY, stops by pid."""
-
-    def __init__(self, config_path: Path, log_path: Path) -> None:
-        self.log_path = log_path
-        self._log = log_path.open("wb")
-        self.proc = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.sim_world", str(config_path)],
-                                     stdout=subprocess.PIPE, stderr=self._log)
-        with selectors.DefaultSelector() as selector:
-            selector.register(self.proc.stdout, selectors.EVENT_READ)
-            ready = selector.select(READY_TIMEOUT_S)
-            line = self.proc.stdout.readline().decode() if ready else ""
-        if not line.startswith(f"READY sim_world {self.proc.pid}"):
-            self.stop()
-            raise AssertionError(f"sim_world not READY within {READY_TIMEOUT_S} s ({line!r}):\n{self.log()}")
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")[-4000:]
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(STOP_TIMEOUT_S)
-        self._log.close()
-        return self.proc.returncode
-
-
 @pytest.fixture(scope="module")
 def world(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("sim_world")
@@ -196,8 +160,9 @@ def world(tmp_path_factory):
                            f'[camera]\nfps = {CAMERA_FPS}\n[sim]\nrate_hz = 50.0\n'
                            f'[[arms]]\nname = "bubble"\nur_host = "{host}"\nft_port = "{run_dir}/ft300-bubble"\n'
                            f'depth = {{ fps = {DEPTH_FPS} }}\n')
-    process = SimWorldProcess(config_path, tmp / "sim_world.log")
+    process = ServiceProcess("sim_world", "sim_world", config_path, tmp / "sim_world.log")
     try:
+        process.wait_ready(READY_TIMEOUT_S)
         yield load_config(config_path), process
     finally:
         rc = process.stop()

@@ -8,10 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import selectors
-import signal
-import subprocess
-import sys
 import time
 
 import msgspec
@@ -34,9 +30,9 @@ from hydrosoft.services.tag_tracker import (
     rejection_kind,
 )
 from hydrosoft.tasks import make_task
+from service_process import ServiceProcess
 
 READY_TIMEOUT_S = 60.0
-STOP_TIMEOUT_S = 10.0
 SCENARIO_TIMEOUT_S = 60.0
 CAMERA_PERIOD_S = 1.0 / 15.0
 POSES_PER_IMAGE = 3  # tracked poses awaited per shown object pose
@@ -169,36 +165,6 @@ def test_bus_camera_returns_the_newest_new_image_once_then_goes_stale(tmp_path):
 # --- the service as a process -------------------------------------------------------------------------------------
 
 
-class TrackerProcess:
-    """``python -m hydrosoft.services.tag_tracker CONFIG``; waits for READY, stops by pid."""
-
-    def __init__(self, config_path, log_path) -> None:
-        self.log_path = log_path
-        self._log = log_path.open("wb")
-        self.proc = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.tag_tracker", str(config_path)],
-                                     stdout=subprocess.PIPE, stderr=self._log)
-        with selectors.DefaultSelector() as selector:
-            selector.register(self.proc.stdout, selectors.EVENT_READ)
-            line = self.proc.stdout.readline().decode() if selector.select(READY_TIMEOUT_S) else ""
-        if not line.startswith(f"READY tag_tracker {self.proc.pid}"):
-            self.stop()
-            raise AssertionError(f"tag_tracker not READY within {READY_TIMEOUT_S} s ({line!r}):\n{self.log()}")
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")[-4000:]
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(STOP_TIMEOUT_S)
-        self._log.close()
-        return self.proc.returncode
-
-
 def test_the_tracker_process_follows_rendered_images_and_counts_rejections(tmp_path):
     run_dir = tmp_path / "run"
     run_dir.mkdir()
@@ -208,7 +174,7 @@ def test_the_tracker_process_follows_rendered_images_and_counts_rejections(tmp_p
     config = load_config(config_path)
     images = {"A": render(config, POSE_A), "B": render(config, POSE_B), "blank": np.full((480, 640, 3), 90, np.uint8)}
 
-    async def scenario(process: TrackerProcess) -> dict[str, list[msg.ObjectPose]]:
+    async def scenario(process: ServiceProcess) -> dict[str, list[msg.ObjectPose]]:
         poses: dict[str, list[msg.ObjectPose]] = {"A": [], "B": []}
         stamps: dict[int, str] = {}
         with Bus() as bus:
@@ -237,8 +203,9 @@ def test_the_tracker_process_follows_rendered_images_and_counts_rejections(tmp_p
                 if errors.get("rejected_no_object_tag", 0) > 0:
                     return poses
 
-    process = TrackerProcess(config_path, tmp_path / "tag_tracker.log")
+    process = ServiceProcess("tag_tracker", "tag_tracker", config_path, tmp_path / "tag_tracker.log")
     try:
+        process.wait_ready(READY_TIMEOUT_S)
         poses = asyncio.run(asyncio.wait_for(scenario(process), SCENARIO_TIMEOUT_S))
     finally:
         rc = process.stop()
