@@ -488,9 +488,12 @@ def _spatial_jacobian(lever: Tensor) -> Tensor:
     return torch.stack(rows, dim=-2)
 
 
-FRICTION_NEWTON_STEPS = 12
+FRICTION_NEWTON_STEPS = 20
 NEWTON_TOLERANCE = 1e-10  # m or rad: an eager solve stops once a Newton step moves the object less than this
-LINE_SEARCH = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0)
+LINE_SEARCH = tuple(2.0**-k for k in range(25)) + (0.0,)
+"""Newton step lengths tried: halvings down to 6e-8. Near sticking the regularised slip energy curves sharply
+(``slip_tolerance`` 1e-7 m), so a Newton step often has to shrink 30-60x; with only four halvings the line search
+found no decrease, the solve stopped short of the minimiser and the friction was not the one eq. 4 asks for."""
 
 
 def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w: Tensor, dt_sub: Tensor,
@@ -507,8 +510,10 @@ def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w:
     Friction therefore never exceeds the force that stops the slip in this sub-step, so it cannot overshoot and
     reverse the motion, whatever the step size. The energy is minimised by at most ``FRICTION_NEWTON_STEPS``
     damped Newton steps (a line search over ``LINE_SEARCH`` that never raises it; the slips are affine in the step
-    length, so each candidate costs a few scalars per point), differentiable throughout; eager solves stop early
-    once converged (``NEWTON_TOLERANCE``), compiled ones take every step.
+    length, so each candidate costs a few scalars per point); eager solves stop early once converged
+    (``NEWTON_TOLERANCE``), compiled ones take every step. The loop runs without autograd: the gradient is the
+    implicit one, ``dv/dx = -H^-1 dg/dx`` at the minimiser (energy gradient ``g``, Hessian ``H``), from one Newton
+    direction evaluated there with autograd on, so the backward costs one Newton step instead of the whole loop.
     The normal forces ``f_n`` are those of ``state.forces``; a point without normal force carries no friction.
     """
     gain = model.dt / model.epsilon * dt_sub
@@ -539,8 +544,9 @@ def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w:
     PJ = projector @ J
     carried_t = (carried.unsqueeze(-2) @ projector.unsqueeze(1)).squeeze(-2)
     alphas = torch.tensor(LINE_SEARCH, dtype=w.dtype, device=w.device)
-    v = v0
-    for _ in range(FRICTION_NEWTON_STEPS):
+
+    def newton_direction(v: Tensor) -> tuple[Tensor, Tensor]:
+        """The Newton direction of the energy at ``v`` and the per-point slips there."""
         s = (PJ @ v.view(-1, 1, v.shape[-1], 1)).squeeze(-1).unsqueeze(1) - carried_t
         sigma = torch.sqrt(s.square().sum(-1) + tol2)
         weight = limit / sigma
@@ -549,8 +555,10 @@ def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w:
             "bnid,bni->bd", PJ, (weight.unsqueeze(-1) * s).sum(1))
         curvature = (weight.unsqueeze(-1).unsqueeze(-1) * (projector.unsqueeze(1) - unit.unsqueeze(-1) * unit.unsqueeze(-2))).sum(1)
         hessian = mass / gain + torch.einsum("bnid,bnij,bnje->bde", J, curvature, J)
-        direction = -torch.linalg.solve(hessian, grad.unsqueeze(-1)).squeeze(-1)
-        # energy along v + alpha * direction: quadratic kinetic part, per-point slips affine in alpha
+        return -torch.linalg.solve(hessian, grad.unsqueeze(-1)).squeeze(-1), s
+
+    def line_search(v: Tensor, direction: Tensor, s: Tensor) -> Tensor:
+        """The step length of ``LINE_SEARCH`` with the lowest energy along ``v + alpha * direction``: ``(B, 1)``."""
         ds = (PJ @ direction.view(-1, 1, v.shape[-1], 1)).squeeze(-1).unsqueeze(1)
         a, b, c = s.square().sum(-1), (s * ds).sum(-1), ds.square().sum(-1)
         slip2 = a.unsqueeze(-1) + alphas * (2 * b.unsqueeze(-1) + alphas * c.unsqueeze(-1))
@@ -559,10 +567,22 @@ def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w:
         Mdv, Md = (mass @ dv.unsqueeze(-1)).squeeze(-1), (mass @ direction.unsqueeze(-1)).squeeze(-1)
         kinetic = 0.5 / gain * ((dv * Mdv).sum(-1, keepdim=True) + alphas * (
             2 * (direction * Mdv).sum(-1, keepdim=True) + alphas * (direction * Md).sum(-1, keepdim=True)))
-        best = alphas[(kinetic + slide).argmin(dim=-1)]
-        v = v + best.unsqueeze(-1) * direction
-        if not torch.compiler.is_compiling() and float((best.unsqueeze(-1) * direction).detach().abs().max()) < NEWTON_TOLERANCE:
-            break
+        return alphas[(kinetic + slide).argmin(dim=-1)].unsqueeze(-1)
+
+    with torch.no_grad():
+        v = v0
+        for _ in range(FRICTION_NEWTON_STEPS):
+            direction, s = newton_direction(v)
+            move = line_search(v, direction, s) * direction
+            v = v + move
+            if not torch.compiler.is_compiling() and float(move.abs().max()) < NEWTON_TOLERANCE:
+                break
+    if torch.is_grad_enabled():
+        # implicit gradient: at the minimiser, d(Newton direction)/d(inputs) = dv*/d(inputs), so adding the
+        # direction minus its own value keeps v* and gives exactly that derivative (one step to differentiate
+        # instead of the whole loop)
+        direction, _ = newton_direction(v)
+        v = v + (direction - direction.detach())
     if model.planar:
         zero = torch.zeros_like(v[:, 0])
         return torch.stack([v[:, 0], v[:, 1], zero, zero, zero, v[:, 2]], dim=-1)

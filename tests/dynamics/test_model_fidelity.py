@@ -3,12 +3,12 @@ support load."""
 
 from __future__ import annotations
 
-import functools
 import math
 
 import msgspec
 import pytest
 import torch
+from torch import Tensor
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -127,15 +127,29 @@ def pressed_rolling(depth_m: float):
     return model, State(state.object_pose, poses, state.forces)
 
 
-def test_the_rolling_scene_pressed_15_mm_deeper_sub_steps_more_and_settles():
-    model, state = pressed_rolling(0.0)
+def pressing_deeper(model) -> tuple[State, Tensor]:
+    """The rolling scene settled one step, then the bubble driven 15 mm deeper over 10 steps: ``(the start of the
+    press, the action of each of its steps)``."""
+    _, state = pressed_rolling(0.0)
     state = step(model, state, torch.zeros(1, model.n_bodies, 6, dtype=F64))
     u = torch.zeros(1, model.n_bodies, 6, dtype=F64)
-    u[0, model.body_names.index("bubble"), 2] = -0.0015  # 15 mm deeper over 10 steps
-    z = substep_motions(model, state, u, 10)[:, 2]
-    deep = step(model, State(*[t for t in state[:3]]), u)
-    for _ in range(9):
+    u[0, model.body_names.index("bubble"), 2] = -0.0015
+    return State(*state[:3]), u
+
+
+def pressed_deeper(model) -> State:
+    """The state at the end of ``pressing_deeper``'s 10 steps."""
+    deep, u = pressing_deeper(model)
+    for _ in range(10):
         deep = step(model, deep, u)
+    return deep
+
+
+def test_the_rolling_scene_pressed_15_mm_deeper_sub_steps_more_and_settles():
+    model, _ = pressed_rolling(0.0)
+    state, u = pressing_deeper(model)
+    z = substep_motions(model, state, u, 10)[:, 2]
+    deep = pressed_deeper(model)
     assert substeps_needed(model, deep) > model.substeps
     assert float(stability_ratio(model, deep)) > STABLE_RATIO * model.substeps
     dz = torch.diff(z)
@@ -144,9 +158,9 @@ def test_the_rolling_scene_pressed_15_mm_deeper_sub_steps_more_and_settles():
 
 
 def test_a_press_beyond_max_substeps_raises_naming_the_bound():
-    model, state = pressed_rolling(0.0)
+    model, _ = pressed_rolling(0.0)
     stiff = compile_scene(msgspec.structs.replace(task_scene("rolling"), max_substeps=model.substeps))[0]
-    _, deep = pressed_rolling(0.015)
+    deep = pressed_deeper(model)
     with pytest.raises(UnstableStepError, match="max_substeps"):
         step(stiff, deep, torch.zeros(1, stiff.n_bodies, 6, dtype=F64))
 
