@@ -81,6 +81,29 @@ def test_path_independent_models_never_reverse_under_constant_bubble_motion(cont
         assert float(late.abs().max()) < per_substep, late
 
 
+@pytest.mark.parametrize("task", ["pushing", "rolling"])
+def test_pf_friction_gradient_is_the_derivative_of_the_converged_motion(task):
+    """Two PF steps from a pressed state: d(object position)/d(bubble translation) by autograd (the implicit
+    gradient of the friction solve) equals central finite differences. With a line search of four halvings the
+    pushing solve stopped short of its minimiser, where the implicit gradient is 20x off."""
+    model, state = scene_model(task, "pf")
+    state = State(*(t.detach() for t in step(model, state, torch.zeros(1, model.n_bodies, 6, dtype=F64))[:3]))
+    u0 = torch.zeros(1, model.n_bodies, 6, dtype=F64)
+    u0[0, 0, :2] = torch.tensor([0.002, 0.0005], dtype=F64)
+
+    def position(u):
+        return step(model, step(model, state, u), u).object_pose[0, :3]
+
+    jac = torch.autograd.functional.jacobian(position, u0)[:, 0, 0, :3]
+    eps, fd = 1e-7, torch.zeros(3, 3, dtype=F64)
+    for i in range(3):
+        du = torch.zeros_like(u0)
+        du[0, 0, i] = eps
+        fd[:, i] = (position(u0 + du) - position(u0 - du)) / (2 * eps)
+    assert float(fd.abs().max()) > 0.1
+    assert torch.allclose(jac, fd, rtol=1e-5, atol=1e-5 * float(fd.abs().max())), (jac, fd)
+
+
 def build_shear_then_turn(axis: int, angle_deg: float = 20.0):
     """In-hand grasp: shear built by lifting both bubbles 1 mm, then bubbles and cube turned rigidly together
     about world ``axis`` through the cube's centre in 10 kinematic increments."""
