@@ -33,7 +33,7 @@ from hydrosoft.drivers.errors import DriverError
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Received, Stale
 from hydrosoft.services.config import LimitsConfig, StackConfig
-from hydrosoft.services import arm_service_main
+from hydrosoft.services import arm_service_main, service_main
 from hydrosoft.services.runtime import Service
 from hydrosoft.services.safety import NO_TARGET, check_target, interpolate, is_moving, watchdog
 
@@ -307,7 +307,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return arm_service_main.main(MODULE, __doc__, argv, add_arguments, run)
+    return service_main.main(MODULE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":

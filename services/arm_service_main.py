@@ -1,6 +1,6 @@
 """The command line of a service that runs once per arm (``MODULE-ARM``): ``python -m
 hydrosoft.services.MODULE CONFIG [--name MODULE-ARM]``, shared by the arm commander, the F/T reader and the
-bubble camera.
+bubble camera (``main`` is ``service_main.main``).
 """
 
 from __future__ import annotations
@@ -38,11 +38,4 @@ def run(args: argparse.Namespace, module: str, serve: Serve,
         return 2
     return run_service(name, config.runtime(name), functools.partial(serve, config=config, arm=arm))
 
-
-def main(module: str, doc: str, argv: list[str] | None, add: Callable[[argparse.ArgumentParser], None],
-         start: Callable[[argparse.Namespace], int]) -> int:
-    """Parse ``argv`` with ``add`` and run ``start``: the body of a per-arm service's ``main``."""
-    parser = argparse.ArgumentParser(prog=f"python -m hydrosoft.services.{module}", description=doc.split("\n", 1)[0])
-    add(parser)
-    return start(parser.parse_args(argv))
 

@@ -30,7 +30,7 @@ from hydrosoft.drivers.bubble.render import PinholeDepth, reference_depth
 from hydrosoft.drivers.errors import DriverError, NotConnected, ProtocolError, Stale
 from hydrosoft.services import messages as msg
 from hydrosoft.services.config import ConfigError, StackConfig
-from hydrosoft.services import arm_service_main
+from hydrosoft.services import arm_service_main, service_main
 from hydrosoft.services.runtime import Service
 from hydrosoft.services.sim_devices import BusDepthCamera, depth_topic
 from hydrosoft.tasks import make_task
@@ -169,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return arm_service_main.main(MODULE, __doc__, argv, add_arguments, run)
+    return service_main.main(MODULE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":

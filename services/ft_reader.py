@@ -33,7 +33,7 @@ from hydrosoft.drivers.robotiq_ft300.config import FT300Config
 from hydrosoft.drivers.robotiq_ft300.sensor import FT300Sensor
 from hydrosoft.services import messages as msg
 from hydrosoft.services.config import StackConfig
-from hydrosoft.services import arm_service_main
+from hydrosoft.services import arm_service_main, service_main
 from hydrosoft.services.runtime import Service
 
 MODULE = "ft_reader"
@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return arm_service_main.main(MODULE, __doc__, argv, add_arguments, run)
+    return service_main.main(MODULE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":

@@ -43,8 +43,9 @@ from hydrosoft.tasks.base import mean_point_distance
 from hydrosoft.tasks.evaluation import METRIC_SPACING_M, PlannerSettings, with_contact
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Stale
-from hydrosoft.services.config import StackConfig, load_config
-from hydrosoft.services.runtime import Service, run_service
+from hydrosoft.services import service_main
+from hydrosoft.services.config import StackConfig
+from hydrosoft.services.runtime import Service
 
 IDLE_PERIOD_S = 0.05  # s between checks while no goal runs or inputs are stale
 SETTLE_S = 0.3  # a goal is reached once the object stayed within its tolerance this long (s)
@@ -409,13 +410,13 @@ async def run(service: Service, config: StackConfig) -> None:
         serving.cancel()
 
 
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments: CONFIG [--name planner] (``service_main``)."""
+    service_main.add_arguments(parser, "planner")
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.planner", description=__doc__.split("\n")[0])
-    parser.add_argument("config", help="the stack's TOML config")
-    parser.add_argument("--name", default="planner", help="service name (default planner)")
-    args = parser.parse_args(argv)
-    config = load_config(args.config)
-    return run_service(args.name, config.runtime(args.name), functools.partial(run, config=config))
+    return service_main.main("planner", __doc__, argv, add_arguments, lambda args: service_main.run(args, run))
 
 
 if __name__ == "__main__":

@@ -54,8 +54,9 @@ from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, compile_scene
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Publisher
-from hydrosoft.services.config import ConfigError, StackConfig, load_config
-from hydrosoft.services.runtime import Service, run_service
+from hydrosoft.services import service_main
+from hydrosoft.services.config import ConfigError, StackConfig
+from hydrosoft.services.runtime import Service
 from hydrosoft.services.sim_devices import image_topic
 from hydrosoft.services.sim_world_render import BubbleDepthCamera, tag_camera
 from hydrosoft.services.tag_tracker import OBJECT, TAG_CAMERA
@@ -379,25 +380,17 @@ async def serve(service: Service, config: StackConfig) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of sim_world's command."""
-    parser.add_argument("config", help="the stack's TOML config (mode = 'sim')")
-    parser.add_argument("--name", default=SERVICE, help=f"service name (default {SERVICE})")
+    """Arguments: CONFIG (mode = 'sim') [--name sim_world] (``service_main``)."""
+    service_main.add_arguments(parser, SERVICE)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run sim_world until SIGINT/SIGTERM; the exit code (2 for a config that cannot be used)."""
-    try:
-        config = load_config(args.config)
-    except ConfigError as error:
-        print(f"{args.name}: {error}", file=sys.stderr)
-        return 2
-    return run_service(args.name, config.runtime(args.name), functools.partial(serve, config=config))
+    return service_main.run(args, serve)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.sim_world", description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
+    return service_main.main(SERVICE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import functools
 import math
 import sys
 from dataclasses import dataclass, field
@@ -43,8 +42,9 @@ from hydrosoft.drivers.errors import DriverError
 from hydrosoft.drivers.poses import check_pose, compose, inverse
 from hydrosoft.scene import ObjectSpec
 from hydrosoft.services import messages as msg
-from hydrosoft.services.config import ConfigError, StackConfig, load_config
-from hydrosoft.services.runtime import Service, run_service
+from hydrosoft.services import service_main
+from hydrosoft.services.config import ConfigError, StackConfig
+from hydrosoft.services.runtime import Service
 from hydrosoft.services.sim_devices import BusCamera, image_topic
 from hydrosoft.services.tag_tracking import (
     MAX_REPROJECTION_RMS_PX,
@@ -327,26 +327,17 @@ async def serve(service: Service, config: StackConfig) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of the tag tracker's command."""
-    parser.add_argument("config", help="the stack's TOML config")
-    parser.add_argument("--name", default=SERVICE, help=f"service name (default {SERVICE})")
+    """Arguments: CONFIG [--name tag_tracker] (``service_main``)."""
+    service_main.add_arguments(parser, SERVICE)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the tag tracker until SIGINT/SIGTERM; the exit code (2 for a config that cannot be used)."""
-    try:
-        config = load_config(args.config)
-    except ConfigError as error:
-        print(f"{args.name}: {error}", file=sys.stderr)
-        return 2
-    return run_service(args.name, config.runtime(args.name), functools.partial(serve, config=config))
+    return service_main.run(args, serve)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.tag_tracker",
-                                     description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
+    return service_main.main(SERVICE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":

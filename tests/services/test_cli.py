@@ -1,5 +1,6 @@
-"""The hydrosoft-stack command line: help texts and the demo."""
+"""The hydrosoft-stack command line: help texts, the demo, and the services' own command lines."""
 
+import importlib
 import subprocess
 import sys
 
@@ -47,3 +48,11 @@ def test_unknown_model_is_rejected_with_a_usage_error(capsys):
 def test_console_script_entry_point_runs():
     result = subprocess.run([sys.executable, "-m", "hydrosoft.services.cli", "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "hydrosoft-stack" in result.stdout
+
+
+@pytest.mark.parametrize("module", ["sim_world", "tag_tracker", "planner", "arm_commander", "ft_reader",
+                                    "bubble_camera"])
+def test_every_service_refuses_a_missing_config_with_exit_code_2(module, tmp_path, capsys):
+    service = importlib.import_module(f"hydrosoft.services.{module}")
+    assert service.main([str(tmp_path / "missing.toml")]) == 2
+    assert "missing.toml does not exist" in capsys.readouterr().err

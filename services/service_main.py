@@ -1,0 +1,42 @@
+"""The command line of a service that runs once per stack: ``python -m hydrosoft.services.MODULE CONFIG [--name
+NAME]``, shared by sim_world, the tag tracker and the planner (per-arm services: ``arm_service_main``)."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+from collections.abc import Awaitable, Callable
+
+from hydrosoft.services.config import ConfigError, StackConfig, load_config
+from hydrosoft.services.runtime import run_service
+
+#: The service's main: ``serve(service, config=...)``.
+Serve = Callable[..., Awaitable[None]]
+
+
+def add_arguments(parser: argparse.ArgumentParser, service: str) -> None:
+    """Arguments: CONFIG [--name NAME]."""
+    parser.add_argument("config", help="the stack's TOML config (deploy/sim.toml, deploy/lab.toml)")
+    parser.add_argument("--name", default=service, help=f"service name (default {service})")
+
+
+def run(args: argparse.Namespace, serve: Serve, validate: Callable[[StackConfig], None] | None = None) -> int:
+    """Run ``serve`` as the service ``args.name`` until SIGINT/SIGTERM; the exit code (2: a config that cannot be
+    loaded, or a ``ConfigError`` from ``validate(config)``)."""
+    try:
+        config = load_config(args.config)
+        if validate is not None:
+            validate(config)
+    except ConfigError as err:
+        print(f"{args.name}: {err}", file=sys.stderr)
+        return 2
+    return run_service(args.name, config.runtime(args.name), functools.partial(serve, config=config))
+
+
+def main(module: str, doc: str, argv: list[str] | None, add: Callable[[argparse.ArgumentParser], None],
+         start: Callable[[argparse.Namespace], int]) -> int:
+    """Parse ``argv`` with ``add`` and run ``start``: the body of a service module's ``main``."""
+    parser = argparse.ArgumentParser(prog=f"python -m hydrosoft.services.{module}", description=doc.split("\n", 1)[0])
+    add(parser)
+    return start(parser.parse_args(argv))
