@@ -10,7 +10,12 @@ status, subscribe to any topic. ``StackClient`` is async; ``BlockingClient`` wra
 
 ``hydrosoft-stack goal TASK [--dx M] [--dy M] [--dyaw DEG] [--wait S] [--json]`` is this from the command line;
 with ``--json`` it prints one document ``{"status", "error_mm", "elapsed_s", "solves", "mean_solve_ms"}`` (error by
-the stack's own tracked pose) and in sim mode ``"true_error_mm"`` from sim_world's ``eval/object_pose``.
+the stack's own tracked pose) and in sim mode ``"true_error_mm"`` from sim_world's ``eval/object_pose``, plus
+``"resumes"`` when the goal was sent again to a restarted planner.
+
+A planner that dies while a goal runs stops the arm (the commander's watchdog) and is restarted by the launcher;
+the restarted planner has no goal. ``wait`` then resumes the goal this client started: the same absolute target
+(resolved by the first Start), the rest of its timeout (``--no-resume`` / ``resume=False`` turns this off).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import math
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import msgspec
@@ -43,14 +49,29 @@ class ClientError(RuntimeError):
     """The stack refused a request; the message says why."""
 
 
+@dataclass(frozen=True)
+class Pursuit:
+    """A goal this client started: the planner (pid) that accepted it, the goal with its target resolved to an
+    absolute pose (so a resumed goal aims where the first one did, not relative to where the object is now), and
+    when it started (``time.monotonic()``, s)."""
+
+    planner_pid: int
+    goal: msg.Goal
+    started_s: float
+
+
 class StackClient:
-    """An async connection to a running stack's planner (requests) and to any service's topics."""
+    """An async connection to a running stack's planner (requests) and to any service's topics.
+
+    ``resumes`` counts the goals ``wait`` re-sent to a restarted planner."""
 
     def __init__(self, config: StackConfig | str | Path) -> None:
         self.config = config if isinstance(config, StackConfig) else load_config(config)
         self.bus = Bus()
         self.requests = RequestClient(self.bus, self.config.endpoint("planner", "cmd"), source="client",
                                       timeout_s=REQUEST_TIMEOUT_S)
+        self.pursuit: Pursuit | None = None
+        self.resumes = 0
 
     def close(self) -> None:
         self.bus.close()
@@ -75,25 +96,63 @@ class StackClient:
         await self._command(msg.SetGoal(goal=goal))
 
     async def start(self) -> None:
-        """Start pursuing the goal."""
+        """Start pursuing the goal, and remember it (``pursuit``) so that ``wait`` can resume it."""
         await self._command(msg.Start())
+        reply = await self.status()
+        if reply.goal is not None and reply.goal.target_pose is not None and reply.status is not None:
+            self.pursuit = Pursuit(reply.status.pid, reply.goal, time.monotonic())
 
     async def stop(self, reason: str = "client") -> None:
         """Stop pursuing the goal; the arm stops when the last target's deadline passes."""
+        self.pursuit = None
         await self._command(msg.Stop(reason=reason))
 
     async def status(self) -> msg.StatusReply:
         """The planner's status: outcome, error, solves."""
         return await self._command(msg.GetStatus())
 
-    async def wait(self, timeout_s: float) -> msg.StatusReply:
-        """Poll the status until the goal ends or ``timeout_s`` passes (then the last status, outcome running)."""
+    async def wait(self, timeout_s: float, resume: bool = True) -> msg.StatusReply:
+        """Poll the status until the goal ends or ``timeout_s`` passes (then the last status, outcome running).
+
+        A planner that does not answer (it died; the launcher restarts it) is polled again until the deadline,
+        which then raises TimeoutError. With ``resume``, a goal this client started that a restarted planner
+        (another pid) no longer pursues is sent to it again, with the same absolute target and what is left of
+        its timeout (``resume_goal``); the arm is stopped meanwhile by the commander's watchdog.
+        """
         deadline = time.monotonic() + timeout_s
         while True:
-            reply = await self.status()
+            try:
+                reply = await self.status()
+            except TimeoutError:
+                if time.monotonic() >= deadline:
+                    raise
+                continue
+            if resume and self._lost_by_restart(reply) and await self.resume_goal():
+                continue
             if reply.outcome in FINAL or time.monotonic() >= deadline:
                 return reply
             await asyncio.sleep(POLL_PERIOD_S)
+
+    def _lost_by_restart(self, reply: msg.StatusReply) -> bool:
+        """Whether ``reply`` comes from a planner other than the one pursuing this client's goal, and idle."""
+        return (self.pursuit is not None and reply.status is not None and not reply.running
+                and reply.status.pid != self.pursuit.planner_pid)
+
+    async def resume_goal(self) -> bool:
+        """Send the pursued goal again (absolute target, the rest of its timeout) and start it; False when its
+        time is up (the pursuit is then dropped)."""
+        pursuit = self.pursuit
+        left_s = pursuit.goal.timeout_s - (time.monotonic() - pursuit.started_s)
+        if left_s <= 0:
+            self.pursuit = None
+            return False
+        goal = msgspec.structs.replace(pursuit.goal, timeout_s=left_s)
+        await self._command(msg.SetGoal(goal=goal))
+        await self._command(msg.Start())
+        reply = await self.status()
+        self.pursuit = Pursuit(reply.status.pid, goal, time.monotonic())
+        self.resumes += 1
+        return True
 
     def subscribe(self, service: str, topics: tuple[str, ...] = ("",)) -> LatestSubscriber:
         """A latest-value subscriber to ``service``'s data topics (``await sub.wait()``, then ``sub.latest``)."""
@@ -129,8 +188,8 @@ class BlockingClient:
     def status(self) -> msg.StatusReply:
         return self._loop.run_until_complete(self._client.status())
 
-    def wait(self, timeout_s: float) -> msg.StatusReply:
-        return self._loop.run_until_complete(self._client.wait(timeout_s))
+    def wait(self, timeout_s: float, resume: bool = True) -> msg.StatusReply:
+        return self._loop.run_until_complete(self._client.wait(timeout_s, resume))
 
 
 async def true_error_mm(client: StackClient, target: np.ndarray, task: str, wait_s: float = 1.0) -> float | None:
@@ -164,6 +223,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tolerance-mm", type=float, default=5.0, help="success when the ADD error is below (mm)")
     parser.add_argument("--timeout", type=float, default=None, help="the stack gives up after this long (s; default --wait or 180)")
     parser.add_argument("--wait", type=float, default=0.0, help="wait up to this long for the outcome (s); 0: start and return")
+    parser.add_argument("--no-resume", action="store_true",
+                        help="while waiting, do not send the goal again to a planner the launcher restarted")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
 
 
@@ -173,11 +234,13 @@ async def _goal(args: argparse.Namespace) -> dict:
         await client.set_goal(args.task, dx_m=args.dx, dy_m=args.dy, dyaw_rad=math.radians(args.dyaw),
                               tolerance_mm=args.tolerance_mm, timeout_s=timeout_s)
         await client.start()
-        reply = await (client.wait(args.wait) if args.wait > 0 else client.status())
+        reply = await (client.wait(args.wait, resume=not args.no_resume) if args.wait > 0 else client.status())
         result = {"status": reply.outcome, "error_mm": reply.error_mm, "elapsed_s": reply.elapsed_s,
                   "solves": reply.solves, "mean_solve_ms": reply.mean_solve_ms}
         if reply.outcome_reason:
             result["reason"] = reply.outcome_reason
+        if client.resumes:
+            result["resumes"] = client.resumes
         if reply.goal is not None and reply.goal.target_pose is not None:
             true = await true_error_mm(client, reply.goal.target_pose, args.task)
             if true is not None:

@@ -1,6 +1,8 @@
 """The whole stack in sim-hardware mode as separate processes: the launcher starts sim_world (plant, simulated UR
 controller, FT 300 pty, rendered camera and depth images), the arm commander (the real ur_rtde client), the F/T
-reader (the real serial driver), the bubble camera, the tag tracker and the planner; the client pushes the cube.
+reader (the real serial driver), the bubble camera, the tag tracker and the planner; the client pushes the cube,
+the planner is SIGKILLed during a second goal (the arm stops, the launcher restarts it) and the client resumes
+that goal on the new planner, which reaches it.
 
 Every process is stopped by its pid (the launcher's process group, then a check that none is left).
 """
@@ -33,7 +35,7 @@ async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
     from hydrosoft.services.status import collect
 
     arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
-    await client.set_goal("pushing", dx_m=-0.03, tolerance_mm=1.0, timeout_s=60.0)
+    await client.set_goal("pushing", dx_m=-0.03, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
     await client.start()
     deadline = time.monotonic() + 30.0
     while True:  # wait until the arm servoes towards a target
@@ -83,6 +85,17 @@ def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_p
         stop_s, restarts = asyncio.run(kill_the_planner_mid_task(client))
         assert stop_s < KILL_STOP_BOUND_S, stop_s
         assert restarts >= 1
+
+        async def resumed():  # the restarted planner has no goal: wait sends it the one it lost, which it reaches
+            target = client.pursuit.goal.target_pose
+            reply = await client.wait(GOAL_TIMEOUT_S)
+            return reply, target, await true_error_mm(client, target, "pushing")
+
+        reply, target, true = asyncio.run(resumed())
+        assert client.resumes == 1
+        assert reply.outcome == "reached", (reply.outcome, reply.outcome_reason, reply.error_mm, stack.text()[-3000:])
+        assert (reply.goal.target_pose == target).all()  # the same absolute target, not 3 cm from the new start
+        assert true is not None and true < 5.0, true
     finally:
         client.close()
         elapsed = stack.stop()
