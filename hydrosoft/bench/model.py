@@ -7,13 +7,20 @@ Three sections; ``--json`` prints them as one document ``{"config": {...}, "rows
 5 mm into a cube resting on the table (half-space): ``M = 2`` bodies, the cube's surface discretised to about
 ``points`` points, all kept (``compile_scene(prune=False)``, so ``N`` is what was asked for), for each contact
 model (nh, snh, pf, pff), dtype (float32, float64), batch ``B`` and point count ``N``. The step is timed in
-steady state: from a state whose signed distances are cached (every step of a rollout after the first), with one
-contact update per step (``substeps = 1``) and a random sub-millimetre bubble motion per sample.
+steady state: from a state whose signed distances are cached (every step of a rollout after the first), with the
+model's ``substeps = 1`` and a random sub-millimetre bubble motion per sample.
 
-- ``step_ms``: forward step under ``no_grad``; ``step_backward_ms``: forward plus backward of
-  ``sum(object_pose) + sum(forces)`` of the next state with respect to the controls. Both are the best, over
-  several repeats, of the mean time of a loop of steps; the variants of one (model, B, N) are timed interleaved.
-- ``point_updates_per_s``: ``B * M * N`` per forward step.
+- ``substeps``: the sub-steps that step takes: the run-time stability check (``dynamics.substeps_needed``) raises
+  ``substeps = 1`` to what the current contacts need (3 for the unpruned 600-point scene). ``check_ms``: one
+  such check.
+- ``step_ms``: the whole forward step under ``no_grad`` (its checks and all its sub-steps);
+  ``step_backward_ms``: forward plus backward of ``sum(object_pose) + sum(forces)`` of the next state with respect
+  to the controls. ``substep_ms`` / ``substep_backward_ms``: the same for one sub-step alone (one contact update,
+  the compiled kernel in compiled rows, no check). All are the best, over several repeats, of the mean time of a
+  loop of calls; the variants of one (model, B, N) are timed interleaved.
+- ``point_updates_per_s``: ``B * M * N`` per ``substep_ms`` (one contact update of every point and body). Before
+  the run-time check existed a step was one sub-step; timing whole steps against one update each is how the
+  figure once fell from 45.6 M to 29 M/s with the kernel unchanged.
 - ``peak_mem_mb`` / ``peak_mem_backward_mb``: peak of the live torch tensor storage allocated during one
   forward step / one forward plus backward, above what existed before (``config.memory_method``; on CPU
   ``null`` for compiled rows).
@@ -291,7 +298,7 @@ class _Bench:
         torch = self.torch
         from dataclasses import replace
 
-        from hydrosoft.dynamics import CompiledStep, step
+        from hydrosoft.dynamics import CompiledStep, _substep, step
 
         if compiled:  # one CompiledStep per model and dtype compiles every batch size and grad mode: > 8 graphs
             torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
@@ -304,19 +311,24 @@ class _Bench:
                 variants = {}
                 for name in timed_dtypes:
                     model = model64.to(dtype=dtype_of[name])
-                    variants[(name, "eager")] = (model, functools.partial(step, model))
+                    variants[(name, "eager")] = (model, functools.partial(step, model),
+                                                 functools.partial(_substep, model))
                     if compiled:
-                        variants[(name, "compiled")] = (model, CompiledStep(model))
+                        stepper = CompiledStep(model)
+                        variants[(name, "compiled")] = (model, stepper, stepper._compiled)
                 for batch in batches:
                     out.extend(self._time_config(contact, n_points, batch, variants, dtypes))
         return out
 
     def _time_config(self, contact: str, n_points: int, batch: int, variants: dict, dtypes: list[str]) -> list[dict]:
         torch = self.torch
+        from hydrosoft.dynamics import substeps_needed
+
         fns, prepared, compile_s = {}, {}, {}
-        for key, (model, stepper) in variants.items():
+        for key, (model, stepper, substep) in variants.items():
             state, u = self._batched(model, self._state_for(model, contact, n_points), batch)
             prepared[key] = (model, stepper, state, u)
+            dt = torch.tensor(model.dt, dtype=model.dtype, device=self.device)
 
             def forward(stepper=stepper, state=state, u=u):
                 with torch.no_grad():
@@ -327,6 +339,15 @@ class _Bench:
                 nxt = stepper(state, leaf)
                 (nxt.object_pose.sum() + nxt.forces.sum()).backward()
 
+            def sub_forward(substep=substep, state=state, u=u, dt=dt):
+                with torch.no_grad():
+                    return substep(state, u, dt)
+
+            def sub_backward(substep=substep, state=state, u=u, dt=dt):
+                leaf = u.detach().requires_grad_(True)
+                nxt = substep(state, leaf, dt)
+                (nxt.object_pose.sum() + nxt.forces.sum()).backward()
+
             if key[1] == "compiled":
                 tic = time.perf_counter()
                 forward()
@@ -335,6 +356,10 @@ class _Bench:
                 compile_s[key] = time.perf_counter() - tic
             fns[key + ("forward",)] = forward
             fns[key + ("backward",)] = backward
+            fns[key + ("sub_forward",)] = sub_forward
+            fns[key + ("sub_backward",)] = sub_backward
+            if key[1] == "eager":
+                fns[key + ("check",)] = functools.partial(substeps_needed, model, state)
         n_real = next(iter(prepared.values()))[0].n_points
         _progress(f"rows: {contact} B={batch} N={n_real} ({', '.join('/'.join(k) for k in variants)})")
         times = self._interleaved(fns)
@@ -347,6 +372,7 @@ class _Bench:
             # Under the CPU tracking mode dynamo would give up on the compiled frame and run it eagerly for good.
             untracked = key[1] == "compiled" and self.device.type != "cuda"
             seconds = times[key + ("forward",)]
+            sub_seconds = times[key + ("sub_forward",)]
             row = {
                 "model": contact,
                 "dtype": key[0],
@@ -354,9 +380,13 @@ class _Bench:
                 "batch": batch,
                 "points": model.n_points,
                 "bodies": model.n_bodies,
+                "substeps": substeps_needed(model, state),
+                "check_ms": 1e3 * times[(key[0], "eager", "check")],
                 "step_ms": 1e3 * seconds,
                 "step_backward_ms": 1e3 * times[key + ("backward",)],
-                "point_updates_per_s": batch * model.n_bodies * model.n_points / seconds,
+                "substep_ms": 1e3 * sub_seconds,
+                "substep_backward_ms": 1e3 * times[key + ("sub_backward",)],
+                "point_updates_per_s": batch * model.n_bodies * model.n_points / sub_seconds,
                 "peak_mem_mb": None if untracked else self._peak_mb(forward),
                 "peak_mem_backward_mb": None if untracked else self._peak_mb(backward),
                 "speedup_vs_eager_f64": reference / seconds,
@@ -494,11 +524,12 @@ def _print_tables(doc: dict) -> None:
     print(f"timing: {cfg['timing_method']}; memory: {cfg['memory_method']}")
     if doc["rows"]:
         print("\nstep speed and memory")
-        print(f"{'model':>5} {'dtype':>7} {'mode':>8} {'B':>4} {'N':>5} {'step ms':>9} {'fwd+bwd ms':>10} "
-              f"{'M upd/s':>8} {'mem MB':>7} {'bwd MB':>7} {'vs f64':>6}")
+        print(f"{'model':>5} {'dtype':>7} {'mode':>8} {'B':>4} {'N':>5} {'subs':>4} {'step ms':>9} {'fwd+bwd ms':>10} "
+              f"{'sub ms':>8} {'sub f+b':>8} {'check':>7} {'M upd/s':>8} {'mem MB':>7} {'bwd MB':>7} {'vs f64':>6}")
         for r in doc["rows"]:
-            print(f"{r['model']:>5} {r['dtype']:>7} {r['mode']:>8} {r['batch']:>4} {r['points']:>5} "
-                  f"{r['step_ms']:>9.3f} {r['step_backward_ms']:>10.3f} {r['point_updates_per_s'] / 1e6:>8.2f} "
+            print(f"{r['model']:>5} {r['dtype']:>7} {r['mode']:>8} {r['batch']:>4} {r['points']:>5} {r['substeps']:>4} "
+                  f"{r['step_ms']:>9.3f} {r['step_backward_ms']:>10.3f} {r['substep_ms']:>8.3f} "
+                  f"{r['substep_backward_ms']:>8.3f} {r['check_ms']:>7.3f} {r['point_updates_per_s'] / 1e6:>8.2f} "
                   f"{_mb(r['peak_mem_mb']):>7} {_mb(r['peak_mem_backward_mb']):>7} {r['speedup_vs_eager_f64']:>6.2f}")
     if doc["accuracy"]:
         print("\nforce accuracy on press 3 mm, shear 6 mm, release (max |F - F_ref| / max |F_ref|)")

@@ -11,8 +11,8 @@ import pytest
 
 from hydrosoft.bench import model as bench_model
 
-ROW_FIELDS = {"model", "dtype", "batch", "points", "step_ms", "step_backward_ms", "point_updates_per_s",
-              "peak_mem_mb", "speedup_vs_eager_f64"}
+ROW_FIELDS = {"model", "dtype", "batch", "points", "substeps", "check_ms", "step_ms", "step_backward_ms",
+              "substep_ms", "substep_backward_ms", "point_updates_per_s", "peak_mem_mb", "speedup_vs_eager_f64"}
 ACCURACY_FIELDS = {"setting", "force_rel_error", "step_ms"}
 PRUNING_FIELDS = {"task", "step_ms_full", "step_ms_pruned", "points_full", "points_pruned"}
 
@@ -42,8 +42,12 @@ def test_quick_bench_json_schema_and_values(quick_args, capsys):
     for r in rows:
         assert ROW_FIELDS <= set(r)
         assert r["mode"] == "eager" and r["bodies"] == 2
-        for key in ("step_ms", "step_backward_ms", "point_updates_per_s", "peak_mem_mb", "speedup_vs_eager_f64"):
+        for key in ("check_ms", "step_ms", "step_backward_ms", "substep_ms", "substep_backward_ms",
+                    "point_updates_per_s", "peak_mem_mb", "speedup_vs_eager_f64"):
             assert math.isfinite(r[key]) and r[key] > 0, (key, r)
+        # a step takes the sub-steps its contacts need; the update rate counts one contact update per sub-step
+        assert isinstance(r["substeps"], int) and r["substeps"] >= 1
+        assert math.isclose(r["point_updates_per_s"] * r["substep_ms"] / 1e3, r["batch"] * r["bodies"] * r["points"])
         if r["dtype"] == "float64":
             assert r["speedup_vs_eager_f64"] == 1.0
 
