@@ -1,16 +1,22 @@
 """The bubble camera service: one Soft Bubble's depth frames and its membrane deformation.
 
 One per arm, named ``bubble_camera-ARM``. Depth frames come from the bubble's ``DepthCamera``: in sim mode
-``sim_devices.BusDepthCamera`` on sim_world's rendered ``depth/ARM`` (no real Soft Bubble driver is built yet, so
-lab mode is refused). The reference is the undeformed membrane's depth image: in sim mode the nominal membrane
-(the scene body ``ARM``'s ellipsoid) seen from the configured camera pose, ``drivers.bubble.render.reference_depth``.
-Each frame is published as ``depth/ARM`` (``DepthFrame``, the configured intrinsics) and ``deformation/ARM``
-(``MembraneDeformation``: reference minus measured depth along the optical axis, m, NaN = no return), both
-carrying the frame's ``hw_stamp_ns``.
+``sim_devices.BusDepthCamera`` on sim_world's rendered ``depth/ARM``; in lab mode
+``drivers.bubble.opencv_depth.OpenCVDepthCamera`` on the arm's ``depth.device`` (a device index, a URL, or a
+recorded 16-bit stream: FFV1 ``.mkv`` or a 16-bit PNG sequence), opened at ``depth.width`` x ``depth.height`` and
+``depth.fps``. The reference is the undeformed membrane's depth image: in sim mode the nominal membrane (the scene
+body ``ARM``'s ellipsoid) seen from the configured camera pose, ``drivers.bubble.render.reference_depth``; in lab
+mode the captured one, read from the file ``depth.reference`` names (``hydrosoft-stack capture reference`` writes
+it, ``drivers.bubble.reference``). Each frame is published as ``depth/ARM`` (``DepthFrame``, the configured
+intrinsics) and ``deformation/ARM`` (``MembraneDeformation``: reference minus measured depth along the optical
+axis, m, NaN = no return), both carrying the frame's ``hw_stamp_ns``.
 
-A frame that does not fit the configured camera (size, depth unit) is counted as ``bad_frame`` and dropped; a
-camera that sends nothing new for ``STALE_FRAME_PERIODS`` frame periods is counted as ``stale`` and the service
-reports ``degraded`` until frames come again; nothing is republished meanwhile. Neither ends the service.
+A frame that does not fit the configured camera (size, depth unit) is counted as ``bad_frame`` (or ``protocol``
+when the driver already refuses it) and dropped; a camera that sends nothing new for ``STALE_FRAME_PERIODS`` frame
+periods is counted as ``stale`` and the service reports ``degraded`` until frames come again; a camera that cannot
+be opened or whose stream ends is counted as ``not_connected``, closed and opened again every
+``RECONNECT_DELAY_S`` (a recorded stream plays again from its start). Nothing is republished meanwhile. None of
+these ends the service.
 
 Run: ``python -m hydrosoft.services.bubble_camera CONFIG [--name bubble_camera-ARM]``.
 """
@@ -18,14 +24,16 @@ Run: ``python -m hydrosoft.services.bubble_camera CONFIG [--name bubble_camera-A
 from __future__ import annotations
 
 import argparse
+import asyncio
 import sys
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from hydrosoft.drivers.base import DepthFrame
+from hydrosoft.drivers.base import DepthCamera, DepthFrame
 from hydrosoft.drivers.bubble.deformation import membrane_deformation
+from hydrosoft.drivers.bubble.reference import ReferenceFileError, load_reference
 from hydrosoft.drivers.bubble.render import PinholeDepth, reference_depth
 from hydrosoft.drivers.errors import DriverError, NotConnected, ProtocolError, Stale
 from hydrosoft.services import messages as msg
@@ -38,6 +46,10 @@ from hydrosoft.tasks import make_task
 MODULE = "bubble_camera"
 #: The camera is stale after this many frame periods (of ``depth.fps``) without a new frame.
 STALE_FRAME_PERIODS = 5
+#: Pause before opening the camera again after it could not be opened or its stream ended (s).
+RECONNECT_DELAY_S = 0.5
+#: The command that writes the reference file of lab mode.
+CAPTURE_COMMAND = "hydrosoft-stack capture reference CONFIG --arm ARM"
 #: A frame's depth unit may differ from the configured ``depth_scale_m`` by this fraction (float rounding).
 SCALE_TOLERANCE = 1e-6
 
@@ -86,6 +98,33 @@ class BubbleDepth:
         reference = reference_depth(camera, membrane_radii(config, arm), depth.camera_in_bubble())
         return cls(arm, camera, depth.depth_scale_m, reference, time.monotonic_ns())
 
+    @classmethod
+    def captured(cls, config: StackConfig, arm: str) -> BubbleDepth:
+        """The pipeline of ``arm`` with the reference read from its ``depth.reference`` file (lab mode). Raises
+        ConfigError naming the key when it is empty, the file cannot be used, or its image is not the camera's
+        size."""
+        depth = config.arm(arm).depth
+        key = f"arms.{arm}.depth.reference"
+        if not depth.reference:
+            raise ConfigError(f"{key}: lab mode needs the captured reference membrane file; capture one with "
+                              f"`{CAPTURE_COMMAND.replace('ARM', arm)} --out PATH.npz` while nothing touches the "
+                              f"bubble, and name it here")
+        try:
+            reference = load_reference(depth.reference)
+        except ReferenceFileError as error:
+            raise ConfigError(f"{key}: {error}") from error
+        camera = depth_camera(config, arm)
+        if reference.reference_m.shape != (camera.height, camera.width):
+            raise ConfigError(f"{key}: {depth.reference} holds a {reference.reference_m.shape[1]}x"
+                              f"{reference.reference_m.shape[0]} px image, the depth camera's is "
+                              f"{camera.width}x{camera.height}; capture it again")
+        return cls(arm, camera, depth.depth_scale_m, reference.reference_m, reference.stamp_ns())
+
+    @classmethod
+    def for_mode(cls, config: StackConfig, arm: str) -> BubbleDepth:
+        """The pipeline of ``arm`` for the config's mode: ``nominal`` in sim, ``captured`` in the lab."""
+        return cls.nominal(config, arm) if config.mode == "sim" else cls.captured(config, arm)
+
     def messages(self, frame: DepthFrame) -> tuple[msg.DepthFrame, msg.MembraneDeformation]:
         """The ``DepthFrame`` and ``MembraneDeformation`` messages of one frame. Raises BadFrame when its image is
         not ``(H, W)`` uint16 of the camera or its depth unit is not ``depth_scale_m``."""
@@ -121,24 +160,54 @@ def error_kind(error: Exception) -> str:
     return "driver"
 
 
+def lab_depth_camera(config: StackConfig, arm: str) -> DepthCamera:
+    """``arm``'s ``OpenCVDepthCamera`` on its ``depth.device`` at the configured size, rate and depth unit, stale
+    after ``STALE_FRAME_PERIODS`` frame periods. Raises ConfigError naming the key when ``device`` is empty."""
+    depth = config.arm(arm).depth
+    if not depth.device:
+        raise ConfigError(f"arms.{arm}.depth.device: lab mode needs the depth camera's OpenCV source (a device "
+                          f"index, a /dev/v4l/by-id/... path, a URL or a recorded 16-bit stream)")
+    from hydrosoft.drivers.bubble.opencv_depth import OpenCVDepthCamera, OpenCVDepthConfig
+
+    source: int | str = int(depth.device) if depth.device.isdigit() else depth.device
+    return OpenCVDepthCamera(OpenCVDepthConfig(source=source, width=depth.width, height=depth.height, fps=depth.fps,
+                                               depth_scale_m=depth.depth_scale_m,
+                                               max_age_ms=1000.0 * STALE_FRAME_PERIODS / depth.fps))
+
+
+def open_depth_camera(service: Service, config: StackConfig, arm: str) -> DepthCamera:
+    """``arm``'s depth camera: sim_world's frames over the bus in sim mode, ``lab_depth_camera`` in the lab."""
+    if config.mode != "sim":
+        return lab_depth_camera(config, arm)
+    frames = service.subscriber(config.endpoint("sim_world"), [depth_topic(arm)])
+    return BusDepthCamera(frames, arm, timeout_s=STALE_FRAME_PERIODS / config.arm(arm).depth.fps)
+
+
 async def serve(service: Service, config: StackConfig, arm: str) -> None:
     """Publish ``arm``'s depth frames and deformation images until cancelled (module docstring)."""
-    bubble = BubbleDepth.nominal(config, arm)
-    depth_cfg = config.arm(arm).depth
-    frames = service.subscriber(config.endpoint("sim_world"), [depth_topic(arm)])
-    camera = BusDepthCamera(frames, arm, timeout_s=STALE_FRAME_PERIODS / depth_cfg.fps)
-    await camera.connect()
+    bubble = BubbleDepth.for_mode(config, arm)
+    camera = open_depth_camera(service, config, arm)
     service.on_shutdown(camera.close)
     out = service.publisher(config.endpoint(service.name))
     depth_out, deformation_out = msg.topic_for(msg.DepthFrame, arm), msg.topic_for(msg.MembraneDeformation, arm)
+    connected = await _connect(service, camera)
     await service.ready()
+    if not connected:
+        await service.set_state("degraded")
     while True:
+        if not connected:
+            await asyncio.sleep(RECONNECT_DELAY_S)
+            connected = await _connect(service, camera)
+            continue
         try:
             depth, deformation = bubble.messages(await camera.read())
         except (DriverError, BadFrame) as error:
             service.count_error(error_kind(error), str(error))
-            if isinstance(error, Stale) and service.state != "degraded":
+            if isinstance(error, (Stale, NotConnected)) and service.state != "degraded":
                 await service.set_state("degraded")
+            if isinstance(error, NotConnected):
+                await camera.close()
+                connected = False
             continue
         try:
             await out.send(depth, depth_out)
@@ -150,12 +219,25 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
             await service.set_state("ready")
 
 
-def _sim_only(config: StackConfig, arm: str) -> None:
-    """Refuse lab mode (no real Soft Bubble depth driver yet) and a config without this arm's membrane."""
-    if config.mode != "sim":
-        raise ConfigError(f"mode = {config.mode!r}: no real Soft Bubble depth driver is built yet; "
-                          f"{MODULE} runs in mode = 'sim' only")
+async def _connect(service: Service, camera: DepthCamera) -> bool:
+    """Open ``camera``; whether it opened. A failure is counted (its ``error_kind``), the service goes on."""
+    try:
+        await camera.connect()
+    except DriverError as error:
+        service.count_error(error_kind(error), str(error))
+        if service.state == "ready":
+            await service.set_state("degraded")
+        return False
+    return True
+
+
+def _validate(config: StackConfig, arm: str) -> None:
+    """Refuse a config without this arm's membrane and, in lab mode, one without its depth camera's ``device``
+    or a usable ``reference`` file."""
     membrane_radii(config, arm)
+    if config.mode != "sim":
+        lab_depth_camera(config, arm)
+        BubbleDepth.captured(config, arm)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -164,8 +246,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the service until SIGINT/SIGTERM; the exit code (2: a bad config or name, or lab mode)."""
-    return arm_service_main.run(args, MODULE, serve, validate=_sim_only)
+    """Run the service until SIGINT/SIGTERM; the exit code (2: a bad config or name, or a lab config without the
+    depth camera's device or reference file)."""
+    return arm_service_main.run(args, MODULE, serve, validate=_validate)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,8 +4,8 @@ the arm.
 Per arm: the UR controller's dashboard (29999) and script (30003) ports and one RTDE data package (no control
 script is uploaded, so nothing can move); the FT 300 (the port opens, the stream starts, one wrench arrives, the
 stream is stopped again); per stack: the tag camera (one frame, lab mode) and its calibration file (lab mode: it
-loads, with intrinsics and ``T_base_camera``). The Soft Bubbles' depth cameras have no real driver yet and are
-reported as such. In sim mode the same probes run against a running ``sim_world``'s simulated devices. Exit
+loads, with intrinsics and ``T_base_camera``); per arm in lab mode, the Soft Bubble's depth camera (one 16-bit
+frame of the configured size) and its reference membrane file (it loads, at the camera's size). In sim mode the same probes run against a running ``sim_world``'s simulated devices. Exit
 status 0 when every probe answered, 1 otherwise.
 """
 
@@ -95,15 +95,32 @@ async def _calibration(config: StackConfig) -> str:
     return f"{config.camera.calibration}: {i.width}x{i.height} px, fx {i.fx:.1f} px, T_base_camera set"
 
 
+async def _depth(config: StackConfig, arm: str) -> str:
+    from hydrosoft.services.bubble_camera import BubbleDepth, lab_depth_camera
+
+    try:
+        camera = lab_depth_camera(config, arm)
+        BubbleDepth.captured(config, arm)
+    except ConfigError as err:
+        raise ValueError(str(err)) from err
+    await camera.connect()
+    try:
+        frame = await camera.read()
+    finally:
+        await camera.close()
+    depth = config.arm(arm).depth
+    return (f"{depth.device}: frame {frame.depth.shape[1]}x{frame.depth.shape[0]} uint16; reference "
+            f"{depth.reference} loads")
+
+
 async def check(config: StackConfig) -> list[Probe]:
     """Probe every device of ``config`` (never the arm's motion)."""
     probes = []
     for arm in config.arms:
         probes.append(await _timed(f"ur {arm.name}", _ur(arm.ur_host)))
         probes.append(await _timed(f"ft300 {arm.name}", _ft300(arm.ft_port)))
-        probes.append(Probe(f"depth {arm.name}", config.mode == "sim",
-                            "simulated by sim_world" if config.mode == "sim"
-                            else "not built yet: no real Soft Bubble depth driver", 0.0))
+        probes.append(await _timed(f"depth {arm.name}", _depth(config, arm.name)) if config.mode == "lab"
+                      else Probe(f"depth {arm.name}", True, "rendered by sim_world", 0.0))
     if config.mode == "lab":
         probes.append(await _timed("tag camera", _camera(config)) if config.camera.device
                       else Probe("tag camera", False, "camera.device is not set", 0.0))

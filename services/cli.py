@@ -28,6 +28,9 @@ GROUPS = {
     "calibrate": ("calibrate a device (see `calibrate DEVICE --help`)", {
         "camera": ("hydrosoft.drivers.camera.calibration", "camera intrinsics from ChArUco board pictures, written as a calibration TOML"),
     }),
+    "capture": ("capture what a device needs before a run (see `capture WHAT --help`)", {
+        "reference": ("hydrosoft.services.capture_reference", "a Soft Bubble's reference membrane (its undeformed depth image, the median of N frames) for lab mode, as a .npz file"),
+    }),
 }
 
 

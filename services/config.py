@@ -99,7 +99,11 @@ class CameraConfig(Strict):
 class DepthConfig(Strict):
     """A bubble's depth camera, sitting at the bubble frame's origin and looking along its ``axis`` (``-z`` or
     ``+z`` of the bubble frame, whichever side of the membrane touches the object; its image x axis along the
-    bubble's x): image size (px), intrinsics (px), rate (Hz), depth unit (m per count); ``device``: lab only."""
+    bubble's x): image size (px), intrinsics (px), rate (Hz), depth unit (m per count). Lab only: ``device``, the
+    camera's OpenCV source (a device index such as ``"2"``, a ``/dev/v4l/by-id/...`` path, a URL, or a recorded
+    16-bit stream: an FFV1 ``.mkv`` or a ``frame_%04d.png`` sequence), and ``reference``, the reference membrane
+    file (``.npz``) that ``hydrosoft-stack capture reference`` writes; both empty by default (sim mode renders the
+    depth and uses the nominal membrane)."""
 
     axis: Literal["-z", "+z"] = "-z"
     width: int = 160
@@ -111,6 +115,7 @@ class DepthConfig(Strict):
     fps: float = 30.0
     depth_scale_m: float = 0.0001
     device: str = ""
+    reference: str = ""
 
     def __post_init__(self) -> None:
         _positive(self, "depth", "width", "height", "fx", "fy", "fps", "depth_scale_m")

@@ -1,6 +1,8 @@
 """The bubble camera service: its frame pipeline (no sockets), the bus-fed depth camera, and the service as a real
 process fed by a test publisher of rendered ``DepthFrame``s on sim_world's endpoint: zero deformation with no
-object, positive where a rendered cube pushes in, garbage and wrong frames counted, a silent camera reported.
+object, positive where a rendered cube pushes in, garbage and wrong frames counted, a silent camera reported. In
+lab mode, the service reads a recorded 16-bit FFV1 stream through ``OpenCVDepthCamera`` and a captured reference
+file, and publishes exactly ``membrane_deformation(depth, reference)``.
 
 The process gets a private run_dir and is stopped by its pid; every wait has a timeout.
 """
@@ -10,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import time
 
+import cv2
 import msgspec
 import numpy as np
 import pytest
@@ -17,6 +20,8 @@ from service_process import ServiceProcess
 import zmq
 
 from hydrosoft.drivers.base import DepthFrame
+from hydrosoft.drivers.bubble.deformation import membrane_deformation
+from hydrosoft.drivers.bubble.reference import Reference, save_reference
 from hydrosoft.drivers.bubble.render import render_depth, to_counts
 from hydrosoft.drivers.errors import NotConnected, ProtocolError, Stale
 from hydrosoft.geometry.sdf import Box
@@ -226,3 +231,68 @@ def test_the_service_publishes_deformation_counts_bad_input_and_reports_a_silent
     assert seen["silent"].errors["stale"] >= 1
     errors = seen["recovered"].errors
     assert errors["garbage"] >= 1 and errors["bad_frame"] >= 1, errors
+
+
+# --- lab mode: a recorded stream through the OpenCV driver, a captured reference ----------------------------------
+
+LAB_PRESS_M = (0.0, 0.002, 0.004, 0.005)  # the recorded stream: the cube this far into the membrane
+REFERENCE_OFFSET_M = 3e-4  # the captured membrane sits this much further than the nominal one
+
+
+def write_depth_video(path, frames: list[np.ndarray], fps: float) -> None:
+    """A 16-bit grey FFV1 video of ``frames`` (uint16)."""
+    height, width = frames[0].shape
+    writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"FFV1"), fps, (width, height),
+                             [cv2.VIDEOWRITER_PROP_DEPTH, cv2.CV_16U, cv2.VIDEOWRITER_PROP_IS_COLOR, 0])
+    assert writer.isOpened()
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+
+
+def test_in_lab_mode_the_service_publishes_the_deformation_of_a_recorded_stream(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    bubble = BubbleDepth.nominal(parse_config(config_text()), "bubble")
+    frames = [frame_counts(bubble, (0.0, 0.0, -(0.055 - press), 1.0, 0.0, 0.0, 0.0)) for press in LAB_PRESS_M]
+    write_depth_video(tmp_path / "depth.mkv", frames, fps=20.0)
+    reference_m = (bubble.reference_m + np.float32(REFERENCE_OFFSET_M)).astype(np.float32)
+    save_reference(tmp_path / "reference.npz", Reference(reference_m, 1e-4, 30, time.time_ns()))
+    lab_table = DEPTH_TABLE.replace(" }", f', device = "{tmp_path / "depth.mkv"}", '
+                                         f'reference = "{tmp_path / "reference.npz"}" }}')
+    config_path = tmp_path / "lab.toml"
+    config_path.write_text(config_text(str(run_dir)).replace('mode = "sim"', 'mode = "lab"')
+                           .replace(DEPTH_TABLE, lab_table))
+    config = load_config(config_path)
+    name = "bubble_camera-bubble"
+
+    async def scenario() -> list[tuple[msg.DepthFrame, msg.MembraneDeformation]]:
+        pairs: dict[bytes, tuple[msg.DepthFrame, msg.MembraneDeformation]] = {}
+        with Bus() as bus:
+            output = LatestSubscriber(bus, config.endpoint(name), ["deformation/bubble", "depth/bubble"])
+            while len(pairs) < len(frames):  # every recorded frame once (the stream plays again after its end)
+                await output.wait(1.0)
+                output.drain()
+                try:
+                    depth = output.latest("depth/bubble", 1.0, msg.DepthFrame).value
+                    deformation = output.latest("deformation/bubble", 1.0, msg.MembraneDeformation).value
+                except bus_layer.Stale:
+                    continue
+                if depth.hw_stamp_ns == deformation.hw_stamp_ns:
+                    pairs[depth.depth.tobytes()] = (depth, deformation)
+        return list(pairs.values())
+
+    process = ServiceProcess("bubble_camera", name, config_path, tmp_path / "bubble_camera.log")
+    try:
+        process.wait_ready()
+        pairs = asyncio.run(asyncio.wait_for(scenario(), SCENARIO_TIMEOUT_S))
+    finally:
+        rc = process.stop()
+    assert rc == 0, process.log()
+    sent = {frame.tobytes(): frame for frame in frames}
+    for depth, deformation in pairs:
+        assert depth.depth.tobytes() in sent  # bit-exact counts of a recorded frame
+        depth_m = depth.depth.astype(np.float32) * np.float32(depth.depth_scale_m)
+        np.testing.assert_array_equal(deformation.deformation, membrane_deformation(depth_m, reference_m))
+    deepest = max(float(np.nanmax(deformation.deformation)) for _, deformation in pairs)
+    assert deepest == pytest.approx(0.005 + REFERENCE_OFFSET_M, abs=2e-4)  # the captured reference, not nominal
