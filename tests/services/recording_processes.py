@@ -5,14 +5,12 @@ a file, awaited READY with a timeout, and stopped by its pid (SIGINT, then SIGKI
 
 from __future__ import annotations
 
-import selectors
 import shutil
-import signal
-import subprocess
 import sys
 import tempfile
-from collections.abc import Sequence
 from pathlib import Path
+
+from service_process import ReadyProcess
 
 FAKES_DIR = Path(__file__).resolve().parent / "fakes"
 READY_TIMEOUT_S = 90.0  # torch and the scene compile on a busy 2-core machine
@@ -36,46 +34,12 @@ def write_config(root: Path, name: str = "stack.toml") -> Path:
     return path
 
 
-class Proc:
-    """One process started with ``command``; stderr (and stdout after READY) go to ``log_path``."""
+class Proc(ReadyProcess):
+    """A process of the recording tests, with their longer bounds (torch and the scene compile on a busy
+    machine)."""
 
-    def __init__(self, command: Sequence[str], name: str, log_path: Path) -> None:
-        self.name = name
-        self.log_path = log_path
-        self._log = log_path.open("wb")
-        self.proc = subprocess.Popen([str(part) for part in command], stdout=subprocess.PIPE, stderr=self._log)
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> None:
-        with selectors.DefaultSelector() as selector:
-            selector.register(self.proc.stdout, selectors.EVENT_READ)
-            line = self.proc.stdout.readline().decode() if selector.select(timeout_s) else ""
-        if not line.startswith(f"READY {self.name} {self.proc.pid}"):
-            raise AssertionError(f"{self.name} not READY within {timeout_s} s ({line!r}):\n{self.log()}")
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")[-6000:]
-
-    def kill(self) -> None:
-        """SIGKILL, as a crash would."""
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(STOP_TIMEOUT_S)
-
-    def stop(self) -> int:
-        """SIGINT, then SIGKILL after ``STOP_TIMEOUT_S``; the exit code."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(STOP_TIMEOUT_S)
-        self.proc.stdout.close()
-        self._log.close()
-        return self.proc.returncode
+    ready_timeout_s = READY_TIMEOUT_S
+    stop_timeout_s = STOP_TIMEOUT_S
 
 
 def publisher(config: Path, root: Path) -> Proc:
