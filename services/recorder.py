@@ -30,7 +30,7 @@ import json
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,8 +40,9 @@ import zmq
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions, MCAPWriter
 
 from hydrosoft.services import messages as msg
+from hydrosoft.services import service_main
 from hydrosoft.services.bus import RequestClient, is_local_endpoint
-from hydrosoft.services.config import ConfigError, StackConfig, load_config
+from hydrosoft.services.config import StackConfig
 from hydrosoft.services.recording import (
     CLOCK_METADATA,
     EPOCH_OFFSET_KEY,
@@ -51,7 +52,7 @@ from hydrosoft.services.recording import (
     raw_channel_name,
     raw_schema,
 )
-from hydrosoft.services.runtime import Service, run_service
+from hydrosoft.services.runtime import Service
 from hydrosoft.services.scene import SceneBuilder, SceneError, SceneGeometry, SceneOutput, scene_topics
 
 SERVICE = "recorder"
@@ -310,15 +311,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the recorder until SIGINT/SIGTERM; the exit code (2: a bad config or options)."""
+    return run_with_options(args, lambda: RecorderOptions(record=args.record, view=args.view,
+                                                          view_host=args.view_host, view_port=args.view_port))
+
+
+def run_with_options(args: argparse.Namespace, options: Callable[[], RecorderOptions]) -> int:
+    """Run ``serve`` with the ``RecorderOptions`` that ``options()`` builds from the command line
+    (``service_main.run``); the exit code (2: options or a config that cannot be used)."""
     try:
-        config = load_config(args.config)
-        options = RecorderOptions(record=args.record, view=args.view, view_host=args.view_host,
-                                  view_port=args.view_port)
-    except (ConfigError, RecorderError) as err:
-        print(f"error: {err}", file=sys.stderr)
+        built = options()
+    except RecorderError as err:
+        print(f"{args.name}: {err}", file=sys.stderr)
         return 2
-    return run_service(args.name, config.runtime(args.name),
-                       functools.partial(serve, config=config, config_path=args.config, options=options))
+    return service_main.run(args, functools.partial(serve, config_path=args.config, options=built))
 
 
 def main(argv: list[str] | None = None) -> int:

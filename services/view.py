@@ -9,12 +9,9 @@ and the raw topics on ``ws://HOST:PORT`` (loopback only) until Ctrl-C. Open Foxg
 from __future__ import annotations
 
 import argparse
-import functools
 import sys
 
-from hydrosoft.services.config import ConfigError, load_config
-from hydrosoft.services.recorder import VIEW_PORT, RecorderError, RecorderOptions, serve
-from hydrosoft.services.runtime import run_service
+from hydrosoft.services.recorder import VIEW_PORT, RecorderOptions, run_with_options
 
 SERVICE = "view"
 
@@ -30,14 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Serve the live view until SIGINT/SIGTERM; the exit code (2: a bad config or option)."""
-    try:
-        config = load_config(args.config)
-        options = RecorderOptions(view=True, view_host=args.host, view_port=args.port)
-    except (ConfigError, RecorderError) as err:
-        print(f"hydrosoft-stack view: {err}", file=sys.stderr)
-        return 2
-    return run_service(args.name, config.runtime(args.name),
-                       functools.partial(serve, config=config, config_path=args.config, options=options))
+    return run_with_options(args, lambda: RecorderOptions(view=True, view_host=args.host, view_port=args.port))
 
 
 def main(argv: list[str] | None = None) -> int:
