@@ -55,17 +55,12 @@ def _arrays(kind: type[msg.Message]) -> list[str]:
     return [name for name in kind.__struct_fields__ if name in kind.ARRAYS]
 
 
-def _first_array(kind: type[msg.Message], header: Header, test: Callable[[msg.ArraySpec], bool]) -> int | None:
-    """Index (among the sent arrays) of the first array field of ``kind`` whose spec passes ``test``."""
+def _first_array(kind: type[msg.Message], header: Header,
+                 test: Callable[[msg.ArraySpec], bool] = lambda spec: True) -> tuple[int, str] | None:
+    """``(index among the sent arrays, field name)`` of the first array field of ``kind`` whose spec passes
+    ``test``; None when no sent array does."""
     sent = [name for name in _arrays(kind) if header.get(name) is not None]
-    for index, name in enumerate(sent):
-        if test(kind.ARRAYS[name]):
-            return index
-    return None
-
-
-def _array_name(kind: type[msg.Message], header: Header, index: int) -> str:
-    return [name for name in _arrays(kind) if header.get(name) is not None][index]
+    return next(((index, name) for index, name in enumerate(sent) if test(kind.ARRAYS[name])), None)
 
 
 # --- the malformations --------------------------------------------------------------------------------------------
@@ -111,10 +106,10 @@ def wrong_field_type(kind: type[msg.Message], frames: Frames) -> Frames:
 def wrong_dtype(kind: type[msg.Message], frames: Frames) -> Frames | None:
     """An array declared (and sent) in a dtype its field does not accept, with the right byte length."""
     header = _header(frames)
-    index = _first_array(kind, header, lambda spec: True)
-    if index is None:
+    found = _first_array(kind, header)
+    if found is None:
         return None
-    name = _array_name(kind, header, index)
+    index, name = found
     dtype, shape = header[name]
     accepted = {np.dtype(d) for d in kind.ARRAYS[name].dtypes}
     other = next(d for d in (np.dtype("<i8"), np.dtype("<u2"), np.dtype("<f4"), np.dtype("<f8"), np.dtype("u1"))
@@ -128,10 +123,10 @@ def wrong_dtype(kind: type[msg.Message], frames: Frames) -> Frames | None:
 def wrong_shape(kind: type[msg.Message], frames: Frames) -> Frames | None:
     """An array with one axis more than its field allows (the same bytes)."""
     header = _header(frames)
-    index = _first_array(kind, header, lambda spec: True)
-    if index is None:
+    found = _first_array(kind, header)
+    if found is None:
         return None
-    name = _array_name(kind, header, index)
+    index, name = found
     header[name] = [header[name][0], [1, *header[name][1]]]
     return _with_header(frames, header)
 
@@ -147,10 +142,10 @@ def oversized_array(kind: type[msg.Message], frames: Frames) -> Frames | None:
     """An array longer along its first axis than the field's limit (fixed size or maximum), within the frame size
     limit."""
     header = _header(frames)
-    index = _first_array(kind, header, lambda spec: True)
-    if index is None:
+    found = _first_array(kind, header)
+    if found is None:
         return None
-    name = _array_name(kind, header, index)
+    index, name = found
     dtype, shape = header[name]
     rule = kind.ARRAYS[name].shape[0]
     limit = rule.max if isinstance(rule, msg.Dim) else rule
@@ -170,16 +165,16 @@ def oversized_header(kind: type[msg.Message], frames: Frames) -> Frames:
     return _with_header(frames, header)
 
 
-def _float_array(kind: type[msg.Message], header: Header) -> int | None:
+def _float_array(kind: type[msg.Message], header: Header) -> tuple[int, str] | None:
     return _first_array(kind, header, lambda spec: spec.finite and any(d.startswith("float") for d in spec.dtypes))
 
 
 def _with_value(frames: Frames, kind: type[msg.Message], value: float) -> Frames | None:
     """``value`` in the first finite float array, else in the first float scalar (of a nested struct too)."""
     header = _header(frames)
-    index = _float_array(kind, header)
-    if index is not None:
-        name = _array_name(kind, header, index)
+    found = _float_array(kind, header)
+    if found is not None:
+        index, name = found
         dtype, shape = header[name]
         array = np.frombuffer(frames[2 + index], np.dtype(dtype)).copy()
         array[0] = value
@@ -214,10 +209,10 @@ def inf_value(kind: type[msg.Message], frames: Frames) -> Frames | None:
 def non_unit_quaternion(kind: type[msg.Message], frames: Frames) -> Frames | None:
     """A pose whose quaternion has norm 2."""
     header = _header(frames)
-    index = _first_array(kind, header, lambda spec: spec.unit_quaternion)
-    if index is None:
+    found = _first_array(kind, header, lambda spec: spec.unit_quaternion)
+    if found is None:
         return None
-    name = _array_name(kind, header, index)
+    index, name = found
     dtype, _ = header[name]
     array = np.frombuffer(frames[2 + index], np.dtype(dtype)).copy()
     if array.size == 0:
