@@ -108,11 +108,12 @@ class PlannerCore:
         return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
                    metric, membranes)
 
-    def solver(self, goal_pose: torch.Tensor) -> CemGd:
-        """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode)."""
+    def solver(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]) -> CemGd:
+        """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode), its drift
+        cost anchored at the object pose ``(7,)`` and TCP poses ``(7,)`` the goal starts from (``Task.costs``)."""
         task = self.task
         low, high = task.bounds(self.model.body_names, self.model.dtype)
-        stage, terminal = task.costs(self.model, goal_pose)
+        stage, terminal = task.costs(self.model, goal_pose, anchor=(object_pose, self.body_poses(arm_poses)))
         return CemGd(self.dynamics, stage, terminal, low, high, config=self.settings.config(self.settings.horizon, 1),
                      dtype=self.model.dtype)
 
@@ -230,11 +231,11 @@ class Planner:
         if self.goal is None:
             return msg.CommandReply(ok=False, error="no goal: send SetGoal first")
         try:
-            start_pose = as_pose(self.inputs.latest("object_pose/object", self.max_age["object_pose"]).value.pose)
+            start_pose, arm_poses, _ = self.fresh_inputs()
         except Stale as err:
-            return msg.CommandReply(ok=False, error=f"no fresh object pose to start from ({err})")
+            return msg.CommandReply(ok=False, error=f"no fresh input to start from ({err})")
         target = resolve_target(self.goal, start_pose)
-        episode = Episode(self.goal, target, self.core.solver(target), time.monotonic())
+        episode = Episode(self.goal, target, self.core.solver(target, start_pose, arm_poses), time.monotonic())
         task = self.core.task
         if not task.reachable(start_pose, target, int(self.goal.timeout_s / self.core.model.dt)):
             episode.finish("failed", f"unreachable: the goal lies beyond what the action bounds allow within "
@@ -395,9 +396,10 @@ async def run(service: Service, config: StackConfig) -> None:
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
         service.log.info("compiling the planner step (the first solve)")
-        warm = core.solver(core.task.initial_pose())
         _, initial, _ = compile_scene(with_contact(core.task.scene, config.planner.model, config.planner.spacing),
                                       dtype=core.model.dtype)
+        arm_poses = {name: initial.body_poses[0, index].double() for name, index in core.arms.items()}
+        warm = core.solver(core.task.initial_pose(), initial.object_pose[0].double(), arm_poses)
         await loop.run_in_executor(None, warm.solve, initial)
     planner = Planner(service, config, core)
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)

@@ -7,7 +7,8 @@
   and then sets the body poses exactly to the TCP poses. One tick is ``h = 1 / sim.rate_hz`` s; the scene's
   damping time is scaled to keep its mobility ``h / epsilon`` (so the object moves as fast per second as in the
   task's model), and the sub-steps are at most as long as those of ``hydrosoft.tasks.evaluation.PlantSettings``'
-  plant (half the planner's). A tick that fails (a bad TCP pose, ``UnstableStepError``, a torch error,
+  plant (half the planner's). With ``sim.compile`` the step runs compiled (``CompiledStep``, compiled before
+  READY): the physics then keeps its rate on two cores beside the planner. A tick that fails (a bad TCP pose, ``UnstableStepError``, a torch error,
   non-finite values) is logged and counted under its kind (``PlantStepError``), and the state kept.
 - Per arm, a simulated UR controller (``drivers/ur/simulator.py``) on ``arm.ur_host``, started at the scene's pose
   of the arm's body (the TCP frame is the bubble's frame), which the real ``ur_rtde`` client in the arm commander
@@ -49,7 +50,7 @@ from hydrosoft.drivers.poses import check_pose
 from hydrosoft.drivers.robotiq_ft300.simulator import SimulatedFT300
 from hydrosoft.drivers.ur.config import URSimulatorConfig
 from hydrosoft.drivers.ur.simulator import SimulatedURController
-from hydrosoft.dynamics import Model, State, UnstableStepError, body_wrenches, step
+from hydrosoft.dynamics import CompiledStep, Model, State, UnstableStepError, body_wrenches, step
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, compile_scene
 from hydrosoft.services import messages as msg
@@ -131,12 +132,13 @@ class SimPlant:
     ``step_to`` runs in one thread at a time; ``snapshot`` may be read from any thread.
     """
 
-    def __init__(self, model: Model, state: State, arms: Sequence[str]) -> None:
+    def __init__(self, model: Model, state: State, arms: Sequence[str], compiled: bool = False) -> None:
         missing = [arm for arm in arms if arm not in model.body_names]
         if missing:
             raise ValueError(f"arms {missing} are not bodies of the plant (its bodies: {list(model.body_names)})")
         self.model = model
         self.state = State(*state[:3])
+        self.compiled = CompiledStep(model, dynamic=False) if compiled else None
         self.arm_index = {arm: model.body_names.index(arm) for arm in arms}
         unactuated = [arm for arm, index in self.arm_index.items() if not bool(model.actuated[index])]
         if unactuated:
@@ -146,9 +148,9 @@ class SimPlant:
 
     @classmethod
     def from_config(cls, config: StackConfig) -> SimPlant:
-        """The plant of ``config`` (``plant_model``) with its arms."""
+        """The plant of ``config`` (``plant_model``) with its arms, its step compiled when ``sim.compile``."""
         model, state = plant_model(config)
-        return cls(model, state, [arm.name for arm in config.arms])
+        return cls(model, state, [arm.name for arm in config.arms], config.sim.compile)
 
     def step_to(self, tcp_poses: Mapping[str, np.ndarray]) -> None:
         """One tick: move each arm's body to ``tcp_poses[arm]`` (``(7,)``, base frame) over one step, then set the
@@ -176,7 +178,7 @@ class SimPlant:
         u = body_control(self.state.body_poses[0], target[0]).unsqueeze(0)
         with torch.no_grad():
             try:
-                nxt = step(self.model, self.state, u)
+                nxt = step(self.model, self.state, u) if self.compiled is None else self.compiled(self.state, u)
             except UnstableStepError as error:
                 raise PlantStepError("unstable_step", str(error)) from error
             except (RuntimeError, ArithmeticError) as error:  # torch's numerical failures on a broken state
@@ -343,8 +345,9 @@ async def log_rates_forever(service: Service, stats: Sequence[DurationStats]) ->
 
 
 def _warm_up(plant: SimPlant, camera: SimCamera, depth_cameras: Sequence[BubbleDepthCamera]) -> None:
-    """One plant tick at rest and one image of each camera, before READY: the first calls fill caches (slow), and
-    a scene that cannot be simulated or rendered fails at start rather than in the loop."""
+    """One plant tick at rest and one image of each camera, before READY: the first calls fill caches (slow; a
+    compiled plant compiles here), and a scene that cannot be simulated or rendered fails at start rather than in
+    the loop."""
     snapshot = plant.snapshot
     plant.step_to(snapshot.tcp_poses)
     camera.render(snapshot.object_pose)
@@ -368,7 +371,11 @@ async def serve(service: Service, config: StackConfig) -> None:
     physics_stats = DurationStats("physics")
     image_stats = DurationStats("tag camera (exposure to image)")
     depth_stats = [DurationStats(f"depth {c.arm}") for c in depth_cameras]
+    if plant.compiled is not None:
+        service.log.info("compiling the plant step (sim.compile; 40-60 s)")
     await loop.run_in_executor(None, _warm_up, plant, camera, depth_cameras)
+    if plant.compiled is not None and not plant.compiled.compiled:
+        service.log.warning("the plant step runs eager: %s", plant.compiled.fallback_reason)
     await service.ready()
     async with asyncio.TaskGroup() as tasks:
         tasks.create_task(physics_forever(service, plant, controllers, physics_stats))

@@ -62,9 +62,9 @@ class CostWeights:
 
     The tracking terms are ``mean squared point distance / scale^2`` (so 1 = ``scale`` of ADD): ``stage`` per
     step and ``terminal`` at the horizon's end. ``effort`` weighs ``sum((u / bound)^2)`` per step (actions
-    normalized by their per-step bounds). ``drift`` weighs a hinge on how far each actuated body has moved
-    relative to the object since the plan started, beyond ``drift_limit`` m (it keeps the bubble on the
-    object), with a smoothing width of ``drift_width`` m.
+    normalized by their per-step bounds). ``drift`` weighs a hinge on how far each actuated body has slipped
+    over the object since the anchor state (``Task.costs``), beyond ``drift_limit`` m (it keeps the bubble on
+    the object), with a smoothing width of ``drift_width`` m.
     """
 
     scale: float = 0.01
@@ -154,33 +154,46 @@ class Task:
         angle = float(orientation_error(start, goal))
         return distance <= steps * trans + 1e-9 and angle <= steps * rot + 1e-9
 
-    def costs(self, model: Model, goal: Tensor) -> tuple[Callable, Callable]:
+    def costs(self, model: Model, goal: Tensor,
+              anchor: tuple[Tensor, Tensor] | None = None) -> tuple[Callable, Callable]:
         """``(stage_cost(state, u, k) -> (B,), terminal_cost(state) -> (B,))`` for ``goal (7,)`` on ``model``.
 
-        The drift hinge needs the state the plan starts from: it is taken from the first state the stage cost
-        sees at ``k = 0`` (the solver always evaluates ``k = 0`` first in a rollout).
+        The drift hinge bounds how far each actuated body slips over the object from the anchor state: the change
+        of its offset from the object's centre (m), less the ``(1 / travel_ratio - 1)`` times the object's
+        displacement that rolling without slip adds (zero for dragging; the object's displacement itself for
+        rolling, where the contact on top moves twice as fast as the centre). ``anchor`` is ``(object_pose (7,),
+        body_poses (M, 7))``: the state a goal started from, so that slip stays bounded over a whole episode of
+        replans (each plan of a closed loop would otherwise allow ``drift_limit`` more, and the bubble walked off
+        the cube). Without it, the anchor is each plan's first state: the first state the stage cost sees at
+        ``k = 0`` (the solver always evaluates ``k = 0`` first in a rollout).
         """
         w = self.weights
         goal = goal.to(model.dtype)
         points = model.points
         scale = self.bounds(model.body_names, model.dtype)[1].clamp_min(torch.finfo(model.dtype).eps)
         actuated = (scale > 10 * torch.finfo(model.dtype).eps).any(-1)
+        rolling = 1.0 / self.travel_ratio - 1.0
         start: dict[str, Tensor] = {}
+        if anchor is not None:
+            start["object"] = anchor[0].to(model.dtype)[:3]
+            start["offset"] = anchor[1].to(model.dtype)[actuated, :3] - start["object"]
 
-        def offsets(state: State) -> Tensor:
-            return state.body_poses[:, actuated, :3] - state.object_pose[:, None, :3]
+        def slip(state: State) -> Tensor:
+            moved = state.object_pose[:, None, :3] - start["object"]
+            offset = state.body_poses[:, actuated, :3] - state.object_pose[:, None, :3]
+            return safe_norm(offset - start["offset"] - rolling * moved)
 
         def stage_cost(state: State, u: Tensor, k: int) -> Tensor:
-            if k == 0:
-                start["offset"] = offsets(state).detach()
+            if k == 0 and anchor is None:
+                start["object"] = state.object_pose[:, None, :3].detach()
+                start["offset"] = (state.body_poses[:, actuated, :3] - start["object"]).detach()
             track = mean_squared_point_distance(points, state.object_pose, goal) / w.scale**2
             effort = ((u / scale) * actuated.view(-1, 1)).square().flatten(1).sum(-1)
-            drift = safe_norm(offsets(state) - start["offset"])
-            return w.stage * track + w.effort * effort + hinge_cost(drift, w.drift_limit, w.drift, width=w.drift_width)
+            return w.stage * track + w.effort * effort + hinge_cost(slip(state), w.drift_limit, w.drift,
+                                                                    width=w.drift_width)
 
         def terminal_cost(state: State) -> Tensor:
             track = mean_squared_point_distance(points, state.object_pose, goal) / w.scale**2
-            drift = safe_norm(offsets(state) - start["offset"])
-            return w.terminal * track + hinge_cost(drift, w.drift_limit, w.drift, width=w.drift_width)
+            return w.terminal * track + hinge_cost(slip(state), w.drift_limit, w.drift, width=w.drift_width)
 
         return stage_cost, terminal_cost

@@ -331,7 +331,8 @@ def run_episode(
             final_pose=plant.state.object_pose[0].clone(),
         )
     low, high = task.bounds(model.body_names, model.dtype)
-    stage, terminal = task.costs(model, goal)
+    anchor = (plant.initial.object_pose[0], plant.initial.body_poses[0, setup.body_index])
+    stage, terminal = task.costs(model, goal, anchor=anchor)
     horizon, iterations = (steps, planner.open_loop_iterations) if loop == "open" else (
         planner.horizon, planner.cem_iterations)
     solver = CemGd(

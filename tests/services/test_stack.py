@@ -64,7 +64,7 @@ async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
 
 
 def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_path):
-    config_path = stack_config(tmp_path)
+    config_path = stack_config(tmp_path, compiled_plant=True)
     stack = Stack(config_path, tmp_path / "launcher.log")
     client = StackClient(load_config(config_path))
     try:

@@ -36,7 +36,7 @@ import pytest
 import zmq
 from fuzz import MALFORMATIONS, frames_of, malformed, oversized_frame
 from service_process import ServiceProcess
-from stack_process import SIM_TOML, Stack, children_left, free_ur_host, stack_config
+from stack_process import Stack, children_left, free_ur_host, sim_toml_text, stack_config
 
 from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT
 from hydrosoft.services import messages as msg
@@ -125,7 +125,7 @@ def private_config(folder: Path, ur_host: str) -> Path:
     """deploy/sim.toml with its own run_dir and FT 300 link under ``folder`` and the UR controller on ``ur_host``."""
     run_dir = folder / "run"
     run_dir.mkdir(parents=True)
-    text = SIM_TOML.read_text().replace('"/tmp/hydrosoft-sim/ft300-bubble"', f'"{run_dir}/ft300-bubble"')
+    text = sim_toml_text().replace('"/tmp/hydrosoft-sim/ft300-bubble"', f'"{run_dir}/ft300-bubble"')
     text = text.replace('"/tmp/hydrosoft-sim"', f'"{run_dir}"').replace('"127.0.0.2"', f'"{ur_host}"')
     path = folder / "sim.toml"
     path.write_text(text)
@@ -355,7 +355,7 @@ def test_every_service_counts_fuzzed_input_on_every_topic_and_stays_up(tmp_path)
                     await client.set_goal("pushing", dx_m=0.01, tolerance_mm=0.1, timeout_s=120.0)
                     await client.start()
                     return await client.status()
-                except ClientError:  # no fresh object pose yet
+                except ClientError:  # no fresh inputs yet
                     assert time.monotonic() < deadline_s, "the fuzz planner never started its goal"
                     await asyncio.sleep(0.5)
 

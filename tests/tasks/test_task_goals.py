@@ -112,6 +112,42 @@ def test_costs_are_finite_with_finite_gradients_and_lowest_at_the_goal(name):
     assert float(cost[1]) < 1e-6 < float(cost[0])
 
 
+def moved(state, object_m: float, bubble_m: float):
+    """``state`` with the object and the actuated bubble moved along x by the given distances (m)."""
+    object_pose, body_poses = state.object_pose.clone(), state.body_poses.clone()
+    object_pose[:, 0] += object_m
+    body_poses[:, 0, 0] += bubble_m
+    return state._replace(object_pose=object_pose, body_poses=body_poses, phi=None)
+
+
+def drift_cost(task, model, anchor_state, state) -> float:
+    """The terminal cost of ``state`` at its own object pose as goal, with the drift anchored at ``anchor_state``:
+    only the drift hinge is left."""
+    anchor = (anchor_state.object_pose[0], anchor_state.body_poses[0])
+    _, terminal = task.costs(model, state.object_pose[0], anchor=anchor)
+    return float(terminal(state)[0])
+
+
+def test_the_anchored_drift_bounds_slip_accumulated_over_replans():
+    """A closed loop replans from states where the bubble already slipped; the anchored drift still counts that
+    slip (25 mm over the cube: penalised), while dragging the cube along (no slip) costs nothing."""
+    task = make_task("pushing")
+    model, state, _ = compile_scene(task.scene)
+    assert drift_cost(task, model, state, moved(state, 0.03, 0.03)) < 1e-6
+    assert drift_cost(task, model, state, moved(state, 0.01, 0.035)) > 1.0
+    slipped = moved(state, 0.01, 0.035)
+    stage, _ = task.costs(model, slipped.object_pose[0])  # anchored at each plan's start: the slip is forgotten
+    assert float(stage(slipped, torch.zeros(1, model.n_bodies, 6, dtype=F64), 0)[0]) < 1e-6
+
+
+def test_rolling_without_slip_is_no_drift_and_dragging_is():
+    """Rolling: the bubble on top moves twice as far as the cylinder's centre when nothing slips."""
+    task = make_task("rolling")
+    model, state, _ = compile_scene(task.scene)
+    assert drift_cost(task, model, state, moved(state, 0.04, 0.08)) < 1e-6
+    assert drift_cost(task, model, state, moved(state, 0.08, 0.08)) > 1.0
+
+
 @pytest.mark.parametrize("name", TASKS)
 def test_pruning_keeps_every_point_that_touches_a_fixed_body_at_any_goal(name):
     """The compiler prunes points out of ``reach``; a task's motion must not bring a pruned point into contact.
