@@ -194,8 +194,9 @@ class PlannerConfig(Strict):
 class SimConfig(Strict):
     """sim_world: physics rate (Hz of simulated time, run in real time), the plant's spacing relative to the
     planner's, camera noise (grey levels) and blur (px), depth noise (m). compile: run the plant's step compiled
-    (``hydrosoft.dynamics.CompiledStep``): about 7x less CPU per tick (1.3 against 9.6 ms, one thread, the
-    pushing plant of deploy/sim.toml) for 40-60 s of compilation before READY. On a small machine the
+    (``hydrosoft.dynamics.CompiledStep``): a tick (step and snapshot) takes a third of the eager
+    one's CPU (3.6 against 11.0 ms, one thread, deploy/sim.toml's pushing plant: ``hydrosoft-stack bench plant``)
+    for 30-60 s of compilation before READY. On a small machine the
     eager plant, sharing two cores with the planner's solves, falls behind real time while the simulated arm does
     not, and the cube then lags the bubble."""
 
