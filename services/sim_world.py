@@ -68,7 +68,7 @@ SERVICE = "sim_world"
 PLANT = PlantSettings()  # the evaluation plant's contact model and sub-step factor, which sim_world shares
 EVAL_PERIOD_S = 0.1  # ground truth on eval/ at 10 Hz
 RATE_LOG_PERIOD_S = 10.0  # how often the achieved rates and step and render times are logged
-MAX_LAG_TICKS = 5  # further behind its schedule than this, the physics restarts its schedule from now
+MAX_LAG_TICKS = 5  # most plant steps one late tick catches up; further behind, the schedule restarts from now
 TORCH_THREADS = 1  # per torch op: physics and depth rendering run side by side on a small machine
 
 
@@ -152,15 +152,16 @@ class SimPlant:
         model, state = plant_model(config)
         return cls(model, state, [arm.name for arm in config.arms], config.sim.compile)
 
-    def step_to(self, tcp_poses: Mapping[str, np.ndarray]) -> None:
-        """One tick: move each arm's body to ``tcp_poses[arm]`` (``(7,)``, base frame) over one step, then set the
-        body poses exactly to them, and update ``snapshot``. At rest (no body moves and the last such tick left
-        the state exactly as it was) the step is a fixed point and is skipped: only the snapshot's stamp advances.
+    def step_to(self, tcp_poses: Mapping[str, np.ndarray], ticks: int = 1) -> None:
+        """Move each arm's body to ``tcp_poses[arm]`` (``(7,)``, base frame) over ``ticks`` plant steps (equal
+        increments; a late physics loop catches up with real time this way), then set the body poses exactly to
+        them, and update ``snapshot``. At rest (no body moves and the last such tick left the state exactly as it
+        was) the step is a fixed point and is skipped: only the snapshot's stamp advances.
 
         Raises:
             PlantStepError: for a missing or malformed TCP pose, an ``UnstableStepError``, a numerical failure
                 (a torch ``RuntimeError`` or an ``ArithmeticError``) or a non-finite result; the state is then
-                unchanged.
+                unchanged (all ``ticks`` steps or none).
         """
         target = self.state.body_poses.clone()
         for arm, index in self.arm_index.items():
@@ -175,20 +176,27 @@ class SimPlant:
         if still and self._at_rest:
             self.snapshot = replace(self.snapshot, stamp_ns=time.monotonic_ns())
             return
-        u = body_control(self.state.body_poses[0], target[0]).unsqueeze(0)
+        u = body_control(self.state.body_poses[0], target[0]).unsqueeze(0) / ticks
+        nxt = self.state
         with torch.no_grad():
-            try:
-                nxt = step(self.model, self.state, u) if self.compiled is None else self.compiled(self.state, u)
-            except UnstableStepError as error:
-                raise PlantStepError("unstable_step", str(error)) from error
-            except (RuntimeError, ArithmeticError) as error:  # torch's numerical failures on a broken state
-                raise PlantStepError("step_failed", f"{type(error).__name__}: {error}") from error
-        if not all(bool(torch.isfinite(t).all()) for t in nxt[:3]):
-            raise PlantStepError("non_finite_step", "the plant step gave non-finite poses or forces; state kept")
+            for _ in range(ticks):
+                nxt = self._step(nxt._replace(phi=None), u)  # one input signature for a compiled step
         self._at_rest = (still and torch.equal(nxt.object_pose, self.state.object_pose)
                          and torch.equal(nxt.forces, self.state.forces))
         self.state = State(nxt.object_pose, target, nxt.forces)
         self.snapshot = self._snapshot()
+
+    def _step(self, state: State, u: Tensor) -> State:
+        """One plant step of ``u (1, M, 6)`` from ``state`` (no gradient); PlantStepError when it fails."""
+        try:
+            nxt = step(self.model, state, u) if self.compiled is None else self.compiled(state, u)
+        except UnstableStepError as error:
+            raise PlantStepError("unstable_step", str(error)) from error
+        except (RuntimeError, ArithmeticError) as error:  # torch's numerical failures on a broken state
+            raise PlantStepError("step_failed", f"{type(error).__name__}: {error}") from error
+        if not all(bool(torch.isfinite(t).all()) for t in nxt[:3]):
+            raise PlantStepError("non_finite_step", "the plant step gave non-finite poses or forces; state kept")
+        return nxt
 
     def tcp_wrench(self, arm: str) -> np.ndarray:
         """The newest wrench ``(6,)`` [N, N m] on ``arm``'s body, TCP frame (``snapshot``; any thread)."""
@@ -224,14 +232,15 @@ class DurationStats:
     total_s: float = 0.0
     max_s: float = 0.0
 
-    def add(self, duration_s: float) -> None:
-        """Count one run that took ``duration_s`` s."""
-        self.count += 1
+    def add(self, duration_s: float, runs: int = 1) -> None:
+        """Count ``runs`` runs done together in ``duration_s`` s (the max is per such batch)."""
+        self.count += runs
         self.total_s += duration_s
         self.max_s = max(self.max_s, duration_s)
 
     def summary(self, window_s: float) -> str:
-        """``"<name> <rate> Hz, <mean> ms mean, <max> ms max"`` over ``window_s`` s; starts a new window."""
+        """``"<name> <rate> Hz, <mean> ms mean, <max> ms max"`` over ``window_s`` s (mean per run); starts a new
+        window."""
         mean_ms = 1e3 * self.total_s / self.count if self.count else 0.0
         text = f"{self.name} {self.count / window_s:.1f} Hz, {mean_ms:.1f} ms mean, {1e3 * self.max_s:.1f} ms max"
         self.count, self.total_s, self.max_s = 0, 0.0, 0.0
@@ -268,27 +277,31 @@ async def start_devices(service: Service, config: StackConfig,
 
 async def physics_forever(service: Service, plant: SimPlant, controllers: Mapping[str, SimulatedURController],
                            stats: DurationStats) -> None:
-    """Tick the plant at ``1 / plant.model.dt`` Hz towards the controllers' TCP poses (in a thread of its own)."""
+    """Tick the plant towards the controllers' TCP poses (in a thread of its own), one step per ``plant.model.dt``
+    s of real time: a tick that starts late takes the steps it is due (at most ``MAX_LAG_TICKS + 1``) over the motion
+    since the last one, so simulated time keeps up with the simulated arm's real time on a busy machine. Further
+    behind, it counts ``physics_behind`` and restarts its schedule from now (simulated time then lags)."""
     loop = asyncio.get_running_loop()
     period_s = plant.model.dt
     physics = ThreadPoolExecutor(max_workers=1, thread_name_prefix="physics")
     try:
-        next_s = loop.time()
+        next_s = loop.time()  # when the next plant step is due
         while True:
+            late_s = loop.time() - next_s
+            if late_s > MAX_LAG_TICKS * period_s:
+                service.count_error("physics_behind", f"the plant is {late_s * 1e3:.0f} ms behind its schedule: "
+                                                      "simulated time runs slower than real time")
+                next_s, late_s = loop.time(), 0.0
+            due = 1 + max(0, int(late_s / period_s))
             tcp_poses = {arm: controller.tcp_pose() for arm, controller in controllers.items()}
             tic_s = time.perf_counter()
             try:
-                await loop.run_in_executor(physics, plant.step_to, tcp_poses)
+                await loop.run_in_executor(physics, plant.step_to, tcp_poses, due)
             except PlantStepError as error:
                 service.count_error(error.kind, str(error))
-            stats.add(time.perf_counter() - tic_s)
-            next_s += period_s
-            delay_s = next_s - loop.time()
-            if delay_s < -MAX_LAG_TICKS * period_s:
-                service.count_error("physics_behind", f"the plant tick is {-delay_s * 1e3:.0f} ms behind its "
-                                                      "schedule: simulated time runs slower than real time")
-                next_s, delay_s = loop.time(), 0.0
-            await asyncio.sleep(max(delay_s, 0.0))
+            stats.add(time.perf_counter() - tic_s, due)
+            next_s += due * period_s
+            await asyncio.sleep(max(next_s - loop.time(), 0.0))
     finally:
         physics.shutdown(wait=False)  # a tick still running ends on its own; the loop does not wait for it
 

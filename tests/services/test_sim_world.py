@@ -89,6 +89,25 @@ def test_moving_the_tcp_drags_the_cube_and_the_bubble_lands_exactly_on_the_tcp()
     assert abs(cube[1]) < 1e-6 and cube[2] == pytest.approx(CUBE_POSE[2], abs=1e-6)
 
 
+def test_a_late_tick_catches_up_with_the_steps_it_is_due():
+    """step_to(tcp, ticks=3) is three ticks over equal thirds of the motion: simulated time keeps up with the
+    simulated arm's real time when the physics loop runs late."""
+    late, on_time = SimPlant.from_config(pushing_config()), SimPlant.from_config(pushing_config())
+    start = BUBBLE_POSE.copy()
+    for k in (1, 2, 3):
+        tcp = start.copy()
+        tcp[0] += 0.0015 * k / 3
+        on_time.step_to({"bubble": tcp})
+    tcp = start.copy()
+    tcp[0] += 0.0015
+    late.step_to({"bubble": tcp}, ticks=3)
+    np.testing.assert_allclose(late.snapshot.object_pose, on_time.snapshot.object_pose, atol=1e-12)
+    np.testing.assert_array_equal(late.snapshot.tcp_poses["bubble"], tcp)
+    once = SimPlant.from_config(pushing_config())
+    once.step_to({"bubble": tcp})  # the same motion in one step moves the cube differently
+    assert abs(once.snapshot.object_pose[0] - late.snapshot.object_pose[0]) > 1e-6
+
+
 def test_the_tcp_wrench_is_the_objects_push_on_the_bubble_in_the_tcp_frame():
     plant = SimPlant.from_config(pushing_config())
     world = body_wrenches(plant.model, plant.state)[0, plant.arm_index["bubble"]].numpy()
