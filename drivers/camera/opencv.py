@@ -110,7 +110,8 @@ class GrabThread:
                 return frame
             remaining_s = (deadline_ns - time.monotonic_ns()) / 1e9
             try:
-                await asyncio.wait_for(self._new_frame.wait(), max(remaining_s, 0.0))
+                async with asyncio.timeout(max(remaining_s, 0.0)):  # wait_for may swallow a cancellation (3.11)
+                    await self._new_frame.wait()
             except TimeoutError:
                 await self.stop()
                 raise NotConnected(f"{self.label}: no frame within {self.open_timeout_s} s of opening") from None
@@ -142,7 +143,8 @@ class GrabThread:
                 self._returned_sequence = sequence
                 return frame, stamp_ns, hw_stamp_ns
             try:
-                await asyncio.wait_for(self._new_frame.wait(), max(deadline_ns - now_ns, 0) / 1e9)
+                async with asyncio.timeout(max(deadline_ns - now_ns, 0) / 1e9):
+                    await self._new_frame.wait()
             except TimeoutError:
                 raise Stale(f"{self.label}: no new frame for {self.max_age_ms} ms") from None
 

@@ -403,8 +403,12 @@ class URArm:
             self._last_command_ns = time.monotonic_ns()
 
     async def _on_thread(self, thread: ThreadPoolExecutor, call: Callable[[], T], timeout_s: float) -> T:
+        """``call()`` on ``thread``; TimeoutError after ``timeout_s`` s (the call itself runs on). A cancellation
+        always propagates: Python 3.11's ``asyncio.wait_for`` returned the result instead when the call finished
+        just as the task was cancelled, and a SIGINT that landed there left the commander's loop running."""
         loop = asyncio.get_running_loop()
-        return await asyncio.wait_for(loop.run_in_executor(thread, call), timeout_s)
+        async with asyncio.timeout(timeout_s):
+            return await loop.run_in_executor(thread, call)
 
 
 def _read_receive(receive: Any) -> tuple[bool, float, list[float], list[float], int, int]:
