@@ -8,9 +8,10 @@ planner's own prediction of the last plan. ``CemGd`` then plans; the plan's firs
 current TCP poses, are the absolute TCP targets sent to the commanders, each with a deadline. Stale inputs mean no
 solve and no target, also when an input went stale during the solve: the commander's watchdog then stops the arm.
 
-The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. A goal ends ``reached`` (the
-tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed`` (with a reason: an unknown task,
-an unreachable goal, no object pose to start from) or ``stopped``.
+The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. ``Start`` is refused without
+fresh inputs to start from (the drift cost is anchored at the object and TCP poses the goal starts at). A goal ends
+``reached`` (the tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed``
+(with a reason: an unknown task, an unreachable goal) or ``stopped``.
 
 The pure parts (``PlannerCore``, ``resolve_target``, ``targets_from_plan``) are plain functions and classes that
 tests call without sockets; ``main`` is the thin loop.

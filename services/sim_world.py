@@ -8,8 +8,9 @@
   damping time is scaled to keep its mobility ``h / epsilon`` (so the object moves as fast per second as in the
   task's model), and the sub-steps are at most as long as those of ``hydrosoft.tasks.evaluation.PlantSettings``'
   plant (half the planner's). With ``sim.compile`` the step runs compiled (``CompiledStep``, compiled before
-  READY): the physics then keeps its rate on two cores beside the planner. A tick that fails (a bad TCP pose, ``UnstableStepError``, a torch error,
-  non-finite values) is logged and counted under its kind (``PlantStepError``), and the state kept.
+  READY), and a late tick takes the steps it is due, so simulated time keeps up with the simulated arm on two
+  cores beside the planner. A tick that fails (a bad TCP pose, ``UnstableStepError``, a torch error, non-finite
+  values) is logged and counted under its kind (``PlantStepError``), and the state kept.
 - Per arm, a simulated UR controller (``drivers/ur/simulator.py``) on ``arm.ur_host``, started at the scene's pose
   of the arm's body (the TCP frame is the bubble's frame), which the real ``ur_rtde`` client in the arm commander
   talks to; no ``ur_rtde`` client ever runs in this process (the simulator and a client in one process block each
@@ -128,6 +129,7 @@ class SimPlant:
     Args:
         model, state: from ``plant_model`` (or any compiled scene with ``B = 1``).
         arms: the scene bodies the arms carry; each must be an actuated body of ``model``.
+        compiled: step through ``CompiledStep`` (``compiled_step``; its first step compiles, 30-60 s).
 
     ``step_to`` runs in one thread at a time; ``snapshot`` may be read from any thread.
     """
@@ -138,7 +140,7 @@ class SimPlant:
             raise ValueError(f"arms {missing} are not bodies of the plant (its bodies: {list(model.body_names)})")
         self.model = model
         self.state = State(*state[:3])
-        self.compiled = CompiledStep(model, dynamic=False) if compiled else None
+        self.compiled_step = CompiledStep(model, dynamic=False) if compiled else None
         self.arm_index = {arm: model.body_names.index(arm) for arm in arms}
         unactuated = [arm for arm, index in self.arm_index.items() if not bool(model.actuated[index])]
         if unactuated:
@@ -189,7 +191,7 @@ class SimPlant:
     def _step(self, state: State, u: Tensor) -> State:
         """One plant step of ``u (1, M, 6)`` from ``state`` (no gradient); PlantStepError when it fails."""
         try:
-            nxt = step(self.model, state, u) if self.compiled is None else self.compiled(state, u)
+            nxt = step(self.model, state, u) if self.compiled_step is None else self.compiled_step(state, u)
         except UnstableStepError as error:
             raise PlantStepError("unstable_step", str(error)) from error
         except (RuntimeError, ArithmeticError) as error:  # torch's numerical failures on a broken state
@@ -384,11 +386,11 @@ async def serve(service: Service, config: StackConfig) -> None:
     physics_stats = DurationStats("physics")
     image_stats = DurationStats("tag camera (exposure to image)")
     depth_stats = [DurationStats(f"depth {c.arm}") for c in depth_cameras]
-    if plant.compiled is not None:
-        service.log.info("compiling the plant step (sim.compile; 40-60 s)")
+    if plant.compiled_step is not None:
+        service.log.info("compiling the plant step (sim.compile; 30-60 s)")
     await loop.run_in_executor(None, _warm_up, plant, camera, depth_cameras)
-    if plant.compiled is not None and not plant.compiled.compiled:
-        service.log.warning("the plant step runs eager: %s", plant.compiled.fallback_reason)
+    if plant.compiled_step is not None and not plant.compiled_step.compiled:
+        service.log.warning("the plant step runs eager: %s", plant.compiled_step.fallback_reason)
     await service.ready()
     async with asyncio.TaskGroup() as tasks:
         tasks.create_task(physics_forever(service, plant, controllers, physics_stats))

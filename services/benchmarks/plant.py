@@ -75,8 +75,8 @@ def run_mode(config, compiled: bool, stroke_mm: float) -> tuple[dict, list[np.nd
     row = {"mode": "compiled" if compiled else "eager", "ticks": len(times), "ms_per_tick": statistics.median(ms),
            "p95_ms": ms[min(len(ms) - 1, int(0.95 * len(ms)))], "first_tick_s": first_tick_s,
            "object_travel_mm": 1e3 * travel}
-    if compiled and plant.compiled is not None and not plant.compiled.compiled:
-        row["fallback"] = plant.compiled.fallback_reason
+    if plant.compiled_step is not None and not plant.compiled_step.compiled:
+        row["fallback"] = plant.compiled_step.fallback_reason
     return row, poses
 
 

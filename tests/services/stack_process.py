@@ -29,7 +29,7 @@ def free_ur_host() -> str:
 
 
 def sim_toml_text(compiled_plant: bool = False) -> str:
-    """deploy/sim.toml's text, its plant compiled (``[sim] compile``, 40-60 s before sim_world is READY) only when
+    """deploy/sim.toml's text, its plant compiled (``[sim] compile``, 30-60 s before sim_world is READY) only when
     asked: only the end-to-end goals, where the cube must follow the bubble in real time, pay for it at every
     start."""
     text = SIM_TOML.read_text()

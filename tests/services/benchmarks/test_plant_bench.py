@@ -1,4 +1,4 @@
-"""``bench plant`` on deploy/sim.toml's plant, eager only (the compiled mode compiles for 40-60 s; the end-to-end
+"""``bench plant`` on deploy/sim.toml's plant, eager only (the compiled mode compiles for 30-60 s; the end-to-end
 stack test runs that plant)."""
 
 from __future__ import annotations
