@@ -6,7 +6,7 @@ bad key raises ``ConfigError`` naming the file and the key (``limits.max_speed_m
 Layout (see ``deploy/sim.toml`` for a commented example)::
 
     run_dir, log_level, mode          where ipc sockets and pty links live; "sim" or "lab"
-    [scene]                           the task whose scene is on the table, the tags on the object
+    [scene]                           the task whose scene is on the table, where it lies (task_frame), the tags
     [camera]                          the tag camera: intrinsics, pose in the base frame, rate
     [[arms]]                          per arm: the scene body it carries (its TCP is that body's frame), the UR
                                       controller's address, its bubble's depth camera, its F/T sensor's port
@@ -64,15 +64,30 @@ class Strict(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=Tr
     """Base of every config table: unknown keys are errors."""
 
 
+MAX_TASK_FRAME_TILT_DEG = 2.0
+"""The largest angle between the task frame's z axis and the base's: the scenes' gravity acts along the task
+frame's -z, so a task frame that is not level (for a table-mounted arm) is a wrong quaternion, not a slope."""
+
+
 class SceneConfig(Strict):
     """task: the ``hydrosoft.tasks`` task whose scene is on the table. tag_size_m: AprilTag black-square edge on
-    each face of the object (m)."""
+    each face of the object (m). task_frame: ``T_base_task``, where the task scene's frame (its table top at
+    z = 0, the object's start near its origin) lies in the robot's base frame (``services/task_frame.py``); level,
+    so only a turn about z; identity by default."""
 
     task: Literal["pushing", "rotation", "rolling", "in_hand"] = "pushing"
     tag_size_m: float = 0.032
+    task_frame: Pose = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         _positive(self, "scene", "tag_size_m")
+        _check_pose(self.task_frame, "scene.task_frame")
+        _, qx, qy, _ = self.task_frame[3:]
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, 1.0 - 2.0 * (qx * qx + qy * qy)))))
+        _require(tilt <= MAX_TASK_FRAME_TILT_DEG, "scene.task_frame",
+                 f"its z axis is {tilt:.1f} deg from the base's z axis (at most {MAX_TASK_FRAME_TILT_DEG} deg): the "
+                 "table must be level in the base frame, so the quaternion may only turn about z (is it in "
+                 "[qw, qx, qy, qz] order?)")
 
 
 class CameraConfig(Strict):

@@ -375,10 +375,11 @@ class ArmTarget(Message, frozen=True, kw_only=True):
 class Plan(Message, frozen=True, kw_only=True):
     """One MPC solution (K steps, M compliant bodies, N object surface points), float32 or float64.
 
-    actions: ``(K, M, 6)`` per step and body a world-frame translation increment (m) and rotation-vector increment
-    (rad), as ``hydrosoft.dynamics`` takes them. predicted_object_poses: ``(K, 7)`` object pose after each step,
-    world frame (m, wxyz). predicted_forces: ``(M, N, 3)`` force each body applies to each surface point after the
-    first step, world frame, N. cost: the plan's cost (task units). solve_ms: wall time of the solve, ms.
+    actions: ``(K, M, 6)`` per step and body a base-frame translation increment (m) and rotation-vector increment
+    (rad), as ``hydrosoft.dynamics`` takes them (``se3.retract``). predicted_object_poses: ``(K, 7)`` object pose
+    after each step, base frame (m, wxyz). predicted_forces: ``(M, N, 3)`` force each body applies to each surface
+    point after the first step, base frame, N. cost: the plan's cost (task units). solve_ms: wall time of the solve,
+    ms. (The planner plans in the task frame, ``scene.task_frame``, and converts.)
     """
 
     topic = "plan"

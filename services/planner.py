@@ -13,6 +13,10 @@ fresh inputs to start from (the drift cost is anchored at the object and TCP pos
 ``reached`` (the tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed``
 (with a reason: an unknown task, an unreachable goal) or ``stopped``.
 
+Frames: the bus carries base-frame poses; the planner works in the task scene's frame (``scene.task_frame``,
+``services/task_frame.py``). Its inputs are converted on arrival (``fresh_inputs``), its targets, goal and
+predictions back to the base frame on the way out.
+
 The pure parts (``PlannerCore``, ``resolve_target``, ``targets_from_plan``) are plain functions and classes that
 tests call without sockets; ``main`` is the thin loop.
 """
@@ -47,6 +51,7 @@ from hydrosoft.services.bus import Stale
 from hydrosoft.services import service_main
 from hydrosoft.services.config import StackConfig
 from hydrosoft.services.runtime import Service
+from hydrosoft.services.task_frame import TaskFrame
 
 IDLE_PERIOD_S = 0.05  # s between checks while no goal runs or inputs are stale
 SETTLE_S = 0.3  # a goal is reached once the object stayed within its tolerance this long (s)
@@ -74,7 +79,8 @@ class PlannerCore:
     model: the compiled task scene at the planner's spacing, contact model and dtype. arms: for each config arm,
     its body index in the model. sensors: the model's sensor bodies (``tactile.sensor_bodies``). fixed_poses:
     ``(M, 7)`` the scene's body poses (unactuated bodies stay there). metric_points: ``(N, 3)`` object-frame
-    points (5 mm spacing) on which the ADD error is measured.
+    points (5 mm spacing) on which the ADD error is measured. frame: the task frame in the base frame. Poses are
+    in the task frame unless a name says base.
     """
 
     config: StackConfig
@@ -87,6 +93,7 @@ class PlannerCore:
     fixed_poses: torch.Tensor
     metric_points: torch.Tensor
     membranes: dict[str, Ellipsoid] = field(default_factory=dict)
+    frame: TaskFrame = field(default_factory=lambda: TaskFrame.from_pose(se3.identity()))
 
     @classmethod
     def build(cls, config: StackConfig) -> PlannerCore:
@@ -107,7 +114,7 @@ class PlannerCore:
         metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
         membranes = {name: model.bodies[index] for name, index in arms.items()}
         return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
-                   metric, membranes)
+                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame))
 
     def solver(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]) -> CemGd:
         """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode), its drift
@@ -145,14 +152,14 @@ class PlannerCore:
 
 def targets_from_plan(core: PlannerCore, arm_poses: dict[str, torch.Tensor], plan: torch.Tensor,
                       steps: int) -> dict[str, torch.Tensor]:
-    """Absolute TCP targets ``(7,)`` per arm: each arm's current pose moved by the plan's first ``steps`` actions
-    (``plan (K, M, 6)``, world-frame increments as ``dynamics.step`` applies them)."""
+    """Absolute TCP targets ``(7,)`` per arm, base frame: each arm's current pose (task frame) moved by the plan's
+    first ``steps`` actions (``plan (K, M, 6)``, task-frame increments as ``dynamics.step`` applies them)."""
     targets = {}
     for name, index in core.arms.items():
         pose = arm_poses[name].clone()
         for k in range(min(steps, plan.shape[0])):
             pose = se3.retract(pose, plan[k, index].double())
-        targets[name] = pose
+        targets[name] = core.frame.to_base(pose)
     return targets
 
 
@@ -235,7 +242,8 @@ class Planner:
             start_pose, arm_poses, _ = self.fresh_inputs()
         except Stale as err:
             return msg.CommandReply(ok=False, error=f"no fresh input to start from ({err})")
-        target = resolve_target(self.goal, start_pose)
+        frame = self.core.frame
+        target = frame.to_task(resolve_target(self.goal, frame.to_base(start_pose)))
         episode = Episode(self.goal, target, self.core.solver(target, start_pose, arm_poses), time.monotonic())
         task = self.core.task
         if not task.reachable(start_pose, target, int(self.goal.timeout_s / self.core.model.dt)):
@@ -245,7 +253,7 @@ class Planner:
             ws_lo, ws_hi = self.config.limits.workspace_min, self.config.limits.workspace_max
             shift = target[:3] - start_pose[:3]
             for name, index in self.core.arms.items():
-                moved = self.core.fixed_poses[index, :3] + shift
+                moved = frame.points_to_base(self.core.fixed_poses[index, :3] + shift)
                 if any(not lo <= float(v) <= hi for v, lo, hi in zip(moved, ws_lo, ws_hi)):
                     episode.finish("failed", f"unreachable: arm {name} would leave the workspace box to get there")
         episode.error_mm = self.core.error_mm(start_pose, target)
@@ -260,7 +268,8 @@ class Planner:
         episode = self.episode or self.last_outcome
         if episode is None:
             return msg.StatusReply(ok=True, goal=self.goal, status=self.service.status())
-        goal = msgspec.structs.replace(episode.goal, target_pose=episode.target.numpy(), dx_m=0.0, dy_m=0.0,
+        goal = msgspec.structs.replace(episode.goal, target_pose=self.core.frame.to_base(episode.target).numpy(),
+                                       dx_m=0.0, dy_m=0.0,
                                        dyaw_rad=0.0)
         solves = len(episode.solve_s)
         return msg.StatusReply(
@@ -290,12 +299,14 @@ class Planner:
     # --- the loop ---
 
     def fresh_inputs(self) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, msg.MembraneDeformation]]:
-        """The newest object pose, TCP poses and deformation images, each within its maximum age (else Stale)."""
-        object_pose = as_pose(self.inputs.latest("object_pose/object", self.max_age["object_pose"]).value.pose)
+        """The newest object pose, TCP poses (task frame) and deformation images, each within its maximum age
+        (else Stale)."""
+        to_task = self.core.frame.to_task
+        object_pose = to_task(as_pose(self.inputs.latest("object_pose/object", self.max_age["object_pose"]).value.pose))
         arms, deformations = {}, {}
         for arm in self.config.arms:
             state = self.inputs.latest(f"arm_state/{arm.name}", self.max_age["arm_state"]).value
-            arms[arm.name] = as_pose(state.tcp_pose)
+            arms[arm.name] = to_task(as_pose(state.tcp_pose))
             deformations[arm.name] = self.inputs.latest(f"deformation/{arm.name}", self.max_age["deformation"]).value
         return object_pose, arms, deformations
 
@@ -374,18 +385,21 @@ class Planner:
         episode.prediction = await loop.run_in_executor(None, predict, self.core, state, result.plan.detach(), steps)
 
     def plan_message(self, result, state: State) -> msg.Plan:
-        """The Plan message of a solve: actions, predicted object poses and the first step's contact forces."""
+        """The Plan message of a solve, base frame: actions, predicted object poses and the first step's contact
+        forces."""
         with torch.no_grad():
             states, s = [], state
             for k in range(result.plan.shape[0]):
                 s = step(self.core.model, s, result.plan[k].unsqueeze(0))
                 states.append(s)
         dtype = np.float32 if self.core.model.dtype == torch.float32 else np.float64
-        poses = torch.stack([s.object_pose[0] for s in states]).double()
+        frame = self.core.frame
+        poses = frame.to_base(torch.stack([s.object_pose[0] for s in states]))
         poses[:, 3:] = torch.nn.functional.normalize(poses[:, 3:], dim=-1)
-        return msg.Plan(task=self.config.scene.task, actions=result.plan.detach().numpy().astype(dtype),
+        actions = frame.vectors_to_base(result.plan.detach().unflatten(-1, (2, 3))).flatten(-2)
+        return msg.Plan(task=self.config.scene.task, actions=actions.numpy().astype(dtype),
                         predicted_object_poses=poses.numpy().astype(dtype),
-                        predicted_forces=states[0].forces[0].detach().numpy().astype(dtype),
+                        predicted_forces=frame.vectors_to_base(states[0].forces[0].detach()).numpy().astype(dtype),
                         cost=float(result.cost) if math.isfinite(result.cost) else 0.0,
                         solve_ms=1e3 * sum(result.timings.values()))
 

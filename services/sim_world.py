@@ -10,7 +10,9 @@
   plant (half the planner's). With ``sim.compile`` the step runs compiled (``CompiledStep``, compiled before
   READY), and a late tick takes the steps it is due, so simulated time keeps up with the simulated arm on two
   cores beside the planner. A tick that fails (a bad TCP pose, ``UnstableStepError``, a torch error, non-finite
-  values) is logged and counted under its kind (``PlantStepError``), and the state kept.
+  values) is logged and counted under its kind (``PlantStepError``), and the state kept. The plant lies at
+  ``scene.task_frame`` in the base frame (``services/task_frame.py``): TCP poses arrive and every pose, point and
+  force leaves in the base frame, as in the lab.
 - Per arm, a simulated UR controller (``drivers/ur/simulator.py``) on ``arm.ur_host``, started at the scene's pose
   of the arm's body (the TCP frame is the bubble's frame), which the real ``ur_rtde`` client in the arm commander
   talks to; no ``ur_rtde`` client ever runs in this process (the simulator and a client in one process block each
@@ -61,6 +63,7 @@ from hydrosoft.services.config import ConfigError, StackConfig
 from hydrosoft.services.runtime import Service
 from hydrosoft.services.sim_devices import image_topic
 from hydrosoft.services.sim_world_render import BubbleDepthCamera, tag_camera
+from hydrosoft.services.task_frame import TaskFrame
 from hydrosoft.services.tag_tracker import OBJECT, TAG_CAMERA
 from hydrosoft.tasks import make_task
 from hydrosoft.tasks.evaluation import PlantSettings, with_contact
@@ -130,16 +133,20 @@ class SimPlant:
         model, state: from ``plant_model`` (or any compiled scene with ``B = 1``).
         arms: the scene bodies the arms carry; each must be an actuated body of ``model``.
         compiled: step through ``CompiledStep`` (``compiled_step``; its first step compiles, 30-60 s).
+        frame: where the scene lies in the base frame (identity when None); ``state`` is in the scene's frame, what
+            goes in and out (``step_to``, ``snapshot``, ``contact_forces``) in the base frame.
 
     ``step_to`` runs in one thread at a time; ``snapshot`` may be read from any thread.
     """
 
-    def __init__(self, model: Model, state: State, arms: Sequence[str], compiled: bool = False) -> None:
+    def __init__(self, model: Model, state: State, arms: Sequence[str], compiled: bool = False,
+                 frame: TaskFrame | None = None) -> None:
         missing = [arm for arm in arms if arm not in model.body_names]
         if missing:
             raise ValueError(f"arms {missing} are not bodies of the plant (its bodies: {list(model.body_names)})")
         self.model = model
         self.state = State(*state[:3])
+        self.frame = TaskFrame.from_pose(se3.identity()) if frame is None else frame
         self.compiled_step = CompiledStep(model, dynamic=False) if compiled else None
         self.arm_index = {arm: model.body_names.index(arm) for arm in arms}
         unactuated = [arm for arm, index in self.arm_index.items() if not bool(model.actuated[index])]
@@ -152,7 +159,8 @@ class SimPlant:
     def from_config(cls, config: StackConfig) -> SimPlant:
         """The plant of ``config`` (``plant_model``) with its arms, its step compiled when ``sim.compile``."""
         model, state = plant_model(config)
-        return cls(model, state, [arm.name for arm in config.arms], config.sim.compile)
+        return cls(model, state, [arm.name for arm in config.arms], config.sim.compile,
+                   TaskFrame.from_pose(config.scene.task_frame))
 
     def step_to(self, tcp_poses: Mapping[str, np.ndarray], ticks: int = 1) -> None:
         """Move each arm's body to ``tcp_poses[arm]`` (``(7,)``, base frame) over ``ticks`` plant steps (equal
@@ -173,7 +181,7 @@ class SimPlant:
                 raise PlantStepError("bad_tcp_pose", f"no TCP pose for arm {arm!r}") from None
             except ValueError as error:
                 raise PlantStepError("bad_tcp_pose", str(error)) from error
-            target[0, index] = torch.as_tensor(pose, dtype=self.model.dtype)
+            target[0, index] = self.frame.to_task(torch.as_tensor(pose)).to(self.model.dtype)
         still = torch.equal(target, self.state.body_poses)
         if still and self._at_rest:
             self.snapshot = replace(self.snapshot, stamp_ns=time.monotonic_ns())
@@ -206,8 +214,8 @@ class SimPlant:
 
     def contact_forces(self) -> tuple[np.ndarray, np.ndarray]:
         """``(points (N, 3), forces (M, N, 3))`` float64 copies: the object-frame surface points (m) and the force
-        each body applies to each of them (world frame, N)."""
-        return (self.model.points.double().numpy().copy(), self.state.forces[0].double().numpy().copy())
+        each body applies to each of them (base frame, N)."""
+        return (self.model.points.double().numpy().copy(), self.frame.vectors_to_base(self.state.forces[0]).numpy())
 
     def _snapshot(self) -> PlantSnapshot:
         state = self.state
@@ -216,9 +224,9 @@ class SimPlant:
         for arm, index in self.arm_index.items():
             pose = state.body_poses[0, index]
             R = se3.quat_to_matrix(pose[3:])
-            tcp_poses[arm] = pose.double().numpy().copy()
+            tcp_poses[arm] = self.frame.to_base(pose).numpy()
             tcp_wrenches[arm] = torch.cat([R.mT @ wrenches[index, :3], R.mT @ wrenches[index, 3:]]).double().numpy()
-        return PlantSnapshot(time.monotonic_ns(), state.object_pose[0].double().numpy().copy(), tcp_poses,
+        return PlantSnapshot(time.monotonic_ns(), self.frame.to_base(state.object_pose[0]).numpy(), tcp_poses,
                              tcp_wrenches)
 
 

@@ -25,6 +25,7 @@ import sys
 from dataclasses import dataclass, field
 
 import cv2
+import msgspec
 import numpy as np
 
 from hydrosoft.drivers.base import Camera
@@ -179,8 +180,12 @@ def camera_calibration(config: StackConfig) -> CameraCalibration:
 
 
 def config_layout(config: StackConfig, T_base_camera: np.ndarray) -> TagLayout:
-    """``object_layout`` of the object of the config's task, with ``scene.tag_size_m``."""
-    return object_layout(make_task(config.scene.task).scene.object, config.scene.tag_size_m, T_base_camera)
+    """``object_layout`` of the object of the config's task at its scene pose carried into the base frame by
+    ``scene.task_frame`` (so the tags go on the faces the camera sees wherever the scene lies), with
+    ``scene.tag_size_m``."""
+    spec = make_task(config.scene.task).scene.object
+    pose = compose(np.asarray(config.scene.task_frame, dtype=np.float64), np.asarray(spec.pose, dtype=np.float64))
+    return object_layout(msgspec.structs.replace(spec, pose=pose.tolist()), config.scene.tag_size_m, T_base_camera)
 
 
 # --- tracking one image -----------------------------------------------------------------------------------------

@@ -28,6 +28,8 @@ def test_the_shipped_configs_load(name):
     (ONE_ARM + "[planner]\nheartbeat_period_s = 0.3\n", "planner.heartbeat_period_s"),
     (ONE_ARM + "[services.nope]\nrestart = \"always\"\n", "services.nope"),
     (ONE_ARM + "[sim]\nrate_hz = 20\n", "sim.rate_hz"),
+    (ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.9, 0, 0, 0.1]\n", "scene.task_frame"),  # not unit length
+    (ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.995, 0.0998, 0, 0]\n", "scene.task_frame"),  # 11.5 deg tilt
     ('arms = [{ name = "a" }, { name = "a" }]\n', "arms"),
 ])
 def test_a_bad_key_is_named(text, key):
@@ -49,3 +51,11 @@ def test_per_arm_service_names():
         config.arm_service("ft_reader", "planner")
     with pytest.raises(ConfigError, match="no arm named 'left'"):
         config.arm_service("ft_reader", "ft_reader-left")
+
+
+def test_a_level_task_frame_is_taken_and_a_tilted_one_named_with_its_tilt():
+    turned = parse_config(ONE_ARM + "[scene]\ntask_frame = [0.5, -0.1, -0.02, 0.0, 0.0, 0.0, 1.0]\n", "test.toml")
+    assert turned.scene.task_frame == (0.5, -0.1, -0.02, 0.0, 0.0, 0.0, 1.0)  # 180 deg about z is level
+    assert parse_config(ONE_ARM, "test.toml").scene.task_frame == (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+    with pytest.raises(ConfigError, match=r"scene\.task_frame: its z axis is 180\.0 deg .*\[qw, qx, qy, qz\] order"):
+        parse_config(ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.0, 0.0, 1.0, 0.0]\n", "test.toml")  # 180 about y

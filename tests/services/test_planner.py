@@ -61,3 +61,23 @@ def test_targets_apply_the_first_plan_steps_to_the_current_tcp(core):
     assert torch.allclose(targets["bubble"][:3], tcp[:3] + torch.tensor([0.006, -0.003, 0.0], dtype=torch.float64))
     assert torch.allclose(targets_from_plan(core, {"bubble": tcp}, plan, steps=99)["bubble"][:2],
                           tcp[:2] + torch.tensor([0.012, -0.006], dtype=torch.float64))
+
+
+def test_targets_leave_in_the_base_frame_of_a_turned_and_moved_task_frame(core, tmp_path):
+    text = SIM_TOML.read_text().replace('tag_size_m = 0.032', 'tag_size_m = 0.032\ntask_frame = [0.5, -0.1, -0.02, '
+                                        f'{math.sqrt(0.5)}, 0.0, 0.0, {math.sqrt(0.5)}]', 1)
+    path = tmp_path / "turned.toml"
+    path.write_text(text)
+    turned = PlannerCore.build(load_config(path))
+    tcp = turned.fixed_poses[0].clone()  # task frame
+    plan = torch.zeros(6, 2, 6)
+    plan[:, 0, 0] = 0.002  # +x of the task frame
+    target = targets_from_plan(turned, {"bubble": tcp}, plan, steps=3)["bubble"]
+    expected = tcp[:3] + torch.tensor([0.006, 0.0, 0.0], dtype=torch.float64)
+    expected = torch.tensor([0.5 - float(expected[1]), -0.1 + float(expected[0]), -0.02 + float(expected[2])],
+                            dtype=torch.float64)  # 90 deg about z, then moved
+    torch.testing.assert_close(target[:3], expected, atol=1e-9, rtol=0)
+    torch.testing.assert_close(turned.frame.to_task(target)[:3], tcp[:3] + torch.tensor([0.006, 0, 0.0],
+                               dtype=torch.float64), atol=1e-9, rtol=0)
+    same = targets_from_plan(core, {"bubble": tcp}, plan, steps=3)["bubble"]  # sim.toml: the identity
+    torch.testing.assert_close(same[:3], tcp[:3] + torch.tensor([0.006, 0, 0.0], dtype=torch.float64))

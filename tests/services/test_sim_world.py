@@ -89,6 +89,28 @@ def test_moving_the_tcp_drags_the_cube_and_the_bubble_lands_exactly_on_the_tcp()
     assert abs(cube[1]) < 1e-6 and cube[2] == pytest.approx(CUBE_POSE[2], abs=1e-6)
 
 
+def test_a_plant_placed_in_a_task_frame_takes_and_gives_base_frame_poses_and_forces():
+    """The same push with the scene at ``scene.task_frame`` (turned 90 deg, moved) and at the base origin: every
+    pose, force and wrench that leaves the plant is the identity plant's, carried into the base frame."""
+    frame = [0.5, -0.1, -0.02, math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]
+    placed = SimPlant.from_config(pushing_config(scene=f"[scene]\ntask_frame = {frame}\n"))
+    origin = SimPlant.from_config(pushing_config())
+    to_base = placed.frame.to_base
+    np.testing.assert_allclose(placed.snapshot.tcp_poses["bubble"], to_base(torch.tensor(BUBBLE_POSE)), atol=1e-15)
+    tcp = BUBBLE_POSE.copy()
+    for _ in range(20):
+        tcp[0] += 0.0005  # +x of the task frame: +y of the base
+        origin.step_to({"bubble": tcp})
+        placed.step_to({"bubble": to_base(torch.tensor(tcp)).numpy()})
+    cube = placed.snapshot.object_pose
+    assert cube[1] - (-0.1) > 0.003 and abs(cube[0] - 0.5) < 1e-6, cube  # dragged along the base's +y
+    np.testing.assert_allclose(cube, to_base(torch.tensor(origin.snapshot.object_pose)).numpy(), atol=1e-9)
+    np.testing.assert_allclose(placed.tcp_wrench("bubble"), origin.tcp_wrench("bubble"), atol=1e-9)  # TCP frame
+    (_, forces), (_, origin_forces) = placed.contact_forces(), origin.contact_forces()
+    np.testing.assert_allclose(forces[..., 0], -origin_forces[..., 1], atol=1e-9)  # turned 90 deg about z
+    np.testing.assert_allclose(forces[..., 1], origin_forces[..., 0], atol=1e-9)
+
+
 def test_a_late_tick_catches_up_with_the_steps_it_is_due():
     """step_to(tcp, ticks=3) is three ticks over equal thirds of the motion: simulated time keeps up with the
     simulated arm's real time when the physics loop runs late."""

@@ -12,6 +12,7 @@ import time
 
 import msgspec
 import numpy as np
+import torch
 import pytest
 
 from hydrosoft.drivers.errors import NotConnected, Stale
@@ -214,3 +215,21 @@ def test_the_tracker_process_follows_rendered_images_and_counts_rejections(tmp_p
         for pose in poses[name]:
             assert_near(pose.pose, truth, mm=3.0, deg=1.5)
             assert pose.source == "tag_tracker" and pose.tags_used
+
+
+def test_a_scene_moved_and_turned_by_its_task_frame_keeps_its_tags_facing_the_camera():
+    """The camera and the scene moved together (``scene.task_frame``): the same faces carry tags, the table is drawn
+    at the frame's height, and the tracker finds the cube in the base frame as precisely as at the origin."""
+    from hydrosoft.services.task_frame import TaskFrame
+
+    frame = [0.4, -0.1, -0.05, math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]
+    to_base = TaskFrame.from_pose(frame).to_base
+    camera = to_base(torch.tensor(CAMERA_POSE)).tolist()
+    config = parse_config(f'[[arms]]\nname = "bubble"\n[scene]\ntask = "pushing"\ntask_frame = {frame}\n'
+                          f'[camera]\npose = {camera}\n')
+    tracker = TagTracker.from_config(config)
+    assert tracker.layout.ids == (0, 1, 4)  # as at the origin: +z, +x, -y of the cube face the camera
+    pose = to_base(torch.tensor(POSE_B)).numpy()
+    tracked = tracker.track(render(config, pose))
+    assert_near(tracked.result.T_base_object, pose, mm=1.5, deg=1.0)
+    assert len(tracked.result.tag_ids) >= 2
