@@ -18,6 +18,7 @@ GROUPS = {
         "bus": ("hydrosoft.services.benchmarks.bus", "one-way bus latency between two processes: wrench and 640x480 depth frames over tcp loopback and ipc"),
         "tracker": ("hydrosoft.services.benchmarks.tracker", "AprilTag tracker accuracy on rendered images: position/orientation error and detection rate per camera distance and view angle"),
         "plant": ("hydrosoft.services.benchmarks.plant", "one sim_world physics tick, eager against compiled (sim.compile), on a config's plant"),
+        "soak": ("hydrosoft.services.benchmarks.soak", "the sim stack idle (CPU per service), then goals back to back for minutes: memory, CPU and the camera-to-target latency split, first against last window"),
         "recording": ("hydrosoft.services.benchmarks.recording", "the sim stack's plan rate and bus latency without, with and again without a recorder attached, in one run"),
         "wrench": ("hydrosoft.bench.wrench", "wrench RMSE per object and contact model on collected recordings (paper Table II)"),
     }),

@@ -380,6 +380,12 @@ class Plan(Message, frozen=True, kw_only=True):
     after each step, base frame (m, wxyz). predicted_forces: ``(M, N, 3)`` force each body applies to each surface
     point after the first step, base frame, N. cost: the plan's cost (task units). solve_ms: wall time of the solve,
     ms. (The planner plans in the task frame, ``scene.task_frame``, and converts.)
+
+    Where the time went from the camera image to the arm targets (``time.monotonic_ns()`` of the planner's host, 0
+    when unknown): image_stamp_ns, the tag image's stamp behind the object pose used (its ``hw_stamp_ns``: the
+    exposure in sim; in the lab the camera's own clock); pose_stamp_ns, when the tracker published that pose;
+    inputs_ns, when the planner took its inputs; solve_start_ns, when the solve began (after the state estimate);
+    targets_ns, when the targets of this plan were sent.
     """
 
     topic = "plan"
@@ -395,6 +401,11 @@ class Plan(Message, frozen=True, kw_only=True):
     predicted_forces: np.ndarray
     cost: float
     solve_ms: float
+    image_stamp_ns: int = 0
+    pose_stamp_ns: int = 0
+    inputs_ns: int = 0
+    solve_start_ns: int = 0
+    targets_ns: int = 0
 
 
 # --- health ------------------------------------------------------------------------------------------------------

@@ -208,6 +208,7 @@ class Planner:
             + [config.endpoint(f"bubble_camera-{a.name}") for a in config.arms],
             topics=["object_pose/", "arm_state/", "deformation/"], background=True)
         self.out = service.publisher(config.endpoint("planner"))
+        self.pose_stamps = (0, 0)  # (image, publish) stamps of the object pose fresh_inputs returned last, ns
 
     # --- client API ---
 
@@ -300,9 +301,11 @@ class Planner:
 
     def fresh_inputs(self) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, msg.MembraneDeformation]]:
         """The newest object pose, TCP poses (task frame) and deformation images, each within its maximum age
-        (else Stale)."""
+        (else Stale). ``pose_stamps`` keeps the object pose's image and publish stamps (ns) for the Plan."""
         to_task = self.core.frame.to_task
-        object_pose = to_task(as_pose(self.inputs.latest("object_pose/object", self.max_age["object_pose"]).value.pose))
+        tracked = self.inputs.latest("object_pose/object", self.max_age["object_pose"]).value
+        self.pose_stamps = (tracked.hw_stamp_ns or 0, tracked.stamp_ns)
+        object_pose = to_task(as_pose(tracked.pose))
         arms, deformations = {}, {}
         for arm in self.config.arms:
             state = self.inputs.latest(f"arm_state/{arm.name}", self.max_age["arm_state"]).value
@@ -340,6 +343,8 @@ class Planner:
             self.service.count_error("stale_input", str(err))
             await asyncio.sleep(IDLE_PERIOD_S)
             return
+        stamps = {"image_stamp_ns": self.pose_stamps[0], "pose_stamp_ns": self.pose_stamps[1],
+                  "inputs_ns": time.monotonic_ns()}
         episode.error_mm = self.core.error_mm(object_pose, episode.target)
         now = time.monotonic()
         if episode.error_mm > episode.goal.tolerance_mm:
@@ -360,6 +365,7 @@ class Planner:
         observation = self.core.observation(object_pose, arm_poses, penetration)
         state = estimate_state(self.core.model, observation, self.core.sensors, episode.prediction)
         tic = time.perf_counter()
+        stamps["solve_start_ns"] = time.monotonic_ns()
         result = await loop.run_in_executor(None, episode.solver.solve, state)
         solve_s = time.perf_counter() - tic
         if self.episode is not episode or episode.outcome != "running":
@@ -380,13 +386,14 @@ class Planner:
         for name, pose in targets.items():
             await self.out.send(msg.ArmTarget(arm=name, tcp_pose=pose.numpy(), deadline_ns=deadline_ns,
                                               plan_seq=plan_seq), topic=f"arm_target/{name}")
-        plan = await loop.run_in_executor(None, self.plan_message, result, state)
+        stamps["targets_ns"] = time.monotonic_ns()
+        plan = await loop.run_in_executor(None, self.plan_message, result, state, stamps)
         await self.out.send(plan, topic=f"plan/{self.config.scene.task}")
         episode.prediction = await loop.run_in_executor(None, predict, self.core, state, result.plan.detach(), steps)
 
-    def plan_message(self, result, state: State) -> msg.Plan:
+    def plan_message(self, result, state: State, stamps: dict[str, int]) -> msg.Plan:
         """The Plan message of a solve, base frame: actions, predicted object poses and the first step's contact
-        forces."""
+        forces, with the ``stamps`` (ns) of its way from the camera to the targets (``msg.Plan``)."""
         with torch.no_grad():
             states, s = [], state
             for k in range(result.plan.shape[0]):
@@ -401,7 +408,7 @@ class Planner:
                         predicted_object_poses=poses.numpy().astype(dtype),
                         predicted_forces=frame.vectors_to_base(states[0].forces[0].detach()).numpy().astype(dtype),
                         cost=float(result.cost) if math.isfinite(result.cost) else 0.0,
-                        solve_ms=1e3 * sum(result.timings.values()))
+                        solve_ms=1e3 * sum(result.timings.values()), **stamps)
 
 
 async def run(service: Service, config: StackConfig) -> None:

@@ -20,11 +20,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import shutil
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -35,61 +31,26 @@ import numpy as np
 import zmq
 
 from hydrosoft.services import messages as msg
+from hydrosoft.services.benchmarks.launched_stack import (
+    DEFAULT_CONFIG,
+    STACK_READY_S,
+    Child,
+    cpu_time_s,
+    private_config,
+    start_goal,
+)
 from hydrosoft.services.bus import Bus
-from hydrosoft.services.client import ClientError, StackClient
+from hydrosoft.services.client import StackClient
 from hydrosoft.services.config import StackConfig, load_config
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "sim.toml"
-#: Longest wait for the whole stack to report ready, s (the planner and sim_world compile on two busy cores).
-STACK_READY_S = 300.0
 #: Longest wait for the recorder to report READY, s.
 RECORDER_READY_S = 120.0
 #: After the goal starts, the planner settles for this long before the first phase, s.
 SETTLE_S = 5.0
-#: The launcher's shutdown bound plus a margin, s.
-STOP_WAIT_S = 20.0
 #: The goal: push the object this far along x (m), with a timeout beyond the run (s): it stays running.
 GOAL_DX_M = 0.1
 GOAL_TIMEOUT_S = 3600.0
-#: How long the goal's start may be refused (no object pose yet) before the benchmark gives up, s.
-GOAL_START_S = 60.0
 PHASES = ("without", "with", "without_again")
-
-
-def private_config(source: Path, root: Path) -> Path:
-    """``source`` with its run_dir (and every path under it, such as the FT 300 links) moved to ``root/run`` and each
-    arm's UR controller on a free 127.0.0.N (another stack on this host may hold the configured one). Raises
-    ValueError when the file does not spell those values as quoted strings."""
-    config = load_config(source)
-    run_dir = root / "run"
-    text = source.read_text().replace(f'"{config.run_dir}', f'"{run_dir}')
-    for index, arm in enumerate(config.arms):
-        text = text.replace(f'"{arm.ur_host}"', f'"{free_ur_host(index)}"')
-    path = root / "stack.toml"
-    path.write_text(text)
-    private = load_config(path)
-    if private.run_dir != str(run_dir) or any(a.ur_host == b.ur_host for a, b in zip(private.arms, config.arms)):
-        raise ValueError(f"{source}: could not move run_dir and ur_host (write them as quoted strings)")
-    return path
-
-
-def free_ur_host(offset: int) -> str:
-    """A 127.0.0.N whose RTDE port (30004) is free now."""
-    for attempt in range(60):
-        host = f"127.0.0.{100 + (os.getpid() + offset + attempt) % 100}"
-        with socket.socket() as probe:
-            try:
-                probe.bind((host, 30004))
-            except OSError:
-                continue
-        return host
-    raise RuntimeError("no free 127.0.0.N for the simulated UR controller")
-
-
-def cpu_time_s(pid: int) -> float:
-    """User plus system CPU time of process ``pid`` so far, s (Linux ``/proc/PID/stat``)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def latency_summary(ages_ns: dict[str, list[int]], seconds: float) -> dict[str, dict[str, float]]:
@@ -130,48 +91,6 @@ async def probe(config: StackConfig, seconds: float) -> dict[str, object]:
             else None, "latency": latency_summary(ages, seconds)}
 
 
-class Child:
-    """A process in its own session, its output to a file; ``wait_for`` a line, ``stop`` by pid (SIGINT, then
-    SIGKILL of its group)."""
-
-    def __init__(self, command: list[str], log: Path) -> None:
-        self.log = log
-        self._out = log.open("wb")
-        self.process = subprocess.Popen(command, stdout=self._out, stderr=subprocess.STDOUT, start_new_session=True)
-
-    def wait_for(self, text: str, timeout_s: float) -> None:
-        deadline_s = time.monotonic() + timeout_s
-        while text not in self.log.read_text(errors="replace"):
-            if self.process.poll() is not None or time.monotonic() > deadline_s:
-                raise RuntimeError(f"no {text!r} from {self.process.args[:4]} within {timeout_s} s; see {self.log}")
-            time.sleep(0.2)
-
-    def stop(self) -> None:
-        if self.process.poll() is None:
-            os.killpg(self.process.pid, signal.SIGINT)
-            try:
-                self.process.wait(STOP_WAIT_S)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.process.pid, signal.SIGKILL)
-                self.process.wait(STOP_WAIT_S)
-        self._out.close()
-
-
-async def _goal(config_path: Path, task: str) -> None:
-    """Set and start the goal, trying again while the planner has no object pose yet (the tag tracker's first)."""
-    deadline_s = time.monotonic() + GOAL_START_S
-    async with StackClient(config_path) as client:
-        await client.set_goal(task, dx_m=GOAL_DX_M, timeout_s=GOAL_TIMEOUT_S)
-        while True:
-            try:
-                await client.start()
-                return
-            except ClientError:
-                if time.monotonic() > deadline_s:
-                    raise
-            await asyncio.sleep(1.0)
-
-
 async def _status(config_path: Path) -> msg.StatusReply:
     async with StackClient(config_path) as client:
         return await client.status()
@@ -188,7 +107,11 @@ def measure(config: Path, seconds: float, keep: Path | None = None) -> dict[str,
         stack = Child([sys.executable, "-m", "hydrosoft.services.launcher", str(config_path)], root / "launcher.log")
         children.append(stack)
         stack.wait_for("stack ready", STACK_READY_S)
-        asyncio.run(_goal(config_path, stack_config.scene.task))
+
+        async def goal() -> None:
+            (await start_goal(config_path, stack_config.scene.task, dx_m=GOAL_DX_M, timeout_s=GOAL_TIMEOUT_S)).close()
+
+        asyncio.run(goal())
         time.sleep(SETTLE_S)
         result: dict[str, object] = {"seconds_per_phase": seconds}
         result["without"] = asyncio.run(probe(stack_config, seconds))

@@ -6,14 +6,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from hydrosoft.services.benchmarks.recording import (
-    DEFAULT_CONFIG,
-    PHASES,
-    cpu_time_s,
-    format_table,
-    latency_summary,
-    private_config,
-)
+from hydrosoft.services.benchmarks.launched_stack import DEFAULT_CONFIG, cpu_time_s, private_config
+from hydrosoft.services.benchmarks.recording import PHASES, format_table, latency_summary
 from hydrosoft.services.config import load_config
 
 

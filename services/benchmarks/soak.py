@@ -1,0 +1,269 @@
+"""``hydrosoft-stack bench soak``: the sim stack idle, then running goals back to back, measured in one run.
+
+The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, made private: its own run_dir and
+127.0.0.N), then:
+
+- **idle** (``--idle-seconds``, no goal): each service's CPU use (% of one core, from ``/proc``) and the sum;
+- **soak** (``--minutes``): goals back to back, there and back again (pushing and rolling: +-3 cm along x;
+  rotation: +-20 deg), each waited for (``GOAL_TIMEOUT_S``) and its outcome and true error kept. Meanwhile every
+  ``SAMPLE_PERIOD_S`` each service's resident memory and CPU time are sampled, and every plan the planner publishes
+  is read for its way from the camera to the arm targets (``msg.Plan``'s stamps), split into detection (image to
+  the tracker's pose), queue (pose to the planner taking it), estimation (to the solve's start), solve (to the
+  targets sent) and the total;
+- the first and the last ``--window`` seconds of the soak compared: per service the mean memory (MB) and CPU
+  use, and the latency split (p50 and p99, ms), with each one's growth (last / first - 1). The issue's target:
+  neither memory nor the loop latency grows by more than 10 % over 10 minutes.
+
+It prints a table and one JSON document (only the document with ``--json``). Every process it starts is stopped
+by its pid. Latencies are the planner host's monotonic clock, so they are meaningful in sim mode; in the lab the
+image stamp is the camera's own clock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zmq
+
+from hydrosoft.services import messages as msg
+from hydrosoft.services.benchmarks.launched_stack import (
+    DEFAULT_CONFIG,
+    STACK_READY_S,
+    Child,
+    cpu_time_s,
+    private_config,
+    resident_mb,
+    start_goal,
+)
+from hydrosoft.services.bus import Bus
+from hydrosoft.services.client import true_error_mm
+from hydrosoft.services.config import StackConfig, load_config
+from hydrosoft.services.status import collect
+
+SAMPLE_PERIOD_S = 5.0  # memory and CPU time of every service, this often
+GOAL_TIMEOUT_S = 120.0  # one goal of the soak
+STATUS_WINDOW_S = 5.0  # how long to listen for the services' status (their pids)
+#: The goals of the soak per task: keyword arguments of ``StackClient.set_goal``, alternated.
+SOAK_GOALS = {
+    "pushing": ({"dx_m": 0.03}, {"dx_m": -0.03}),
+    "rolling": ({"dx_m": 0.03}, {"dx_m": -0.03}),
+    "rotation": ({"dyaw_rad": 0.35}, {"dyaw_rad": -0.35}),
+}
+#: The stages of a plan's way from the camera to the targets: name -> (from stamp, to stamp) of ``msg.Plan``.
+STAGES = {
+    "detection": ("image_stamp_ns", "pose_stamp_ns"),
+    "queue": ("pose_stamp_ns", "inputs_ns"),
+    "estimation": ("inputs_ns", "solve_start_ns"),
+    "solve": ("solve_start_ns", "targets_ns"),
+    "total": ("image_stamp_ns", "targets_ns"),
+}
+
+
+def latency_split(plans: list[msg.Plan]) -> dict[str, dict[str, float]]:
+    """Per stage of ``STAGES``: p50 and p99 (ms) over the plans that carry both of its stamps."""
+    split = {}
+    for stage, (start, end) in STAGES.items():
+        ms = [(getattr(p, end) - getattr(p, start)) * 1e-6 for p in plans if getattr(p, start) and getattr(p, end)]
+        if ms:
+            split[stage] = {"p50_ms": round(float(np.percentile(ms, 50)), 2),
+                            "p99_ms": round(float(np.percentile(ms, 99)), 2), "plans": len(ms)}
+    return split
+
+
+@dataclass
+class Samples:
+    """What the soak saw: per service ``(t_s, resident MB, CPU time s)`` samples, and the plans ``(t_s, Plan)``;
+    times since the soak began."""
+
+    usage: dict[str, list[tuple[float, float, float]]] = field(default_factory=lambda: defaultdict(list))
+    plans: list[tuple[float, msg.Plan]] = field(default_factory=list)
+
+
+def window_summary(samples: Samples, start_s: float, end_s: float) -> dict[str, object]:
+    """Within ``[start_s, end_s]``: per service its mean memory (MB) and CPU use (% of one core, between the first
+    and the last sample), and the plans' latency split."""
+    services = {}
+    for name, rows in sorted(samples.usage.items()):
+        inside = [row for row in rows if start_s <= row[0] <= end_s]
+        if len(inside) < 2:
+            continue
+        cpu = 100 * (inside[-1][2] - inside[0][2]) / (inside[-1][0] - inside[0][0])
+        services[name] = {"rss_mb": round(float(np.mean([r[1] for r in inside])), 1), "cpu_percent": round(cpu, 1)}
+    plans = [plan for t, plan in samples.plans if start_s <= t <= end_s]
+    return {"from_s": round(start_s, 1), "to_s": round(end_s, 1), "services": services,
+            "latency": latency_split(plans)}
+
+
+def growth(first: dict[str, object], last: dict[str, object]) -> dict[str, float]:
+    """``last / first - 1`` of each service's memory (``rss.NAME``) and each stage's p50 latency
+    (``latency.STAGE``)."""
+    out = {}
+    for name, row in first["services"].items():
+        if name in last["services"] and row["rss_mb"] > 0:
+            out[f"rss.{name}"] = round(last["services"][name]["rss_mb"] / row["rss_mb"] - 1, 3)
+    for stage, row in first["latency"].items():
+        if stage in last["latency"] and row["p50_ms"] > 0:
+            out[f"latency.{stage}"] = round(last["latency"][stage]["p50_ms"] / row["p50_ms"] - 1, 3)
+    return out
+
+
+async def _sample(pids: dict[str, int], samples: Samples, t0_s: float, until_s: float) -> None:
+    """Sample each service's memory and CPU time every ``SAMPLE_PERIOD_S`` until ``until_s`` (monotonic; inf: until
+    cancelled)."""
+    while time.monotonic() < until_s:
+        now_s = time.monotonic() - t0_s
+        for name, pid in pids.items():
+            try:
+                samples.usage[name].append((now_s, resident_mb(pid), cpu_time_s(pid)))
+            except (OSError, ValueError):  # the service died (the launcher restarts it): a gap, not an error
+                continue
+        await asyncio.sleep(SAMPLE_PERIOD_S)
+
+
+async def _read_plans(config: StackConfig, samples: Samples, t0_s: float, until_s: float) -> None:
+    """Keep every plan the planner publishes until ``until_s`` (monotonic; inf: until cancelled)."""
+    with Bus() as bus:
+        sock = bus.socket(zmq.SUB, config.endpoint("planner"), bind=False,
+                          options=[(zmq.RCVHWM, 1000), (zmq.MAXMSGSIZE, msg.MAX_FRAME_BYTES), (zmq.SUBSCRIBE, b"plan/")])
+        while (left_s := until_s - time.monotonic()) > 0:
+            if not await sock.poll(max(1, int(min(left_s, 1.0) * 1000))):
+                continue
+            _, plan = msg.decode(await sock.recv_multipart(copy=False))
+            if isinstance(plan, msg.Plan):
+                samples.plans.append((time.monotonic() - t0_s, plan))
+
+
+async def _goals(config_path: Path, task: str, until_s: float) -> list[dict[str, object]]:
+    """Goals of ``SOAK_GOALS[task]`` back to back until ``until_s`` (monotonic); each one's outcome, planner error,
+    true error (mm), solves and wall time."""
+    results = []
+    while time.monotonic() < until_s:
+        goal = SOAK_GOALS[task][len(results) % 2]
+        tic_s = time.monotonic()
+        client = await start_goal(config_path, task, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S, **goal)
+        try:
+            reply = await client.wait(GOAL_TIMEOUT_S + 10)
+            true = await true_error_mm(client, reply.goal.target_pose, task)
+        finally:
+            client.close()
+        results.append({"goal": goal, "outcome": reply.outcome, "error_mm": round(reply.error_mm, 2),
+                        "true_error_mm": None if true is None else round(true, 2), "solves": reply.solves,
+                        "seconds": round(time.monotonic() - tic_s, 1)})
+        print(f"[soak] goal {len(results)} {goal}: {reply.outcome}, {reply.error_mm:.2f} mm, {reply.solves} solves",
+              file=sys.stderr, flush=True)
+    return results
+
+
+async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], idle_s: float, soak_s: float,
+                window_s: float) -> dict[str, object]:
+    """The idle phase, then the soak, measured (module docstring)."""
+    idle = Samples()
+    t0_s = time.monotonic()
+    await _sample(pids, idle, t0_s, t0_s + idle_s)
+    idle_summary = window_summary(idle, 0.0, idle_s)
+    samples = Samples()
+    t0_s = time.monotonic()
+    until_s = t0_s + soak_s
+    watchers = [asyncio.create_task(_sample(pids, samples, t0_s, math.inf)),
+                asyncio.create_task(_read_plans(config, samples, t0_s, math.inf))]
+    try:
+        goals = await _goals(config_path, config.scene.task, until_s)
+    finally:
+        for task in watchers:
+            task.cancel()
+        await asyncio.gather(*watchers, return_exceptions=True)
+    end_s = max(t for rows in samples.usage.values() for t, _, _ in rows)
+    first = window_summary(samples, 0.0, window_s)
+    last = window_summary(samples, end_s - window_s, end_s)
+    return {"idle": {"seconds": idle_s, "services": idle_summary["services"],
+                     "cpu_percent_total": round(sum(s["cpu_percent"] for s in idle_summary["services"].values()), 1)},
+            "soak_seconds": round(end_s, 1), "goals": goals, "first": first, "last": last,
+            "growth": growth(first, last)}
+
+
+def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: Path | None = None
+            ) -> dict[str, object]:
+    """Launch the stack of ``config``, measure it idle, soak it with goals for ``minutes`` and compare the first and
+    the last ``window_s`` (module docstring). ``keep``: a folder to keep the logs in."""
+    root = Path(tempfile.mkdtemp(prefix="hs-soak-", dir="/tmp"))
+    stack = None
+    try:
+        config_path = private_config(config, root)
+        stack_config = load_config(config_path)
+        if stack_config.scene.task not in SOAK_GOALS:
+            raise ValueError(f"bench soak has goals for {sorted(SOAK_GOALS)}, not {stack_config.scene.task!r}")
+        stack = Child([sys.executable, "-m", "hydrosoft.services.launcher", str(config_path)], root / "launcher.log")
+        stack.wait_for("stack ready", STACK_READY_S)
+        names = stack_config.service_names()
+        reports = asyncio.run(collect(stack_config, names, STATUS_WINDOW_S))
+        pids = {name: report["pid"] for name, report in reports.items() if report is not None}
+        missing = sorted(set(names) - set(pids))
+        if missing:
+            raise RuntimeError(f"no status (pid) from {missing}; see {root / 'launcher.log'}")
+        return {"config": str(config), "window_s": window_s,
+                **asyncio.run(_soak(config_path, stack_config, pids, idle_s, 60 * minutes, window_s))}
+    finally:
+        if stack is not None:
+            stack.stop()
+        if keep is not None:
+            keep.mkdir(parents=True, exist_ok=True)
+            for path in [*root.glob("*.log"), *root.glob("*.toml")]:
+                shutil.copy2(path, keep)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def format_table(result: dict[str, object]) -> str:
+    """Idle CPU, then per service and latency stage the first and last window side by side with the growth."""
+    first, last, grown = result["first"], result["last"], result["growth"]
+    lines = [f"idle: {result['idle']['cpu_percent_total']} % of one core in all ("
+             + ", ".join(f"{n} {s['cpu_percent']}" for n, s in result["idle"]["services"].items()) + ")"]
+    outcomes = [g["outcome"] for g in result["goals"]]
+    lines.append(f"soak: {result['soak_seconds']} s, {len(outcomes)} goals, {outcomes.count('reached')} reached")
+    lines.append(f"{'':<24}{'first window':>24}{'last window':>24}{'growth':>10}")
+    for name, row in first["services"].items():
+        end = last["services"].get(name, {})
+        lines.append(f"{name:<24}{row['rss_mb']:>12} MB {row['cpu_percent']:>6} %"
+                     f"{end.get('rss_mb', '-'):>12} MB {end.get('cpu_percent', '-'):>6} %"
+                     f"{grown.get(f'rss.{name}', '-'):>10}")
+    for stage, row in first["latency"].items():
+        end = last["latency"].get(stage)
+        cell = f"{end['p50_ms']}/{end['p99_ms']} ms" if end else "-"
+        lines.append(f"{'latency ' + stage:<24}{str(row['p50_ms']) + '/' + str(row['p99_ms']) + ' ms':>24}{cell:>24}"
+                     f"{grown.get(f'latency.{stage}', '-'):>10}")
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``hydrosoft-stack bench soak``."""
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="a sim stack config (default "
+                        "deploy/sim.toml; its run_dir and UR address are made private)")
+    parser.add_argument("--minutes", type=float, default=10.0, help="length of the soak, min (default 10)")
+    parser.add_argument("--window", type=float, default=60.0,
+                        help="the first and last windows compared, s (default 60)")
+    parser.add_argument("--idle-seconds", type=float, default=30.0,
+                        help="how long the idle stack is measured before the goals, s (default 30)")
+    parser.add_argument("--keep", type=Path, default=None, metavar="DIR", help="copy the logs to DIR")
+    parser.add_argument("--json", action="store_true", help="print only the JSON document")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``hydrosoft-stack bench soak``; 0 when it was measured."""
+    if args.window * 2 > 60 * args.minutes:
+        print("error: --window must be at most half the soak (--minutes)", file=sys.stderr)
+        return 2
+    result = measure(args.config, args.minutes, args.window, args.idle_seconds, args.keep)
+    if not args.json:
+        print(format_table(result))
+    print(json.dumps(result))
+    return 0

@@ -1,0 +1,56 @@
+"""``bench soak``: its plain parts (the latency split from plan stamps, the windows, the growth, the table, the
+memory probe). The whole benchmark launches the sim stack for minutes, so it is run by hand (``hydrosoft-stack
+bench soak``), not here."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from hydrosoft.services import messages as msg
+from hydrosoft.services.benchmarks.launched_stack import resident_mb
+from hydrosoft.services.benchmarks.soak import Samples, format_table, growth, latency_split, window_summary
+
+MS = 1_000_000
+
+
+def plan(image_ms: float, solve_ms: float) -> msg.Plan:
+    """A plan whose image was taken at ``image_ms``, 10 ms before its pose, 5 ms before it was taken, 2 ms before
+    the solve, which took ``solve_ms``."""
+    stamps = np.cumsum([image_ms, 10, 5, 2, solve_ms]) * MS
+    return msg.Plan(task="pushing", actions=np.zeros((2, 1, 6)), predicted_object_poses=np.tile([0, 0, 0, 1, 0, 0, 0.0],
+                    (2, 1)), predicted_forces=np.zeros((1, 3, 3)), cost=1.0, solve_ms=solve_ms,
+                    **dict(zip(("image_stamp_ns", "pose_stamp_ns", "inputs_ns", "solve_start_ns", "targets_ns"),
+                               (int(v) for v in stamps))))
+
+
+def test_the_latency_split_takes_each_stage_between_its_stamps():
+    split = latency_split([plan(1000.0 + k, 100.0 + k) for k in range(101)])
+    assert split["detection"]["p50_ms"] == 10.0 and split["queue"]["p50_ms"] == 5.0
+    assert split["estimation"]["p50_ms"] == 2.0 and split["solve"]["p50_ms"] == 150.0
+    assert split["total"]["p50_ms"] == 167.0 and split["total"]["p99_ms"] == 216.0 and split["solve"]["plans"] == 101
+    unstamped = plan(1000.0, 100.0)
+    assert latency_split([msg.Plan(**{**{f: getattr(unstamped, f) for f in unstamped.__struct_fields__},
+                                      "image_stamp_ns": 0})]).keys() == {"queue", "estimation", "solve"}
+
+
+def test_windows_compare_memory_cpu_and_latency_and_the_growth_names_each():
+    samples = Samples()
+    for t in range(0, 601, 5):  # 100 MB growing 0.1 MB/s; 0.5 s of CPU per 5 s: 10 % of one core
+        samples.usage["planner"].append((float(t), 100 + 0.1 * t, 0.1 * t))
+        samples.plans.append((float(t), plan(1000.0 * t, 100.0 if t < 300 else 120.0)))
+    first, last = window_summary(samples, 0, 60), window_summary(samples, 540, 600)
+    assert first["services"]["planner"] == {"rss_mb": 103.0, "cpu_percent": 10.0}
+    assert last["services"]["planner"]["rss_mb"] == 157.0 and last["latency"]["solve"]["p50_ms"] == 120.0
+    grown = growth(first, last)
+    assert grown["rss.planner"] == round(157 / 103 - 1, 3) and grown["latency.solve"] == 0.2
+    table = format_table({"idle": {"cpu_percent_total": 12.5, "services": {"planner": {"cpu_percent": 12.5}}},
+                          "soak_seconds": 600.0, "goals": [{"outcome": "reached"}, {"outcome": "timeout"}],
+                          "first": first, "last": last, "growth": grown})
+    assert "idle: 12.5 % of one core in all (planner 12.5)" in table and "2 goals, 1 reached" in table
+    assert "latency solve" in table and "0.2" in table
+
+
+def test_resident_memory_of_this_process():
+    assert 10 < resident_mb(os.getpid()) < 20_000
