@@ -181,7 +181,7 @@ class SimPlant:
                 raise PlantStepError("bad_tcp_pose", f"no TCP pose for arm {arm!r}") from None
             except ValueError as error:
                 raise PlantStepError("bad_tcp_pose", str(error)) from error
-            target[0, index] = self.frame.to_task(torch.as_tensor(pose)).to(self.model.dtype)
+            target[0, index] = torch.as_tensor(self.frame.to_task_np(pose), dtype=self.model.dtype)
         still = torch.equal(target, self.state.body_poses)
         if still and self._at_rest:
             self.snapshot = replace(self.snapshot, stamp_ns=time.monotonic_ns())
@@ -224,10 +224,10 @@ class SimPlant:
         for arm, index in self.arm_index.items():
             pose = state.body_poses[0, index]
             R = se3.quat_to_matrix(pose[3:])
-            tcp_poses[arm] = self.frame.to_base(pose).numpy()
+            tcp_poses[arm] = self.frame.to_base_np(pose.double().numpy())
             tcp_wrenches[arm] = torch.cat([R.mT @ wrenches[index, :3], R.mT @ wrenches[index, 3:]]).double().numpy()
-        return PlantSnapshot(time.monotonic_ns(), self.frame.to_base(state.object_pose[0]).numpy(), tcp_poses,
-                             tcp_wrenches)
+        return PlantSnapshot(time.monotonic_ns(), self.frame.to_base_np(state.object_pose[0].double().numpy()),
+                             tcp_poses, tcp_wrenches)
 
 
 # --- rates --------------------------------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from hydrosoft.geometry import se3
@@ -50,3 +51,12 @@ def test_the_identity_changes_nothing_bit_for_bit():
     assert torch.equal(identity.to_task(poses), poses) and torch.equal(identity.to_base(poses), poses)
     vectors = torch.randn(4, 3, dtype=torch.float64)
     assert torch.equal(identity.vectors_to_base(vectors), vectors)
+
+
+def test_the_numpy_forms_agree_with_the_tensor_forms():
+    poses = random_poses(6, 3)
+    np.testing.assert_allclose(FRAME.to_base_np(poses.numpy()), FRAME.to_base(poses).numpy(), atol=1e-15, rtol=0)
+    np.testing.assert_allclose(FRAME.to_task_np(poses.numpy()), FRAME.to_task(poses).numpy(), atol=1e-15, rtol=0)
+    np.testing.assert_allclose(FRAME.to_task_np(FRAME.to_base_np(poses[0].numpy())), poses[0].numpy(), atol=1e-15)
+    identity = TaskFrame.from_pose(se3.identity())
+    assert np.array_equal(identity.to_base_np(poses.numpy()), poses.numpy())
