@@ -3,6 +3,7 @@ its pid, goals started as soon as the planner can start them, and the CPU time a
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import os
 import signal
@@ -21,6 +22,12 @@ STACK_READY_S = 300.0
 STOP_WAIT_S = 20.0
 #: How long a goal's start may be refused (no object pose yet) before the benchmark gives up, s.
 GOAL_START_S = 60.0
+
+
+def add_config_argument(parser: argparse.ArgumentParser) -> None:
+    """``--config``: the sim stack config a benchmark launches (made private by ``private_config``)."""
+    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="a sim stack config (default "
+                        "deploy/sim.toml; its run_dir and UR address are made private)")
 
 
 def private_config(source: Path, root: Path) -> Path:

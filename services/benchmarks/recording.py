@@ -32,9 +32,9 @@ import zmq
 
 from hydrosoft.services import messages as msg
 from hydrosoft.services.benchmarks.launched_stack import (
-    DEFAULT_CONFIG,
     STACK_READY_S,
     Child,
+    add_config_argument,
     cpu_time_s,
     private_config,
     start_goal,
@@ -161,8 +161,7 @@ def format_table(result: dict[str, object]) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``hydrosoft-stack bench recording``."""
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="a sim stack config (default "
-                        "deploy/sim.toml; its run_dir and UR address are made private)")
+    add_config_argument(parser)
     parser.add_argument("--seconds", type=float, default=20.0, help="length of each phase, s (default 20)")
     parser.add_argument("--keep", type=Path, default=None, metavar="DIR",
                         help="copy the logs and the recording to DIR")

@@ -38,9 +38,9 @@ import zmq
 
 from hydrosoft.services import messages as msg
 from hydrosoft.services.benchmarks.launched_stack import (
-    DEFAULT_CONFIG,
     STACK_READY_S,
     Child,
+    add_config_argument,
     cpu_time_s,
     private_config,
     resident_mb,
@@ -246,8 +246,7 @@ def format_table(result: dict[str, object]) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``hydrosoft-stack bench soak``."""
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="a sim stack config (default "
-                        "deploy/sim.toml; its run_dir and UR address are made private)")
+    add_config_argument(parser)
     parser.add_argument("--minutes", type=float, default=10.0, help="length of the soak, min (default 10)")
     parser.add_argument("--window", type=float, default=60.0,
                         help="the first and last windows compared, s (default 60)")
