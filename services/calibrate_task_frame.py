@@ -35,6 +35,12 @@ class CalibrationError(RuntimeError):
     """The task frame cannot be measured; the message says why and what to do."""
 
 
+def circular_mean(angles: torch.Tensor) -> torch.Tensor:
+    """The mean direction (rad) of ``angles (n,)`` (rad): the angle of the mean unit vector, so it does not break
+    where the angles wrap at +-pi."""
+    return torch.atan2(torch.sin(angles).mean(), torch.cos(angles).mean())
+
+
 def level_frame(object_poses: torch.Tensor, initial_pose: torch.Tensor) -> tuple[torch.Tensor, float]:
     """The level ``T_base_task`` ``(7,)`` that carries the task's initial object pose ``(7,)`` (task frame) onto
     the mean of the measured object poses ``(n, 7)`` (base frame), and the tilt (deg) of that mean from level.
@@ -46,7 +52,7 @@ def level_frame(object_poses: torch.Tensor, initial_pose: torch.Tensor) -> tuple
     frames = se3.compose(object_poses.double(), se3.inverse(initial))
     R = se3.quat_to_matrix(frames[:, 3:])
     tilt = float(torch.rad2deg(torch.arccos(R[:, 2, 2].clamp(-1.0, 1.0))).max())
-    yaw = torch.atan2(torch.sin(se3.yaw(frames)).mean(), torch.cos(se3.yaw(frames)).mean())
+    yaw = circular_mean(se3.yaw(frames))
     turn = torch.stack([torch.cos(yaw / 2), torch.zeros(()), torch.zeros(()), torch.sin(yaw / 2)]).double()
     position = (object_poses[:, :3].double() - se3.quat_rotate(turn, initial[:, :3])).mean(0)
     return torch.cat([position, turn]), tilt
@@ -56,7 +62,7 @@ def spread(object_poses: torch.Tensor) -> tuple[float, float]:
     """The poses' position spread (mm, the largest per-axis standard deviation) and yaw spread (deg, std)."""
     position_mm = 1e3 * float(object_poses[:, :3].double().std(0, correction=0).max())
     yaws = se3.yaw(object_poses.double())
-    mean = torch.atan2(torch.sin(yaws).mean(), torch.cos(yaws).mean())
+    mean = circular_mean(yaws)
     yaw_deg = math.degrees(float(torch.atan2(torch.sin(yaws - mean), torch.cos(yaws - mean)).square().mean().sqrt()))
     return position_mm, yaw_deg
 
