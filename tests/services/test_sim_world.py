@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT
-from hydrosoft.dynamics import body_wrenches
+from hydrosoft.dynamics import body_wrenches, packed_distances
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
 from hydrosoft.services import messages as msg
@@ -88,6 +88,25 @@ def test_moving_the_tcp_drags_the_cube_and_the_bubble_lands_exactly_on_the_tcp()
     assert 0.005 < cube[0] < 0.015, cube  # it follows the 15 mm push, lagging while the shear builds up
     assert abs(cube[1]) < 1e-6 and cube[2] == pytest.approx(CUBE_POSE[2], abs=1e-6)
 
+
+
+def test_the_plant_keeps_each_ticks_signed_distances_and_they_are_the_states_own():
+    """A tick caches the signed distances of its end (the next tick's stability check reuses them instead of
+    solving every closest point again); they are those of the state's poses, and a plant that recomputes them every
+    tick ends where this one does."""
+    cached, recomputed = SimPlant.from_config(pushing_config()), SimPlant.from_config(pushing_config())
+    tcp = BUBBLE_POSE.copy()
+    for _ in range(15):
+        tcp[0] += 0.0005
+        tcp[2] -= 0.0001
+        cached.step_to({"bubble": tcp})
+        recomputed.state = recomputed.state._replace(phi=None)
+        recomputed.step_to({"bubble": tcp})
+        state = cached.state
+        assert state.phi is not None
+        truth = packed_distances(cached.model, state.object_pose, state.body_poses)
+        np.testing.assert_allclose(state.phi.numpy(), truth.numpy(), atol=1e-12)
+    np.testing.assert_allclose(cached.snapshot.object_pose, recomputed.snapshot.object_pose, atol=1e-12)
 
 def test_a_plant_placed_in_a_task_frame_takes_and_gives_base_frame_poses_and_forces():
     """The same push with the scene at ``scene.task_frame`` (turned 90 deg, moved) and at the base origin: every
