@@ -163,13 +163,22 @@ def targets_from_plan(core: PlannerCore, arm_poses: dict[str, torch.Tensor], pla
     return targets
 
 
-def predict(core: PlannerCore, state: State, plan: torch.Tensor, steps: int) -> State:
-    """The planner model's prediction ``(B = 1)`` after ``steps`` plan actions (eager, no gradient): the carry-over
-    for the next state estimate."""
+def predict(core: PlannerCore, state: State, plan: torch.Tensor) -> list[State]:
+    """The planner model's states ``(B = 1)`` after each of the ``K`` actions of ``plan (K, M, 6)`` (eager, no
+    gradient), one rollout for both of their uses: the Plan message's predictions, and the carry-over for the next
+    state estimate (``carry_over``)."""
+    states = []
     with torch.no_grad():
-        for k in range(min(steps, plan.shape[0])):
+        for k in range(plan.shape[0]):
             state = step(core.model, state, plan[k].unsqueeze(0))
-    return State(*(t.detach() for t in state[:3]))
+            states.append(state)
+    return states
+
+
+def carry_over(states: list[State], steps: int) -> State:
+    """The predicted state after ``steps`` of the plan's actions (the last when the plan is shorter), without its
+    cached distances: what the next state estimate starts from."""
+    return State(*(t.detach() for t in states[min(steps, len(states)) - 1][:3]))
 
 
 @dataclass
@@ -387,18 +396,14 @@ class Planner:
             await self.out.send(msg.ArmTarget(arm=name, tcp_pose=pose.numpy(), deadline_ns=deadline_ns,
                                               plan_seq=plan_seq), topic=f"arm_target/{name}")
         stamps["targets_ns"] = time.monotonic_ns()
-        plan = await loop.run_in_executor(None, self.plan_message, result, state, stamps)
-        await self.out.send(plan, topic=f"plan/{self.config.scene.task}")
-        episode.prediction = await loop.run_in_executor(None, predict, self.core, state, result.plan.detach(), steps)
+        states = await loop.run_in_executor(None, predict, self.core, state, result.plan.detach())
+        await self.out.send(self.plan_message(result, states, stamps), topic=f"plan/{self.config.scene.task}")
+        episode.prediction = carry_over(states, steps)
 
-    def plan_message(self, result, state: State, stamps: dict[str, int]) -> msg.Plan:
-        """The Plan message of a solve, base frame: actions, predicted object poses and the first step's contact
-        forces, with the ``stamps`` (ns) of its way from the camera to the targets (``msg.Plan``)."""
-        with torch.no_grad():
-            states, s = [], state
-            for k in range(result.plan.shape[0]):
-                s = step(self.core.model, s, result.plan[k].unsqueeze(0))
-                states.append(s)
+    def plan_message(self, result, states: list[State], stamps: dict[str, int]) -> msg.Plan:
+        """The Plan message of a solve, base frame: actions, predicted object poses (``states``, from ``predict``)
+        and the first step's contact forces, with the ``stamps`` (ns) of its way from the camera to the targets
+        (``msg.Plan``)."""
         dtype = np.float32 if self.core.model.dtype == torch.float32 else np.float64
         frame = self.core.frame
         poses = frame.to_base(torch.stack([s.object_pose[0] for s in states]))
