@@ -209,8 +209,8 @@ class PlannerConfig(Strict):
 class SimConfig(Strict):
     """sim_world: physics rate (Hz of simulated time, run in real time), the plant's spacing relative to the
     planner's, camera noise (grey levels) and blur (px), depth noise (m). compile: run the plant's step compiled
-    (``hydrosoft.dynamics.CompiledStep``): a tick (step and snapshot) takes a third of the eager
-    one's CPU (3.6 against 11.0 ms, one thread, deploy/sim.toml's pushing plant: ``hydrosoft-stack bench plant``)
+    (``hydrosoft.dynamics.CompiledStep``): a tick (step and snapshot) takes a sixth of the eager
+    one's CPU (1.4 against 9.2 ms, one thread, deploy/sim.toml's pushing plant: ``hydrosoft-stack bench plant``)
     for 30-60 s of compilation before READY. On a small machine the
     eager plant, sharing two cores with the planner's solves, falls behind real time while the simulated arm does
     not, and the cube then lags the bubble."""

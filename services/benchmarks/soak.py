@@ -10,6 +10,8 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
   is read for its way from the camera to the arm targets (``msg.Plan``'s stamps), split into detection (image to
   the tracker's pose), queue (pose to the planner taking it), estimation (to the solve's start), solve (to the
   targets sent) and the total;
+- each service's error counts at the end (``status``: e.g. sim_world's ``physics_behind``, ticks that lost
+  simulated time);
 - the first and the last ``--window`` seconds of the soak compared: per service the mean memory (MB) and CPU
   use, and the latency split (p50 and p99, ms), with each one's growth (last / first - 1). The issue's target:
   neither memory nor the loop latency grows by more than 10 % over 10 minutes.
@@ -211,8 +213,10 @@ def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: 
         missing = sorted(set(names) - set(pids))
         if missing:
             raise RuntimeError(f"no status (pid) from {missing}; see {root / 'launcher.log'}")
-        return {"config": str(config), "window_s": window_s,
-                **asyncio.run(_soak(config_path, stack_config, pids, idle_s, 60 * minutes, window_s))}
+        result = asyncio.run(_soak(config_path, stack_config, pids, idle_s, 60 * minutes, window_s))
+        reports = asyncio.run(collect(stack_config, names, STATUS_WINDOW_S))
+        errors = {name: report["errors"] for name, report in reports.items() if report and report["errors"]}
+        return {"config": str(config), "window_s": window_s, **result, "errors": errors}
     finally:
         if stack is not None:
             stack.stop()
@@ -230,6 +234,8 @@ def format_table(result: dict[str, object]) -> str:
              + ", ".join(f"{n} {s['cpu_percent']}" for n, s in result["idle"]["services"].items()) + ")"]
     outcomes = [g["outcome"] for g in result["goals"]]
     lines.append(f"soak: {result['soak_seconds']} s, {len(outcomes)} goals, {outcomes.count('reached')} reached")
+    lines.append("errors counted: " + ("; ".join(f"{name} " + ", ".join(f"{kind} {n}" for kind, n in kinds.items())
+                                                 for name, kinds in result["errors"].items()) or "none"))
     lines.append(f"{'':<24}{'first window':>24}{'last window':>24}{'growth':>10}")
     for name, row in first["services"].items():
         end = last["services"].get(name, {})

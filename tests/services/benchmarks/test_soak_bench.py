@@ -47,8 +47,10 @@ def test_windows_compare_memory_cpu_and_latency_and_the_growth_names_each():
     assert grown["rss.planner"] == round(157 / 103 - 1, 3) and grown["latency.solve"] == 0.2
     table = format_table({"idle": {"cpu_percent_total": 12.5, "services": {"planner": {"cpu_percent": 12.5}}},
                           "soak_seconds": 600.0, "goals": [{"outcome": "reached"}, {"outcome": "timeout"}],
-                          "first": first, "last": last, "growth": grown})
+                          "first": first, "last": last, "growth": grown,
+                          "errors": {"sim_world": {"physics_behind": 7, "tag_camera": 1}}})
     assert "idle: 12.5 % of one core in all (planner 12.5)" in table and "2 goals, 1 reached" in table
+    assert "errors counted: sim_world physics_behind 7, tag_camera 1" in table
     assert "latency solve" in table and "0.2" in table
 
 
