@@ -273,6 +273,7 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
     from hydrosoft.drivers.ur.config import URArmConfig
 
     driver = URArm(URArmConfig(host=config.arm(arm).ur_host, servo_rate_hz=config.limits.servo_rate_hz,
+                               state_rate_hz=config.limits.servo_rate_hz,
                                max_age_s=config.limits.state_timeout_s))
     await driver.connect()
     commander = Commander(service, config, arm, driver)

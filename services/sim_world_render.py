@@ -15,7 +15,7 @@ bubble's frame.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -77,7 +77,8 @@ class BubbleDepthCamera:
 
     camera: the pinhole model. radii: the nominal membrane's ellipsoid (m, bubble frame). T_bubble_camera: ``(7,)``
     the camera in the bubble frame. sdf: the object's signed distance (object frame). depth_scale_m: m per count.
-    noise_m: std of the Gaussian noise on each returned depth (m). rng: its generator.
+    noise_m: std of the Gaussian noise on each returned depth (m). rng: its generator. The last noise-free image is
+    kept: a bubble and object that have not moved relative to each other get fresh noise on it without a new render.
     """
 
     arm: str
@@ -88,6 +89,7 @@ class BubbleDepthCamera:
     depth_scale_m: float
     noise_m: float
     rng: np.random.Generator
+    _last: tuple[bytes, np.ndarray] | None = field(default=None, init=False, repr=False)  # (T_tcp_object, depth)
 
     @classmethod
     def from_config(cls, config: StackConfig, arm: str, index: int) -> BubbleDepthCamera:
@@ -101,8 +103,11 @@ class BubbleDepthCamera:
     def render(self, T_base_tcp: np.ndarray, T_base_object: np.ndarray) -> np.ndarray:
         """The depth image ``(H, W)`` uint16 (counts of ``depth_scale_m``; 0 = no return) with the bubble at
         ``T_base_tcp`` and the object at ``T_base_object`` (both ``(7,)``, base frame)."""
-        depth_m = render_depth(self.camera, self.radii, self.T_bubble_camera, self.sdf,
-                               compose(inverse(T_base_tcp), T_base_object))
+        T_tcp_object = compose(inverse(T_base_tcp), T_base_object)
+        if self._last is None or self._last[0] != T_tcp_object.tobytes():
+            self._last = (T_tcp_object.tobytes(),
+                          render_depth(self.camera, self.radii, self.T_bubble_camera, self.sdf, T_tcp_object))
+        depth_m = self._last[1]
         if self.noise_m > 0:
             depth_m = depth_m + self.rng.normal(0.0, self.noise_m, depth_m.shape).astype(np.float32)
         return to_counts(depth_m, self.depth_scale_m)

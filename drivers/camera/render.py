@@ -82,7 +82,9 @@ class Renderer:
     """Renders images of one camera (``intrinsics``) in one look (``options``).
 
     Construction precomputes the lens-distortion lookup (a fraction of a second for a large distorted image), so
-    keep one renderer per camera. Marker textures are cached per tag id and resolution.
+    keep one renderer per camera. Marker textures are cached per tag id and resolution, and ``render`` keeps its
+    last noise-free image: a scene seen again exactly as before (a still object) gets fresh noise on it without
+    being drawn again.
     """
 
     def __init__(self, intrinsics: CameraIntrinsics, options: RenderOptions | None = None) -> None:
@@ -95,6 +97,7 @@ class Renderer:
         self._canvas_size = intrinsics.size
         if intrinsics.has_distortion:
             self._prepare_distortion()
+        self._last_scene: tuple[tuple, np.ndarray, TagLayout] | None = None  # (key, noise-free image, layout)
 
     def render(
         self,
@@ -110,6 +113,14 @@ class Renderer:
             rng: source of the pixel noise; required when ``options.noise_std > 0``.
             T_camera_table: pose of the table frame (its xy-plane is the table top, z up), or ``None`` for no table.
         """
+        scene = (np.asarray(T_camera_object, dtype=np.float64).tobytes(), id(layout),
+                 None if T_camera_table is None else np.asarray(T_camera_table, dtype=np.float64).tobytes())
+        if self._last_scene is None or self._last_scene[0] != scene:  # the cache holds layout: its id stays its own
+            self._last_scene = (scene, self._draw(T_camera_object, layout, T_camera_table), layout)
+        return self._expose(self._last_scene[1], rng)
+
+    def _draw(self, T_camera_object: np.ndarray, layout: TagLayout, T_camera_table: np.ndarray | None) -> np.ndarray:
+        """The noise-free image ``(H, W)`` float32 of ``render``'s scene."""
         canvas = self._blank_canvas()
         if T_camera_table is not None:
             table = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float64) * TABLE_HALF_EXTENT_M
@@ -133,7 +144,7 @@ class Renderer:
             cell_px = self._projected_cell_px(printed)
             shade = self._shade(normal, T_camera_tag[:3])
             self._draw_quad(canvas, self._marker_texture(tag.id, cell_px) * shade, printed)
-        return self._finish(canvas, rng)
+        return self._optics(canvas)
 
     def render_plane(
         self,
@@ -157,7 +168,7 @@ class Renderer:
         polygon = transform_points(T_camera_plane, corners)
         if np.all(polygon[:, 2] >= NEAR_PLANE_M):
             self._draw_quad(canvas, texture.astype(np.float32), polygon)
-        return self._finish(canvas, rng)
+        return self._expose(self._optics(canvas), rng)
 
     # Drawing on the supersampled ideal canvas.
 
@@ -232,13 +243,18 @@ class Renderer:
 
     # From canvas to image.
 
-    def _finish(self, canvas: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+    def _optics(self, canvas: np.ndarray) -> np.ndarray:
+        """The supersampled ideal canvas through the lens: the noise-free image ``(H, W)`` float32."""
         image = cv2.resize(canvas, self._canvas_size, interpolation=cv2.INTER_AREA)
         if self._distortion_map is not None:
             image = cv2.remap(image, *self._distortion_map, interpolation=cv2.INTER_LINEAR,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=self.options.background)
         if self.options.blur_sigma_px > 0:
             image = cv2.GaussianBlur(image, (0, 0), self.options.blur_sigma_px)
+        return image
+
+    def _expose(self, image: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+        """A noise-free image ``(H, W)`` float32 with the sensor's noise, as the camera's ``(H, W, 3)`` uint8 BGR."""
         if self.options.noise_std > 0:
             if rng is None:
                 raise ValueError("Renderer: options.noise_std > 0 needs an rng (numpy.random.Generator)")

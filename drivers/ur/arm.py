@@ -250,7 +250,7 @@ class URArm:
             self._receive = await self._on_thread(
                 self._receive_thread,
                 lambda: rtde_receive.RTDEReceiveInterface(
-                    cfg.host, -1.0, RECEIVE_VARIABLES, False, cfg.upper_range_registers
+                    cfg.host, cfg.state_rate_hz, RECEIVE_VARIABLES, False, cfg.upper_range_registers
                 ),
                 SETUP_CALL_TIMEOUT_S,
             )

@@ -27,6 +27,7 @@ from hydrosoft.scene import compile_scene
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Bus, LatestSubscriber
 from hydrosoft.services.config import load_config, parse_config
+from hydrosoft.services.sim_world_render import BubbleDepthCamera
 from hydrosoft.services.sim_world import (
     DurationStats,
     PlantStepError,
@@ -128,6 +129,20 @@ def test_a_plant_placed_in_a_task_frame_takes_and_gives_base_frame_poses_and_for
     (_, forces), (_, origin_forces) = placed.contact_forces(), origin.contact_forces()
     np.testing.assert_allclose(forces[..., 0], -origin_forces[..., 1], atol=1e-9)  # turned 90 deg about z
     np.testing.assert_allclose(forces[..., 1], origin_forces[..., 0], atol=1e-9)
+
+
+def test_the_depth_camera_draws_a_new_press_and_puts_fresh_noise_on_a_repeated_one():
+    still = BubbleDepthCamera.from_config(pushing_config(sim="[sim]\ndepth_noise_m = 0.0\n"), "bubble", 0)
+    pressed = BUBBLE_POSE - np.array([0.0, 0.0, 0.002, 0.0, 0.0, 0.0, 0.0])
+    first = still.render(BUBBLE_POSE, CUBE_POSE)
+    deeper = still.render(pressed, CUBE_POSE)
+    assert np.count_nonzero(deeper != first) > 0 and deeper[deeper > 0].mean() < first[first > 0].mean()
+    np.testing.assert_array_equal(still.render(BUBBLE_POSE, CUBE_POSE), first)
+    noisy = BubbleDepthCamera.from_config(pushing_config(), "bubble", 0)
+    a, b = noisy.render(BUBBLE_POSE, CUBE_POSE), noisy.render(BUBBLE_POSE, CUBE_POSE)
+    assert np.any(a != b)
+    both = (a > 0) & (b > 0)
+    assert abs(float(np.mean(a[both].astype(float) - b[both].astype(float)))) < 0.5  # counts: the same picture
 
 
 def test_a_late_tick_catches_up_with_the_steps_it_is_due():

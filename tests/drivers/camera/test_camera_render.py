@@ -82,6 +82,23 @@ def test_noise_is_seeded_and_needs_a_generator():
         renderer.render(pose, one_tag(0.05))
 
 
+def test_a_scene_seen_again_gets_fresh_noise_on_the_same_drawing_and_a_moved_one_is_drawn_again():
+    intrinsics = CameraIntrinsics(160, 120, 150.0, 150.0, 79.5, 59.5)
+    layout = one_tag(0.05)
+    near = np.concatenate([[0.0, 0.0, 0.3], FACING_CAMERA])
+    moved = np.concatenate([[0.01, 0.0, 0.3], FACING_CAMERA])
+    renderer, fresh = Renderer(intrinsics), Renderer(intrinsics)
+    first = renderer.render(near, layout)
+    np.testing.assert_array_equal(renderer.render(moved, layout), fresh.render(moved, layout))
+    np.testing.assert_array_equal(renderer.render(near, layout), first)
+    assert np.any(first != fresh.render(moved, layout))
+    noisy = Renderer(intrinsics, RenderOptions(noise_std=3.0))
+    rng = np.random.default_rng(7)
+    a, b = noisy.render(near, layout, rng), noisy.render(near, layout, rng)
+    assert np.any(a != b)  # new noise each frame
+    assert abs(float(np.mean(a.astype(float) - b.astype(float)))) < 0.2  # on the same picture
+
+
 def test_options_are_checked():
     with pytest.raises(ValueError, match="black_level"):
         RenderOptions(black_level=200.0, white_level=100.0)
