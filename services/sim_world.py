@@ -167,8 +167,9 @@ class SimPlant:
         increments; a late physics loop catches up with real time this way), then set the body poses exactly to
         them, and update ``snapshot``. The steps reach the targets to rounding (about 1e-16 m), so the signed
         distances the last step cached stay with the state: the next tick's stability check reuses them instead of
-        solving every point's closest point again (``CompiledStep``), the plant's largest eager cost. At rest (no body moves and the last such tick left the state exactly as it
-        was) the step is a fixed point and is skipped: only the snapshot's stamp advances.
+        solving every point's closest point again (``CompiledStep``), the plant's largest eager cost. At rest (no
+        body moves and the last such tick left the state exactly as it was) the step is a fixed point and is
+        skipped: only the snapshot's stamp advances.
 
         Raises:
             PlantStepError: for a missing or malformed TCP pose, an ``UnstableStepError``, a numerical failure

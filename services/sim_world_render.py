@@ -104,9 +104,9 @@ class BubbleDepthCamera:
         """The depth image ``(H, W)`` uint16 (counts of ``depth_scale_m``; 0 = no return) with the bubble at
         ``T_base_tcp`` and the object at ``T_base_object`` (both ``(7,)``, base frame)."""
         T_tcp_object = compose(inverse(T_base_tcp), T_base_object)
-        if self._last is None or self._last[0] != T_tcp_object.tobytes():
-            self._last = (T_tcp_object.tobytes(),
-                          render_depth(self.camera, self.radii, self.T_bubble_camera, self.sdf, T_tcp_object))
+        key = T_tcp_object.tobytes()
+        if self._last is None or self._last[0] != key:
+            self._last = (key, render_depth(self.camera, self.radii, self.T_bubble_camera, self.sdf, T_tcp_object))
         depth_m = self._last[1]
         if self.noise_m > 0:
             depth_m = depth_m + self.rng.normal(0.0, self.noise_m, depth_m.shape).astype(np.float32)

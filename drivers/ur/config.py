@@ -43,8 +43,8 @@ class URArmConfig:
     servo_rate_hz: rate at which ``servo_to`` is called; each servoL is given ``1 / servo_rate_hz`` s.
     state_rate_hz: rate the controller streams the state ``read_state`` returns (the receive interface's RTDE
         output frequency, at most ``MAX_STATE_RATE_HZ``). The stack reads it once per servo period, so a faster
-        stream only costs CPU: at 500 Hz instead of 125, ur_rtde's receive client took about twice the CPU (13-16 %
-        against 7 % of a core) and the simulated controller half as much again.
+        stream only costs CPU: at 500 Hz instead of 125, ur_rtde's receive client took about twice the CPU and the
+        simulated controller about 1.5 times as much (one-off measurement against the simulated controller).
     servo_lookahead_s: servoL lookahead time (s, UR range 0.03-0.2): longer smooths more and lags more.
     servo_gain: servoL proportional gain (UR range 100-2000): higher tracks tighter.
     servo_speed_m_s, servo_accel_m_s2: passed to servoL (the controller does not use them today).

@@ -87,9 +87,10 @@ def test_targets_leave_in_the_base_frame_of_a_turned_and_moved_task_frame(core, 
 def test_one_rollout_gives_the_plans_predictions_and_the_carry_over_after_the_steps_sent(core):
     """``predict`` rolls the plan out once; the carry-over after ``steps`` actions is that many model steps from the
     state (the last state when the plan is shorter), without the cached distances."""
-    state = State(core.task.initial_pose().to(core.model.dtype).unsqueeze(0), core.fixed_poses.to(core.model.dtype).unsqueeze(0),
-                  torch.zeros(1, core.model.n_bodies, core.model.n_points, 3, dtype=core.model.dtype))
-    plan = torch.zeros(4, 2, 6, dtype=core.model.dtype)
+    dtype = core.model.dtype
+    state = State(core.task.initial_pose().to(dtype).unsqueeze(0), core.fixed_poses.to(dtype).unsqueeze(0),
+                  torch.zeros(1, core.model.n_bodies, core.model.n_points, 3, dtype=dtype))
+    plan = torch.zeros(4, 2, 6, dtype=dtype)
     plan[:, 0, 0] = 0.002
     plan[:, 0, 2] = -0.0005
     states = predict(core, state, plan)
