@@ -12,7 +12,9 @@ resumes only with a fresh one (published after the last one seen) whose deadline
 with a fresh heartbeat (one arriving during the stop itself waits for the stop's end).
 
 It publishes ``ArmState`` on ``arm_state/ARM`` every period (with ``servo_active`` and ``stop_reason``) while the
-driver delivers state. On shutdown (SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then closes the
+driver delivers state. While it holds the arm at rest with no target (``ServoLogic.holding_at_rest``), its period
+is that of ``limits.idle_rate_hz`` instead, and a target's arrival wakes it at once: an idle stack's commander and
+the readers of its state do a fifth of the work (ur_rtde's receive threads poll on regardless). On shutdown (SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then closes the
 driver, which stops the controller's script (stopScript).
 
 The decisions live in ``ServoLogic`` (no sockets, no driver; unit tested); ``Commander`` is the thin I/O around it.
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import sys
 import time
 from dataclasses import dataclass
@@ -135,6 +138,13 @@ class ServoLogic:
         moving = state is not None and is_moving(state.tcp_speed)
         return Decision(None, stop=was_servoing or (moving and not stopping), reason=self.reason)
 
+    def holding_at_rest(self, state: ArmState | None, stopping: bool) -> bool:
+        """Whether the arm is held with nothing to do: not servoing, no target, no stop in flight, and ``state``
+        (this period's, None when reading it failed) shows it at rest. Then nothing can change until a target
+        arrives, and the commander may run at its idle rate."""
+        return (not self.servoing and self.target is None and not stopping and state is not None
+                and not is_moving(state.tcp_speed))
+
     def halt(self, reason: str) -> None:
         """Hold the arm for ``reason``. This spends the target (only a fresh target that can be servoed on when it
         arrives resumes), except while the previous stop is in flight (``STOPPING``): a target that arrives then
@@ -160,6 +170,8 @@ class Commander:
         self._stop_task: asyncio.Task[None] | None = None
         self._restart_task: asyncio.Task[None] | None = None
         self._script_restarted_s = -SCRIPT_RESTART_S
+        self._target_arrived = self.inputs.arrival(f"arm_target/{arm}")
+        self.idle = False  # the last tick found the arm held at rest with no target
 
     def _newest(self, topic: str, max_age_s: float, kind: type[msg.Message]) -> Received | None:
         """The newest message on ``topic`` within ``max_age_s`` (s) with its stamp, or None."""
@@ -174,6 +186,7 @@ class Commander:
 
     async def tick(self) -> None:
         """One servo period: read, decide, command or stop, publish."""
+        self._target_arrived.clear()
         target = self._newest(f"arm_target/{self.arm}", ANY_AGE_S, msg.ArmTarget)
         refusal = self.logic.offer(None if target is None else target.value)
         if refusal is not None:
@@ -201,6 +214,7 @@ class Commander:
                 self._start_stop()
         elif decision.stop:
             self._start_stop()
+        self.idle = self.logic.holding_at_rest(state, self.stopping)
         if state is not None:
             await self.out.send(msg.ArmState(
                 arm=self.arm, tcp_pose=np.asarray(state.tcp_pose, dtype=np.float64),
@@ -208,6 +222,12 @@ class Commander:
                 protective_stop=state.protective_stop, emergency_stop=state.emergency_stop,
                 servo_active=self.logic.servoing, stop_reason=self.logic.reason, hw_stamp_ns=state.hw_stamp_ns),
                 f"arm_state/{self.arm}")
+
+    async def rest(self, period_s: float) -> None:
+        """Wait ``period_s`` (s), or less when a target arrives meanwhile (or arrived since this tick began)."""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(period_s):
+                await self._target_arrived.wait()
 
     def _restart_script(self) -> None:
         """Restart the controller's program (stopped by its watchdog when this process was starved, or by an
@@ -268,7 +288,8 @@ class Commander:
 
 
 async def serve(service: Service, config: StackConfig, arm: str) -> None:
-    """The service's main: connect the arm, then servo at ``limits.servo_rate_hz`` until cancelled."""
+    """The service's main: connect the arm, then servo at ``limits.servo_rate_hz`` (``limits.idle_rate_hz`` while
+    idle) until cancelled."""
     from hydrosoft.drivers.ur.arm import URArm
     from hydrosoft.drivers.ur.config import URArmConfig
 
@@ -287,10 +308,14 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
     service.on_shutdown(shut_down)
     await service.ready()
     loop = asyncio.get_running_loop()
-    period_s = commander.logic.period_s
+    period_s, idle_period_s = commander.logic.period_s, 1.0 / config.limits.idle_rate_hz
     next_s = loop.time()
     while True:
         await commander.tick()
+        if commander.idle:
+            await commander.rest(idle_period_s)
+            next_s = loop.time()
+            continue
         next_s += period_s
         if loop.time() - next_s > MAX_LAG_PERIODS * period_s:
             next_s = loop.time()

@@ -417,6 +417,7 @@ class LatestSubscriber:
         self.errors = errors if errors is not None else ErrorCounter()
         self.received: Counter[str] = Counter()
         self._latest: dict[str, Latest[Message]] = {}
+        self._arrivals: dict[str, asyncio.Event] = {}
         self._waiting = False
         options: list[tuple[int, int | bytes]] = [(zmq.RCVHWM, rcvhwm), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)]
         options += [(zmq.SUBSCRIBE, topic.encode()) for topic in topics]
@@ -448,7 +449,15 @@ class LatestSubscriber:
             slot.put(msg, msg.stamp_ns)
             self.received[topic] += 1
             updated.add(topic)
+            arrival = self._arrivals.get(topic)
+            if arrival is not None:
+                arrival.set()
         return updated
+
+    def arrival(self, topic: str) -> asyncio.Event:
+        """An event that is set whenever a valid message on exactly ``topic`` is kept (by any drain); the reader
+        clears it. A loop that idles can await it to wake on that input at once (one event per topic)."""
+        return self._arrivals.setdefault(topic, asyncio.Event())
 
     async def wait(self, timeout_s: float | None = None) -> set[str]:
         """Wait until at least one valid message arrived (at most ``timeout_s`` s; None: no limit), drain, and

@@ -156,8 +156,9 @@ class LimitsConfig(Strict):
     """The arm commander's limits. workspace_min/max: the box (m, base frame) every TCP target must lie in.
     max_speed_m_s, max_angular_speed_rad_s: the interpolation's speed limit. max_force_n: a target is refused and
     the arm stopped while the F/T force exceeds this. servo_rate_hz: the rate of servo commands.
-    heartbeat_timeout_s: stop when the planner's heartbeat is older. state_timeout_s: stop when the arm driver's
-    state has not advanced for this long."""
+    idle_rate_hz: the commander's rate while it holds the arm at rest with no target (it checks the arm and
+    publishes its state this often, and wakes at once on a target). heartbeat_timeout_s: stop when the planner's
+    heartbeat is older. state_timeout_s: stop when the arm driver's state has not advanced for this long."""
 
     workspace_min: Vec3 = (-0.15, -0.15, 0.0)
     workspace_max: Vec3 = (0.15, 0.15, 0.2)
@@ -165,12 +166,15 @@ class LimitsConfig(Strict):
     max_angular_speed_rad_s: float = 1.0
     max_force_n: float = 40.0
     servo_rate_hz: float = 125.0
+    idle_rate_hz: float = 25.0
     heartbeat_timeout_s: float = 0.5
     state_timeout_s: float = 0.2
 
     def __post_init__(self) -> None:
         _positive(self, "limits", "max_speed_m_s", "max_angular_speed_rad_s", "max_force_n", "servo_rate_hz",
-                  "heartbeat_timeout_s", "state_timeout_s")
+                  "idle_rate_hz", "heartbeat_timeout_s", "state_timeout_s")
+        _require(self.idle_rate_hz <= self.servo_rate_hz, "limits.idle_rate_hz",
+                 f"must be at most servo_rate_hz ({self.servo_rate_hz} Hz), got {self.idle_rate_hz}")
         _require(all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max)), "limits.workspace_min",
                  f"must be below workspace_max on every axis, got {self.workspace_min} and {self.workspace_max}")
 

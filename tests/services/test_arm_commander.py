@@ -115,6 +115,19 @@ def test_the_stop_is_sent_once_and_again_only_when_the_arm_moves():
     assert "deadline passed" in logic.reason
 
 
+def test_only_a_held_arm_at_rest_with_no_target_and_no_stop_in_flight_counts_as_idle():
+    logic = ServoLogic(LIMITS, "bubble")
+    moving = np.array([0.05, 0, 0, 0, 0, 0])
+    assert logic.holding_at_rest(state(T0), stopping=False)
+    assert not logic.holding_at_rest(state(T0, speed=moving), stopping=False)  # drifting: watch it at full rate
+    assert not logic.holding_at_rest(state(T0), stopping=True)
+    assert not logic.holding_at_rest(None, stopping=False)  # the driver failed: keep trying at full rate
+    logic = servoing_logic()
+    assert not logic.holding_at_rest(state(T0), stopping=False)
+    logic.halt("deadline passed")  # the stop spends the target
+    assert logic.holding_at_rest(state(T0), stopping=False)
+
+
 def test_driver_errors_a_frozen_state_and_the_force_rules_stop_the_arm():
     logic = servoing_logic()
     decision = logic.decide(T0 + PERIOD_NS, None, "arm driver: stale", T0, 0.0)
@@ -160,7 +173,8 @@ REPLAN_PERIOD_S = 0.1  # the played planner re-sends its target this often
 TARGET_LEAD_S = 1.0
 IMPOSE_SETTLE_S = 0.05  # after putting the TCP at HOME, how long it must stay there
 PROBE_LEAD_S = 0.1  # the target at HOME that shows the commander hears the played planner
-ARM_STATE_MAX_AGE_S = 0.1  # the commander publishes every 8 ms
+ARM_STATE_MAX_AGE_S = 0.1  # the commander publishes every 8 ms, every 40 ms while it holds the arm at rest
+IDLE_SETTLE_S = 0.3  # after a stop, until the commander idles
 STATUS_MAX_AGE_S = 2.0  # the runtime publishes the status every 1 s
 POLL_PERIOD_S = 0.005  # how often the test reads the simulated TCP
 AT_REST_M_S = 1e-4
@@ -539,6 +553,43 @@ def test_the_arm_stops_when_the_force_exceeds_the_limit_or_the_ft_goes_silent(ri
     assert "above the limit" in reason
     assert stop_s < WRENCH_PERIOD_S + SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S, stop_s
     assert silent_reason == "no fresh F/T reading"
+
+
+def test_a_held_arm_is_checked_at_the_idle_rate_and_a_target_wakes_the_commander_at_once(rig):
+    trials = 8
+    idle_period_s = 1.0 / LIMITS.idle_rate_hz
+
+    async def arm_states(watcher: LatestSubscriber, seen: list[msg.ArmState]) -> None:
+        while True:
+            await watcher.wait()
+            seen.append(watcher.latest(f"arm_state/{ARM}", ARM_STATE_MAX_AGE_S, msg.ArmState).value)
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        seen: list[msg.ArmState] = []
+        watcher = LatestSubscriber(planner.bus, rig.config.endpoint(NAME), topics=[f"arm_state/{ARM}"])
+        watching = asyncio.create_task(arm_states(watcher, seen))
+        try:
+            await asyncio.sleep(IDLE_SETTLE_S)
+            held = len(seen)
+            await asyncio.sleep(1.0)
+            held_hz = len(seen) - held
+            wakes_ms = []
+            for _ in range(trials):
+                sent = await planner.send_target(HOME, PROBE_LEAD_S)
+                first = await until(lambda: next((s for s in seen if s.servo_active and s.stamp_ns > sent.stamp_ns),
+                                                 None), 1.0, "servoing on the target")
+                wakes_ms.append((first.stamp_ns - sent.stamp_ns) * 1e-6)
+                await until(lambda: not seen[-1].servo_active, 2.0, "holding after the target's deadline")
+                await asyncio.sleep(IDLE_SETTLE_S + idle_period_s * np.random.default_rng(len(wakes_ms)).random())
+            return held_hz, wakes_ms
+        finally:
+            watching.cancel()
+
+    held_hz, wakes_ms = scenario(run, rig)
+    print(f"held: {held_hz} ArmState/s; target to first servo state: {sorted(np.round(wakes_ms, 1))} ms")
+    assert LIMITS.idle_rate_hz / 2 <= held_hz <= 2 * LIMITS.idle_rate_hz < LIMITS.servo_rate_hz, held_hz
+    # without the wake a target would wait for the rest of an idle period: uniform over 0-40 ms
+    assert np.median(wakes_ms) < idle_period_s * 1e3 / 4, wakes_ms
 
 
 def test_sigint_stops_the_arm_then_exits_0_and_stops_the_script(rig):

@@ -219,6 +219,29 @@ def test_a_background_reader_excludes_a_second_waiter(ipc_dir):
     run(scenario())
 
 
+def test_the_arrival_event_of_a_topic_wakes_on_that_topic_only(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            publisher = b.Publisher(bus, f"ipc://{ipc_dir}/pub", source="planner")
+            subscriber = b.LatestSubscriber(bus, publisher.endpoint, ["heartbeat", "wrench"])
+            assert await connected(publisher, subscriber)
+            reader = asyncio.create_task(subscriber.run())
+            arrived = subscriber.arrival("wrench/left")
+            assert arrived is subscriber.arrival("wrench/left")
+            arrived.clear()
+            await publisher.send(WRENCH, "wrench/right")
+            with pytest.raises(TimeoutError):
+                async with asyncio.timeout(0.2):
+                    await arrived.wait()
+            sent = await publisher.send(WRENCH, "wrench/left")
+            async with asyncio.timeout(2.0):
+                await arrived.wait()
+            assert subscriber.latest("wrench/left", 1.0).value.seq == sent.seq
+            reader.cancel()
+
+    run(scenario())
+
+
 def test_malformed_traffic_is_counted_and_valid_messages_still_arrive(ipc_dir):
     endpoint = f"ipc://{ipc_dir}/raw"
     valid = m.encode(msg=m.Wrench(sensor="ft", wrench=np.zeros(6), tared=False, seq=1, stamp_ns=1))

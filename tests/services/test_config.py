@@ -24,6 +24,7 @@ def test_the_shipped_configs_load(name):
 @pytest.mark.parametrize("text, key", [
     (ONE_ARM + "[limits]\nmax_speed_m_s = 0\n", "limits.max_speed_m_s"),
     (ONE_ARM + "[limits]\nworkspace_min = [0.2, 0, 0]\n", "limits.workspace_min"),
+    (ONE_ARM + "[limits]\nidle_rate_hz = 200\n", "limits.idle_rate_hz"),  # above the servo rate
     (ONE_ARM + "colour = 1\n", "colour"),
     (ONE_ARM + "[planner]\nheartbeat_period_s = 0.3\n", "planner.heartbeat_period_s"),
     (ONE_ARM + "[services.nope]\nrestart = \"always\"\n", "services.nope"),
