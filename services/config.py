@@ -217,9 +217,12 @@ class SimConfig(Strict):
     one's CPU (1.4 against 9.2 ms, one thread, deploy/sim.toml's pushing plant: ``hydrosoft-stack bench plant``)
     for 30-60 s of compilation before READY. On a small machine the
     eager plant, sharing two cores with the planner's solves, falls behind real time while the simulated arm does
-    not, and the cube then lags the bubble."""
+    not, and the cube then lags the bubble. ur_tick_hz: the simulated UR controllers' cycle, which also caps their
+    RTDE streams: a CB3's 125 Hz by default, not an e-Series' 500 Hz, as the commander servoes and reads at 125 Hz
+    and each extra cycle is a Python loop turn in sim_world (at least ``limits.servo_rate_hz``)."""
 
     rate_hz: float = 50.0
+    ur_tick_hz: float = 125.0
     spacing_factor: float = 0.5
     compile: bool = False
     image_noise: float = 2.0
@@ -227,7 +230,7 @@ class SimConfig(Strict):
     depth_noise_m: float = 0.0002
 
     def __post_init__(self) -> None:
-        _positive(self, "sim", "rate_hz", "spacing_factor")
+        _positive(self, "sim", "rate_hz", "spacing_factor", "ur_tick_hz")
         _require(self.rate_hz >= 50.0, "sim.rate_hz", f"must be at least 50 Hz, got {self.rate_hz}")
 
 
@@ -273,6 +276,9 @@ class StackConfig(Strict):
         _require(len(self.arms) >= 1, "arms", "the stack needs at least one arm")
         names = [arm.name for arm in self.arms]
         _require(len(set(names)) == len(names), "arms", f"arm names must be unique, got {names}")
+        _require(self.sim.ur_tick_hz >= self.limits.servo_rate_hz, "sim.ur_tick_hz",
+                 f"must be at least limits.servo_rate_hz ({self.limits.servo_rate_hz} Hz), or servo commands would "
+                 f"be skipped; got {self.sim.ur_tick_hz}")
         _require(2 * self.planner.heartbeat_period_s < self.limits.heartbeat_timeout_s, "planner.heartbeat_period_s",
                  f"must be under half of limits.heartbeat_timeout_s ({self.limits.heartbeat_timeout_s} s)")
         for name in self.services:

@@ -269,7 +269,7 @@ async def start_devices(service: Service, config: StackConfig,
     loop = asyncio.get_running_loop()
     controllers = {}
     for arm in config.arms:
-        controller = SimulatedURController(URSimulatorConfig(host=arm.ur_host,
+        controller = SimulatedURController(URSimulatorConfig(host=arm.ur_host, tick_hz=config.sim.ur_tick_hz,
                                                              tcp_pose=plant.snapshot.tcp_poses[arm.name]))
         try:
             await controller.start()

@@ -218,34 +218,24 @@ class URControllerModel:
         """Every name of ``OUTPUT_TYPES`` with its current value (vectors as lists), for data packages."""
         pose, twist = self.motion.pose(), self.motion.twist()
         ur_pose = [*pose[:3].tolist(), *rotvec_from_quat(pose[3:]).tolist()]
-        values: dict[str, object] = {name: _zero(rtde_type) for name, rtde_type in OUTPUT_TYPES.items()}
+        values = dict(_CONSTANT_OUTPUTS)
         values.update(
             timestamp=self.timestamp_s(),
-            target_q=list(HOME_JOINTS_RAD),
-            actual_q=list(HOME_JOINTS_RAD),
             actual_TCP_pose=ur_pose,
             target_TCP_pose=ur_pose,
             actual_TCP_speed=twist.tolist(),
             target_TCP_speed=twist.tolist(),
-            joint_temperatures=[30.0] * 6,
-            robot_mode=ROBOT_MODE_RUNNING,
-            joint_mode=[JOINT_MODE_RUNNING] * 6,
             safety_mode=self.safety_mode(),
             safety_status=self.safety_mode(),
-            actual_tool_accelerometer=[0.0, 0.0, -9.81],
             speed_scaling=self.speed_slider_fraction,
             target_speed_fraction=self.speed_slider_fraction,
-            actual_main_voltage=48.0,
-            actual_robot_voltage=48.0,
             actual_digital_output_bits=self.digital_output_bits,
             runtime_state=int(self.runtime_state),
             robot_status_bits=self.robot_status_bits(),
             safety_status_bits=self.safety_status_bits(),
         )
-        regs = self.registers
-        for i in range(REGISTER_COUNT):
-            values[f"output_int_register_{i}"] = int(regs.int_out[i])
-            values[f"output_double_register_{i}"] = float(regs.double_out[i])
+        values.update(zip(_INT_OUTPUT_REGISTERS, self.registers.int_out.tolist()))
+        values.update(zip(_DOUBLE_OUTPUT_REGISTERS, self.registers.double_out.tolist()))
         return values
 
 
@@ -254,3 +244,19 @@ def _zero(rtde_type: str) -> object:
     if length is None:
         return 0.0 if rtde_type == "DOUBLE" else 0
     return [0.0 if rtde_type.endswith("D") else 0] * length
+
+
+_INT_OUTPUT_REGISTERS = [f"output_int_register_{i}" for i in range(REGISTER_COUNT)]
+_DOUBLE_OUTPUT_REGISTERS = [f"output_double_register_{i}" for i in range(REGISTER_COUNT)]
+#: The outputs that never change in this model (the rest of ``output_values`` is filled in per call).
+_CONSTANT_OUTPUTS: dict[str, object] = {
+    **{name: _zero(rtde_type) for name, rtde_type in OUTPUT_TYPES.items()},
+    "target_q": list(HOME_JOINTS_RAD),
+    "actual_q": list(HOME_JOINTS_RAD),
+    "joint_temperatures": [30.0] * 6,
+    "robot_mode": ROBOT_MODE_RUNNING,
+    "joint_mode": [JOINT_MODE_RUNNING] * 6,
+    "actual_tool_accelerometer": [0.0, 0.0, -9.81],
+    "actual_main_voltage": 48.0,
+    "actual_robot_voltage": 48.0,
+}

@@ -70,11 +70,12 @@ def test_cube_on_table_shows_tags_faces_and_table():
 
 def test_noise_is_seeded_and_needs_a_generator():
     intrinsics = CameraIntrinsics(160, 120, 150.0, 150.0, 79.5, 59.5)
-    renderer = Renderer(intrinsics, RenderOptions(noise_std=3.0, blur_sigma_px=0.5))
+    options = RenderOptions(noise_std=3.0, blur_sigma_px=0.5)
+    renderer = Renderer(intrinsics, options)
     pose = np.concatenate([[0.0, 0.0, 0.3], FACING_CAMERA])
     a = renderer.render(pose, one_tag(0.05), np.random.default_rng(7))
-    b = renderer.render(pose, one_tag(0.05), np.random.default_rng(7))
-    c = renderer.render(pose, one_tag(0.05), np.random.default_rng(8))
+    b = Renderer(intrinsics, options).render(pose, one_tag(0.05), np.random.default_rng(7))
+    c = Renderer(intrinsics, options).render(pose, one_tag(0.05), np.random.default_rng(8))
     np.testing.assert_array_equal(a, b)
     assert np.any(a != c)
     assert 1.5 < float(np.std(a[:10, :10].astype(float))) < 4.5
@@ -97,6 +98,11 @@ def test_a_scene_seen_again_gets_fresh_noise_on_the_same_drawing_and_a_moved_one
     a, b = noisy.render(near, layout, rng), noisy.render(near, layout, rng)
     assert np.any(a != b)  # new noise each frame
     assert abs(float(np.mean(a.astype(float) - b.astype(float)))) < 0.2  # on the same picture
+    frames = np.array([noisy.render(near, layout, rng)[:, :, 0] for _ in range(40)], dtype=np.float64)
+    noise = frames - frames.mean(axis=0)
+    # each pixel's noise varies from frame to frame as much as within an image, and frames are uncorrelated
+    assert 2.6 < float(np.sqrt(np.mean(noise.var(axis=0, ddof=1)))) < 3.4
+    assert abs(float(np.corrcoef(noise[:-1].ravel(), noise[1:].ravel())[0, 1])) < 0.05
 
 
 def test_options_are_checked():
