@@ -8,10 +8,10 @@ status, subscribe to any topic. ``StackClient`` is async; ``BlockingClient`` wra
         result = stack.wait(timeout_s=190.0)
         print(result.outcome, result.error_mm, result.solves)
 
-``hydrosoft-stack goal TASK [--dx M] [--dy M] [--dyaw DEG] [--wait S] [--json]`` is this from the command line;
-with ``--json`` it prints one document ``{"status", "error_mm", "elapsed_s", "solves", "mean_solve_ms"}`` (error by
-the stack's own tracked pose) and in sim mode ``"true_error_mm"`` from sim_world's ``eval/object_pose``, plus
-``"resumes"`` when the goal was sent again to a restarted planner.
+``hydrosoft-stack goal TASK [--dx M] [--dy M] [--dyaw DEG] [--droll DEG] [--wait S] [--json]`` is this from the
+command line; with ``--json`` it prints one document ``{"status", "error_mm", "elapsed_s", "solves",
+"mean_solve_ms"}`` (error by the stack's own tracked pose) and in sim mode ``"true_error_mm"`` from sim_world's
+``eval/object_pose``, plus ``"resumes"`` when the goal was sent again to a restarted planner.
 
 A planner that dies while a goal runs stops the arm (the commander's watchdog) and is restarted by the launcher;
 the restarted planner has no goal. ``wait`` then resumes the goal this client started: the same absolute target
@@ -89,10 +89,12 @@ class StackClient:
         return reply
 
     async def set_goal(self, task: str, *, dx_m: float = 0.0, dy_m: float = 0.0, dyaw_rad: float = 0.0,
-                       target_pose: np.ndarray | None = None, tolerance_mm: float = 5.0, timeout_s: float = 180.0) -> None:
-        """Set the planner's goal (a displacement from the object's pose at ``start``, or an absolute pose)."""
+                       droll_rad: float = 0.0, target_pose: np.ndarray | None = None, tolerance_mm: float = 5.0,
+                       timeout_s: float = 180.0) -> None:
+        """Set the planner's goal (a displacement from the object's pose at ``start``, or an absolute pose; see
+        ``messages.Goal``)."""
         goal = msg.Goal(task=task, target_pose=target_pose, dx_m=dx_m, dy_m=dy_m, dyaw_rad=dyaw_rad,
-                        tolerance_mm=tolerance_mm, timeout_s=timeout_s)
+                        droll_rad=droll_rad, tolerance_mm=tolerance_mm, timeout_s=timeout_s)
         await self._command(msg.SetGoal(goal=goal))
 
     async def start(self) -> None:
@@ -220,6 +222,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dx", type=float, default=0.0, help="object displacement along base x, m")
     parser.add_argument("--dy", type=float, default=0.0, help="object displacement along base y, m")
     parser.add_argument("--dyaw", type=float, default=0.0, help="object rotation about base z, degrees")
+    parser.add_argument("--droll", type=float, default=0.0,
+                        help="object rotation about base x, degrees (in_hand: about the grasp axis)")
     parser.add_argument("--tolerance-mm", type=float, default=5.0, help="success when the ADD error is below (mm)")
     parser.add_argument("--timeout", type=float, default=None, help="the stack gives up after this long (s; default --wait or 180)")
     parser.add_argument("--wait", type=float, default=0.0, help="wait up to this long for the outcome (s); 0: start and return")
@@ -232,6 +236,7 @@ async def _goal(args: argparse.Namespace) -> dict:
     timeout_s = args.timeout if args.timeout is not None else (args.wait or 180.0)
     async with StackClient(args.config) as client:
         await client.set_goal(args.task, dx_m=args.dx, dy_m=args.dy, dyaw_rad=math.radians(args.dyaw),
+                              droll_rad=math.radians(args.droll),
                               tolerance_mm=args.tolerance_mm, timeout_s=timeout_s)
         await client.start()
         reply = await (client.wait(args.wait, resume=not args.no_resume) if args.wait > 0 else client.status())

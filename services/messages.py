@@ -448,8 +448,8 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
 class Goal(Payload, frozen=True, kw_only=True):
     """What the planner should achieve. task: a task name of ``hydrosoft.tasks`` ("pushing", "rotation", ...).
     Either target_pose: ``(7,)`` float64 object pose in the robot base frame (m, wxyz), or (target_pose None) a
-    planar displacement of the object from its pose at Start: dx_m, dy_m (m, base frame) and dyaw_rad (rad).
-    tolerance_mm, tolerance_deg: position and yaw tolerance for success. timeout_s: give up after this long."""
+    displacement of the object from its pose at Start: dx_m, dy_m (m, base frame), dyaw_rad (rad, about base z) and
+    droll_rad (rad, about base x: in-hand rotation's grasp axis), both turns about the object's centre. tolerance_mm, tolerance_deg: position and yaw tolerance for success. timeout_s: give up after this long."""
 
     ARRAYS = {"target_pose": POSE._replace(optional=True)}
 
@@ -458,13 +458,14 @@ class Goal(Payload, frozen=True, kw_only=True):
     dx_m: float = 0.0
     dy_m: float = 0.0
     dyaw_rad: float = 0.0
+    droll_rad: float = 0.0
     tolerance_mm: float
     tolerance_deg: float = 5.0
     timeout_s: float
 
     def check(self) -> None:
-        if self.target_pose is not None and (self.dx_m, self.dy_m, self.dyaw_rad) != (0.0, 0.0, 0.0):
-            raise OutOfRange("Goal takes either target_pose or dx_m/dy_m/dyaw_rad, not both")
+        if self.target_pose is not None and (self.dx_m, self.dy_m, self.dyaw_rad, self.droll_rad) != (0.0,) * 4:
+            raise OutOfRange("Goal takes either target_pose or dx_m/dy_m/dyaw_rad/droll_rad, not both")
         _positive(self, tolerance_mm=self.tolerance_mm, tolerance_deg=self.tolerance_deg, timeout_s=self.timeout_s)
 
 

@@ -34,6 +34,11 @@ def test_a_displacement_goal_moves_and_turns_the_start_pose():
     absolute = msgspec.structs.replace(goal, target_pose=np.array([0.1, 0, 0.02, 1, 0, 0, 0.0]), dx_m=0.0, dy_m=0.0,
                                        dyaw_rad=0.0)
     assert resolve_target(absolute, start).tolist() == [0.1, 0, 0.02, 1, 0, 0, 0.0]
+    rolled = resolve_target(msg.Goal(task="in_hand", droll_rad=math.radians(20), tolerance_mm=5, timeout_s=10), start)
+    assert torch.equal(rolled[:3], start[:3])  # turned about the object's centre
+    axis = se3.quat_to_matrix(se3.quat_multiply(rolled[3:], se3.quat_conjugate(start[3:])))
+    assert torch.allclose(axis[:, 0], torch.tensor([1.0, 0, 0], dtype=torch.float64))  # about base x
+    assert math.degrees(float(se3.angle_between(rolled[3:], start[3:]))) == pytest.approx(20.0)
 
 
 def test_the_core_follows_the_config(core):
