@@ -68,6 +68,7 @@ EDGE_SPAN = (0.15, 0.85)  # the part of each side sampled, as fractions of its l
 EDGE_SAMPLES_RANGE = (8, 40)  # number of profiles per side: one per 2 px of side, within this range
 EDGE_MAX_SHIFT_PX = 3.0  # a line-fit corner further than this from the detector's is a failed fit: keep the detector's
 EDGE_REFINE_PASSES = 2  # the second pass takes its profiles across the lines of the first
+NEXT, PREVIOUS = [1, 2, 3, 0], [3, 0, 1, 2]  # index of each corner's (side's) neighbour, going clockwise and back
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,38 +174,40 @@ def refine_corners(grey: np.ndarray, corners: np.ndarray, intrinsics: CameraIntr
     profile's edge point is the centroid of its intensity step (the mean position of the gradient of the dominant
     sign, which is unbiased by blur when the profile covers both plateaus); a least-squares line is fitted through
     them, in undistorted pixel coordinates when ``intrinsics`` has distortion. Two passes. Returns the input
-    corners unchanged when the tag is too small for profiles of ``EDGE_PROFILE_MIN_PX`` or a corner would move
-    further than ``EDGE_MAX_SHIFT_PX`` (a failed fit).
+    corners unchanged when they are not finite, the tag is too small for profiles of ``EDGE_PROFILE_MIN_PX``, or a
+    corner would move further than ``EDGE_MAX_SHIFT_PX`` (a failed fit).
 
     Args:
         grey: ``(H, W)`` uint8 image. corners: ``(4, 2)`` pixels in the detector's order.
         intrinsics: the camera, used only to straighten distorted edges.
     """
-    image = grey.astype(np.float32)
+    corners = np.asarray(corners, dtype=np.float64)
+    if not np.all(np.isfinite(corners)):
+        return corners.copy()
     undistort = intrinsics is not None and intrinsics.has_distortion
-    refined = np.asarray(corners, dtype=np.float64).copy()
-    sides = np.linalg.norm(np.roll(refined, -1, axis=0) - refined, axis=1)
+    sides = np.linalg.norm(corners[NEXT] - corners, axis=1)
+    across_cell = np.minimum(sides[NEXT], sides[PREVIOUS]) / MARKER_CELLS
+    half_px = np.minimum(EDGE_CELL_FRACTION * across_cell, EDGE_PROFILE_MAX_PX)
+    if np.any(half_px < EDGE_PROFILE_MIN_PX):
+        return corners.copy()
+    offsets = [np.arange(-half, half + 1e-9, EDGE_PROFILE_STEP_PX) for half in half_px]
+    refined = corners
     for _ in range(EDGE_REFINE_PASSES):
-        lines = []
-        for i in range(4):
-            start, end = refined[i], refined[(i + 1) % 4]
-            length = float(np.linalg.norm(end - start))
-            across_cell = min(sides[(i + 1) % 4], sides[(i - 1) % 4]) / MARKER_CELLS
-            half_px = min(EDGE_CELL_FRACTION * across_cell, EDGE_PROFILE_MAX_PX)
-            if half_px < EDGE_PROFILE_MIN_PX or length < 1.0:
-                return np.asarray(corners, dtype=np.float64).copy()
-            points = _edge_points(image, start, end, half_px)
-            if len(points) < 2:
-                return np.asarray(corners, dtype=np.float64).copy()
-            if undistort:
-                points = _undistort(points, intrinsics)
-            lines.append(_fit_line(points))
-        ideal = np.array([_intersect(lines[(i - 1) % 4], lines[i]) for i in range(4)])
+        sides_points = _edge_points(grey, refined, offsets)
+        if sides_points is None or min(len(points) for points in sides_points) < 2:
+            return corners.copy()
+        if undistort:
+            ends = np.cumsum([len(points) for points in sides_points])
+            ideal_points = _undistort(np.concatenate(sides_points), intrinsics)
+            sides_points = [ideal_points[end - len(points):end] for points, end in zip(sides_points, ends)]
+        lines = [_fit_line(points) for points in sides_points]
+        centres, directions = np.array([c for c, _ in lines]), np.array([d for _, d in lines])
+        ideal = _intersect(centres[PREVIOUS], directions[PREVIOUS], centres, directions)
         refined = _distort(ideal, intrinsics) if undistort else ideal
         if not np.all(np.isfinite(refined)):
-            return np.asarray(corners, dtype=np.float64).copy()
+            return corners.copy()
     if np.max(np.linalg.norm(refined - corners, axis=1)) > EDGE_MAX_SHIFT_PX:
-        return np.asarray(corners, dtype=np.float64).copy()
+        return corners.copy()
     return refined
 
 
@@ -361,13 +364,15 @@ def _fit_object(
     for pose in candidates:
         points_camera = object_points @ quat_to_matrix(pose[3:]).T + pose[:3]
         if np.all(points_camera[:, 2] > 0):
-            scored.append((_rms_px(object_points, image_points, pose, intrinsics), pose))
+            squared_px = _squared_errors_px(object_points, image_points, pose, intrinsics)
+            scored.append((float(np.sqrt(np.mean(squared_px))), pose, squared_px))
     if not scored:
         return None
     scored.sort(key=lambda candidate: candidate[0])
-    best_rms, best = scored[0]
-    distinct = [rms for rms, pose in scored[1:] if _is_distinct(best, pose)]
-    residuals = {i: _rms_px(layout.tag(i).corners_object, usable[i], best, intrinsics) for i in ids}
+    best_rms, best, squared_px = scored[0]
+    distinct = [rms for rms, pose, _ in scored[1:] if _is_distinct(best, pose)]
+    ends = np.cumsum([len(usable[i]) for i in ids])
+    residuals = {i: float(np.sqrt(np.mean(squared_px[end - len(usable[i]):end]))) for i, end in zip(ids, ends)}
     return best, best_rms, distinct[0] if distinct else math.inf, residuals
 
 
@@ -385,9 +390,16 @@ def _fits_too_well(best_rms_px: float, alternative_rms_px: float) -> bool:
 def _rms_px(object_points: np.ndarray, image_points: np.ndarray, pose: np.ndarray,
             intrinsics: CameraIntrinsics) -> float:
     """RMS distance (px) between ``image_points (N, 2)`` and ``object_points (N, 3)`` projected at ``pose``."""
+    return float(np.sqrt(np.mean(_squared_errors_px(object_points, image_points, pose, intrinsics))))
+
+
+def _squared_errors_px(object_points: np.ndarray, image_points: np.ndarray, pose: np.ndarray,
+                       intrinsics: CameraIntrinsics) -> np.ndarray:
+    """Squared distances ``(N,)`` (px^2) between ``image_points (N, 2)`` and ``object_points (N, 3)`` projected at
+    ``pose``; each point's is the same whichever other points are projected with it."""
     rvec, tvec = rvec_tvec_from_pose(pose)
     projected, _ = cv2.projectPoints(object_points, rvec, tvec, intrinsics.camera_matrix, intrinsics.distortion)
-    return float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image_points) ** 2, axis=1))))
+    return np.sum((projected.reshape(-1, 2) - image_points) ** 2, axis=1)
 
 
 def _to_grey_uint8(image: np.ndarray) -> np.ndarray:
@@ -411,24 +423,68 @@ def _to_grey_uint8(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(array)
 
 
-def _edge_points(image: np.ndarray, start: np.ndarray, end: np.ndarray, half_px: float) -> np.ndarray:
-    """Sub-pixel edge points ``(M, 2)`` along the side from ``start`` to ``end`` (see ``refine_corners``)."""
-    length = float(np.linalg.norm(end - start))
-    along = (end - start) / length
-    across = np.array([-along[1], along[0]])  # into the tag: the detector's corners run clockwise in the image
+def _edge_points(grey: np.ndarray, corners: np.ndarray, offsets: list[np.ndarray]) -> list[np.ndarray] | None:
+    """Sub-pixel edge points ``(M_k, 2)`` along each side ``k`` of the quadrilateral ``corners (4, 2)``, from corner
+    ``k`` to corner ``k + 1`` (see ``refine_corners``); ``None`` when a side is shorter than 1 px.
+
+    ``offsets[k]`` are side ``k``'s sample positions across the edge (px, positive into the tag). The four sides'
+    profiles are sampled together (``(4, S, P)``: sides with fewer profiles or narrower ones padded by repeating
+    their last row and column, which are cut off again), with the same floating-point operations in the same order
+    as for one side on its own, so each point is bit for bit what sampling that side alone gives.
+    """
+    start = corners
+    delta = corners[NEXT] - start
+    length = np.array([np.linalg.norm(side) for side in delta])
+    if np.any(length < 1.0):
+        return None
+    along = delta / length[:, None]
+    across = np.column_stack([-along[:, 1], along[:, 0]])  # into the tag: the detector's corners run clockwise
     low, high = EDGE_SAMPLES_RANGE
-    count = int(np.clip(length / 2.0, low, high))
-    positions = np.linspace(EDGE_SPAN[0], EDGE_SPAN[1], count) * length
-    offsets = np.arange(-half_px, half_px + 1e-9, EDGE_PROFILE_STEP_PX)
-    samples = start + positions[:, None, None] * along + offsets[None, :, None] * across
-    profiles = cv2.remap(image, samples[..., 0].astype(np.float32), samples[..., 1].astype(np.float32),
-                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
-    steps = np.clip(-np.diff(profiles, axis=1), 0.0, None)  # white quiet zone to black square, going inwards
-    weight = steps.sum(axis=1)
-    valid = weight > 0
-    midpoints = (offsets[:-1] + offsets[1:]) / 2.0
-    shift = (steps[valid] @ midpoints) / weight[valid]
-    return start + positions[valid, None] * along + shift[:, None] * across
+    count = np.clip(length / 2.0, low, high).astype(int)
+    rows = np.minimum(np.arange(count.max()), count[:, None] - 1)  # (4, S)
+    fractions = rows * ((EDGE_SPAN[1] - EDGE_SPAN[0]) / (count[:, None] - 1)) + EDGE_SPAN[0]  # np.linspace's sums
+    fractions[rows == count[:, None] - 1] = EDGE_SPAN[1]
+    positions = fractions * length[:, None]
+    widths = [len(o) for o in offsets]
+    across_px = np.array([np.concatenate([o, np.full(max(widths) - len(o), o[-1])]) for o in offsets])  # (4, P)
+    samples = np.empty((2, 4, len(rows[0]), len(across_px[0])), dtype=np.float32)  # x and y of (4, S, P) samples
+    for axis in range(2):
+        np.add((start[:, axis, None] + positions * along[:, axis, None])[:, :, None],
+               (across_px * across[:, axis, None])[:, None, :], out=samples[axis], casting="same_kind")
+    profiles = _sample(grey, samples[0], samples[1]).astype(np.float64)
+    steps = np.clip(-np.diff(profiles, axis=2), 0.0, None)  # white quiet zone to black square, going inwards
+    sides_points = []
+    for k in range(4):
+        side_steps = steps[k, :count[k], :widths[k] - 1]
+        weight = side_steps.sum(axis=1)
+        valid = weight > 0
+        midpoints = (offsets[k][:-1] + offsets[k][1:]) / 2.0
+        shift = (side_steps[valid] @ midpoints) / weight[valid]
+        sides_points.append(start[k] + positions[k, :count[k]][valid, None] * along[k] + shift[:, None] * across[k])
+    return sides_points
+
+
+def _sample(grey: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear grey levels (float32) at the float32 pixels ``(x, y)`` (same shapes), border pixels replicated
+    outwards, as ``cv2.remap`` of the whole image as float32 gives them.
+
+    Only the pixels the samples reach are converted to float: their bounding box with a margin of 1 px (2 on the
+    far side: bilinear reads the next pixel), cut at the image's border. That patch holds every pixel of the image
+    a sample reads, and where it is cut its border is the image's, so replication gives the same values as from the
+    whole image; the patch's offsets are integers, so the shifted float32 coordinates are exact. The samples go in
+    as one row (at most 32766: OpenCV's limit; four sides of 40 profiles of 33 samples are 5280): OpenCV then
+    interpolates in the calling thread, where a map of several rows wakes its thread pool, whose spinning costs
+    more CPU than the interpolation.
+    """
+    height, width = grey.shape
+    x0 = min(max(math.floor(float(x.min())) - 1, 0), width - 1)
+    y0 = min(max(math.floor(float(y.min())) - 1, 0), height - 1)
+    x1 = max(min(math.floor(float(x.max())) + 3, width), x0 + 1)
+    y1 = max(min(math.floor(float(y.max())) + 3, height), y0 + 1)
+    patch = grey[y0:y1, x0:x1].astype(np.float32)
+    values = cv2.remap(patch, x.reshape(1, -1) - np.float32(x0), y.reshape(1, -1) - np.float32(y0), cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE)
+    return values.reshape(x.shape)
 
 
 def _fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -438,14 +494,14 @@ def _fit_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, vt[0]
 
 
-def _intersect(line_a: tuple[np.ndarray, np.ndarray], line_b: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Intersection ``(2,)`` of two lines given as (point, direction); non-finite when they are parallel."""
-    (pa, da), (pb, db) = line_a, line_b
-    matrix = np.column_stack([da, -db])
-    if abs(np.linalg.det(matrix)) < 1e-12:
-        return np.full(2, np.nan)
-    s, _ = np.linalg.solve(matrix, pb - pa)
-    return pa + s * da
+def _intersect(pa: np.ndarray, da: np.ndarray, pb: np.ndarray, db: np.ndarray) -> np.ndarray:
+    """Intersections ``(K, 2)`` of the lines through points ``pa (K, 2)`` along directions ``da (K, 2)`` with those
+    through ``pb`` along ``db``; non-finite where a pair is parallel."""
+    matrices = np.stack([da, -db], axis=2)
+    parallel = np.abs(np.linalg.det(matrices)) < 1e-12
+    matrices[parallel] = np.eye(2)
+    s = np.linalg.solve(matrices, (pb - pa)[:, :, None])[:, 0]
+    return np.where(parallel[:, None], np.nan, pa + s * da)
 
 
 def _undistort(points: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:

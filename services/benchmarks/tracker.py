@@ -11,8 +11,12 @@ Each row (one setting): ``images``; ``detection_rate``, the fraction of images t
 ``tags_per_pose``, the mean number of tags fitted; position error (mm, Euclidean) and orientation error (deg, angle
 of the relative rotation) of the poses against the rendered truth as ``median``, ``p95`` and ``max`` (``null``
 when no image gave a pose); ``rejections``: reason counts for the images without a pose (reasons cut at the first
-colon); ``render_ms`` and ``track_ms``: median times of rendering and of detection plus pose.
-``--json`` prints ``{"config": {...}, "rows": [...]}``; otherwise a table. Progress goes to stderr.
+colon); ``render_ms`` and ``track_ms``: median wall times of rendering and of detection plus pose;
+``track_cpu_ms_mean`` and ``track_cpu_ms_p95``: the tracker's CPU time per image (detection, corner refinement and
+pose: ``time.process_time``, all threads of the process, so OpenCV's worker threads count too).
+``track_cpu_ms`` sums up the CPU time per image over all rows (``mean``, ``p95``, ``images``).
+``--json`` prints ``{"config": {...}, "rows": [...], "track_cpu_ms": {...}}``; otherwise a table and a line with
+``track_cpu_ms``. Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -74,28 +78,32 @@ def run(args: argparse.Namespace) -> int:
     options = RenderOptions(noise_std=args.noise, blur_sigma_px=args.blur)
     renderer = Renderer(intrinsics, options)
     rng = np.random.default_rng(args.seed)
-    rows = []
+    rows, cpu_ms = [], []
     for distance in distances:
         for angle in angles:
             print(f"bench tracker: distance {distance} m, view angle {angle} deg", file=sys.stderr)
-            rows.append(measure_setting(renderer, distance, angle, samples, rng))
+            rows.append(measure_setting(renderer, distance, angle, samples, rng, cpu_ms))
+    track_cpu_ms = {"mean": float(np.mean(cpu_ms)), "p95": float(np.percentile(cpu_ms, 95)), "images": len(cpu_ms)}
     config = {"cube_edge_m": CUBE_EDGE_M, "tag_size_m": TAG_SIZE_M, "intrinsics": INTRINSICS,
               "noise_std": args.noise, "blur_sigma_px": args.blur, "samples": samples, "seed": args.seed,
               "aim_jitter": AIM_JITTER}
     if args.json:
-        print(json.dumps({"config": config, "rows": rows}))
+        print(json.dumps({"config": config, "rows": rows, "track_cpu_ms": track_cpu_ms}))
     else:
         _print_table(rows)
+        print(f"tracker CPU per image ({track_cpu_ms['images']} images, {intrinsics.width} x {intrinsics.height}): "
+              f"mean {track_cpu_ms['mean']:.1f} ms, p95 {track_cpu_ms['p95']:.1f} ms")
     return 0
 
 
 def measure_setting(renderer: Renderer, distance_m: float, angle_deg: float, samples: int,
-                    rng: np.random.Generator) -> dict:
-    """Render ``samples`` images at one setting, track each, and summarise the errors (one row)."""
+                    rng: np.random.Generator, cpu_ms: list[float]) -> dict:
+    """Render ``samples`` images at one setting, track each, and summarise the errors (one row); appends each
+    image's tracker CPU time (ms) to ``cpu_ms``."""
     layout = box_layout((CUBE_EDGE_M,) * 3, TAG_SIZE_M)
     detector = make_detector()
     intrinsics = renderer.intrinsics
-    position_mm, rotation_deg, tags, render_ms, track_ms = [], [], [], [], []
+    position_mm, rotation_deg, tags, render_ms, track_ms, track_cpu_ms = [], [], [], [], [], []
     rejections: Counter[str] = Counter()
     T_base_table = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
     for _ in range(samples):
@@ -108,8 +116,9 @@ def measure_setting(renderer: Renderer, distance_m: float, angle_deg: float, sam
         T_camera_table = compose(T_camera_base, T_base_table)
         image = renderer.render(compose(T_camera_base, T_base_object), layout, rng, T_camera_table)
         render_ms.append(1e3 * (time.perf_counter() - start))
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         result = object_pose_from_tags(detect_tags(image, detector, intrinsics), layout, intrinsics, T_base_camera)
+        track_cpu_ms.append(1e3 * (time.process_time() - start_cpu))
         track_ms.append(1e3 * (time.perf_counter() - start))
         if isinstance(result, ObjectPose):
             position_mm.append(1e3 * float(np.linalg.norm(result.T_base_object[:3] - T_base_object[:3])))
@@ -123,7 +132,9 @@ def measure_setting(renderer: Renderer, distance_m: float, angle_deg: float, sam
     row.update(_summary("pos_err_mm", position_mm))
     row.update(_summary("rot_err_deg", rotation_deg))
     row.update({"rejections": dict(rejections), "render_ms": float(np.median(render_ms)),
-                "track_ms": float(np.median(track_ms))})
+                "track_ms": float(np.median(track_ms)), "track_cpu_ms_mean": float(np.mean(track_cpu_ms)),
+                "track_cpu_ms_p95": float(np.percentile(track_cpu_ms, 95))})
+    cpu_ms.extend(track_cpu_ms)
     return row
 
 
@@ -157,14 +168,15 @@ def _print_table(rows: list[dict]) -> None:
         return "-" if value is None else f"{value:.{digits}f}"
 
     print(f"{'dist m':>6} {'angle':>5} {'found':>6} {'tags':>4} | {'pos mm: med':>11} {'p95':>6} {'max':>6} | "
-          f"{'rot deg: med':>12} {'p95':>6} {'max':>6} | {'render ms':>9} {'track ms':>8}  rejections")
+          f"{'rot deg: med':>12} {'p95':>6} {'max':>6} | {'render ms':>9} {'track ms':>8} {'cpu ms':>6} "
+          f"{'p95':>5}  rejections")
     for row in rows:
         print(f"{row['distance_m']:>6.2f} {row['view_angle_deg']:>5.0f} {row['detection_rate']:>6.0%} "
               f"{cell(row['tags_per_pose'], 1):>4} | {cell(row['pos_err_mm_median'], 2):>11} "
               f"{cell(row['pos_err_mm_p95'], 2):>6} {cell(row['pos_err_mm_max'], 2):>6} | "
               f"{cell(row['rot_err_deg_median'], 2):>12} {cell(row['rot_err_deg_p95'], 2):>6} "
-              f"{cell(row['rot_err_deg_max'], 2):>6} | {row['render_ms']:>9.1f} {row['track_ms']:>8.1f}  "
-              f"{row['rejections'] or ''}")
+              f"{cell(row['rot_err_deg_max'], 2):>6} | {row['render_ms']:>9.1f} {row['track_ms']:>8.1f} "
+              f"{row['track_cpu_ms_mean']:>6.1f} {row['track_cpu_ms_p95']:>5.1f}  {row['rejections'] or ''}")
 
 
 if __name__ == "__main__":
