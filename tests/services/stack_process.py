@@ -7,6 +7,7 @@ Every process is stopped by its pid (the launcher's process group; the launcher 
 from __future__ import annotations
 
 import asyncio
+import itertools
 import os
 import re
 import signal
@@ -14,6 +15,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import torch
 
 from hydrosoft.services.client import StackClient
 import loopback
@@ -36,10 +39,32 @@ def sim_toml_text(compiled_plant: bool = False) -> str:
     return text if compiled_plant else re.sub(r"(\[sim\][^\[]*?)compile = true", r"\1compile = false", text)
 
 
-def stack_config(tmp_path: Path, compiled_plant: bool = False) -> Path:
-    """deploy/sim.toml with its run_dir, FT 300 link and UR address made private to this test."""
+def place_scene(text: str, task_frame: list[float]) -> str:
+    """A sim config ``text`` with its scene moved to ``task_frame`` (``T_base_task``, a turn about z): the tag
+    camera and the workspace box move with it, so the base-frame numbers all change and the physics does not."""
+    from hydrosoft.services.config import parse_config
+    from hydrosoft.services.task_frame import TaskFrame
+
+    config = parse_config(text)
+    frame = TaskFrame.from_pose(task_frame)
+    camera = frame.to_base(torch.tensor(config.camera.pose, dtype=torch.float64)).tolist()
+    corners = torch.tensor(list(itertools.product(*zip(config.limits.workspace_min, config.limits.workspace_max))),
+                           dtype=torch.float64)
+    corners = frame.points_to_base(corners)
+    low, high = corners.min(0).values.tolist(), corners.max(0).values.tolist()
+    text = text.replace("[scene]\n", f"[scene]\ntask_frame = {list(task_frame)}\n", 1)
+    text = re.sub(r"^pose = \[[^\]]*\]", f"pose = {camera}", text, count=1, flags=re.M)  # the tag camera's
+    text = re.sub(r"workspace_min = \[[^\]]*\]", f"workspace_min = {low}", text, count=1)
+    return re.sub(r"workspace_max = \[[^\]]*\]", f"workspace_max = {high}", text, count=1)
+
+
+def stack_config(tmp_path: Path, compiled_plant: bool = False, task_frame: list[float] | None = None) -> Path:
+    """deploy/sim.toml with its run_dir, FT 300 link and UR address made private to this test, and its scene at
+    ``task_frame`` when one is given (``place_scene``)."""
     run_dir = tmp_path / "run"
     text = sim_toml_text(compiled_plant)
+    if task_frame is not None:
+        text = place_scene(text, task_frame)
     text = text.replace('"/tmp/hydrosoft-sim/ft300-bubble"', f'"{run_dir}/ft300-bubble"')
     text = text.replace('"/tmp/hydrosoft-sim"', f'"{run_dir}"').replace('"127.0.0.2"', f'"{free_ur_host()}"')
     path = tmp_path / "sim.toml"

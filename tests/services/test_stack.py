@@ -2,7 +2,9 @@
 controller, FT 300 pty, rendered camera and depth images), the arm commander (the real ur_rtde client), the F/T
 reader (the real serial driver), the bubble camera, the tag tracker and the planner; the client pushes the cube,
 the planner is SIGKILLed during a second goal (the arm stops, the launcher restarts it) and the client resumes
-that goal on the new planner, which reaches it.
+that goal on the new planner, which reaches it. The scene lies away from the base origin, turned 90 degrees
+(``scene.task_frame``), as a lab's table would: every pose on the bus is in the base frame, and the goals push the
+cube along the base's y, which is the task scene's x.
 
 Every process is stopped by its pid (the launcher's process group, then a check that none is left).
 """
@@ -10,10 +12,12 @@ Every process is stopped by its pid (the launcher's process group, then a check 
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import signal
 import time
 
+import numpy as np
 import pytest
 from stack_process import READY_TIMEOUT_S, STOP_BOUND_S, Stack, children_left, stack_config
 
@@ -26,6 +30,9 @@ GOAL_TIMEOUT_S = 240.0
 #: The planner's heartbeat timeout (deploy/sim.toml: 0.5 s) plus one servo period (8 ms), plus the time for the
 #: commander's next published state to show it (one servo period) and scheduling slack on a busy machine.
 KILL_STOP_BOUND_S = 0.5 + 0.008 + 0.008 + 0.2
+#: T_base_task: the scene 0.4 m ahead of the base, 0.1 m to its right, the table 5 cm below the base's plane, its x
+#: along the base's y.
+TASK_FRAME = [0.4, -0.1, -0.05, math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]
 
 
 async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
@@ -35,7 +42,7 @@ async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
     from hydrosoft.services.status import collect
 
     arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
-    await client.set_goal("pushing", dx_m=-0.03, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
+    await client.set_goal("pushing", dy_m=-0.03, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
     await client.start()
     deadline = time.monotonic() + 30.0
     while True:  # wait until the arm servoes towards a target
@@ -64,14 +71,14 @@ async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
 
 
 def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_path):
-    config_path = stack_config(tmp_path, compiled_plant=True)
+    config_path = stack_config(tmp_path, compiled_plant=True, task_frame=TASK_FRAME)
     stack = Stack(config_path, tmp_path / "launcher.log")
     client = StackClient(load_config(config_path))
     try:
         stack.wait_ready(client)
 
         async def push():
-            await client.set_goal("pushing", dx_m=0.035, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
+            await client.set_goal("pushing", dy_m=0.035, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
             await client.start()
             reply = await client.wait(GOAL_TIMEOUT_S + 10)
             true = await true_error_mm(client, reply.goal.target_pose, "pushing")
@@ -79,6 +86,7 @@ def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_p
 
         reply, true = asyncio.run(push())
         assert reply.outcome == "reached", (reply.outcome, reply.outcome_reason, reply.error_mm, stack.text()[-3000:])
+        assert abs(reply.goal.target_pose[0] - 0.4) < 0.005 and reply.goal.target_pose[1] > -0.1 + 0.03  # base frame
         assert true is not None and true < 5.0, true
         assert reply.solves > 0
 
@@ -94,7 +102,8 @@ def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_p
         reply, target, true = asyncio.run(resumed())
         assert client.resumes == 1
         assert reply.outcome == "reached", (reply.outcome, reply.outcome_reason, reply.error_mm, stack.text()[-3000:])
-        assert (reply.goal.target_pose == target).all()  # the same absolute target, not 3 cm from the new start
+        # the same absolute target, not 3 cm from the new start (to rounding: it went through the task frame and back)
+        np.testing.assert_allclose(reply.goal.target_pose, target, rtol=0, atol=1e-12)
         assert true is not None and true < 5.0, true
     finally:
         client.close()
