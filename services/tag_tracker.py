@@ -296,6 +296,7 @@ def open_camera(service: Service, config: StackConfig) -> Camera:
 async def serve(service: Service, config: StackConfig) -> None:
     """Track every image of the tag camera until cancelled (see the module docstring)."""
     loop = asyncio.get_running_loop()
+    cv2.setNumThreads(config.camera.detector_threads)
     tracker = await loop.run_in_executor(None, TagTracker.from_config, config)
     service.log.info("tracking tags %s of the %s object", list(tracker.layout.ids), config.scene.task)
     camera = open_camera(service, config)

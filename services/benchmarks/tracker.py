@@ -28,6 +28,7 @@ import sys
 import time
 from collections import Counter
 
+import cv2
 import numpy as np
 
 from hydrosoft.drivers.camera.config import CameraIntrinsics
@@ -58,6 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise", type=float, default=2.0, help="pixel noise std in grey levels (default 2)")
     parser.add_argument("--blur", type=float, default=0.6, help="Gaussian blur sigma in pixels (default 0.6)")
     parser.add_argument("--seed", type=int, default=0, help="seed of poses and noise (default 0)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="OpenCV's thread count for detection (cv2.setNumThreads; default: OpenCV's own)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,6 +77,11 @@ def run(args: argparse.Namespace) -> int:
         print("bench tracker: need --samples >= 1, distances above the cube's size and angles in [0, 90)",
               file=sys.stderr)
         return 2
+    if args.threads is not None:
+        if args.threads < 1:
+            print("bench tracker: --threads must be at least 1", file=sys.stderr)
+            return 2
+        cv2.setNumThreads(args.threads)
     intrinsics = CameraIntrinsics(**INTRINSICS)
     options = RenderOptions(noise_std=args.noise, blur_sigma_px=args.blur)
     renderer = Renderer(intrinsics, options)
@@ -86,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     track_cpu_ms = {"mean": float(np.mean(cpu_ms)), "p95": float(np.percentile(cpu_ms, 95)), "images": len(cpu_ms)}
     config = {"cube_edge_m": CUBE_EDGE_M, "tag_size_m": TAG_SIZE_M, "intrinsics": INTRINSICS,
               "noise_std": args.noise, "blur_sigma_px": args.blur, "samples": samples, "seed": args.seed,
-              "aim_jitter": AIM_JITTER}
+              "aim_jitter": AIM_JITTER, "opencv_threads": cv2.getNumThreads()}
     if args.json:
         print(json.dumps({"config": config, "rows": rows, "track_cpu_ms": track_cpu_ms}))
     else:

@@ -29,6 +29,7 @@ def test_the_shipped_configs_load(name):
     (ONE_ARM + "[planner]\nheartbeat_period_s = 0.3\n", "planner.heartbeat_period_s"),
     (ONE_ARM + "[services.nope]\nrestart = \"always\"\n", "services.nope"),
     (ONE_ARM + "[sim]\nrate_hz = 20\n", "sim.rate_hz"),
+    (ONE_ARM + "[camera]\ndetector_threads = 0\n", "camera.detector_threads"),
     (ONE_ARM + "[sim]\nur_tick_hz = 100\n", "sim.ur_tick_hz"),  # below the servo rate
     (ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.9, 0, 0, 0.1]\n", "scene.task_frame"),  # not unit length
     (ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.995, 0.0998, 0, 0]\n", "scene.task_frame"),  # 11.5 deg tilt

@@ -3,6 +3,8 @@
 import argparse
 import json
 
+import cv2
+
 from hydrosoft.services.benchmarks.tracker import add_arguments, run
 
 
@@ -13,8 +15,13 @@ def parse(argv):
 
 
 def test_quick_json_rows(capsys):
-    assert run(parse(["--quick", "--json"])) == 0
+    threads = cv2.getNumThreads()
+    try:
+        assert run(parse(["--quick", "--json", "--threads", "1"])) == 0
+    finally:
+        cv2.setNumThreads(threads)
     document = json.loads(capsys.readouterr().out)
+    assert document["config"]["opencv_threads"] == 1
     rows = document["rows"]
     assert [(row["distance_m"], row["view_angle_deg"]) for row in rows] == [(0.3, 0.0), (0.3, 60.0), (1.0, 0.0),
                                                                             (1.0, 60.0)]
@@ -38,4 +45,6 @@ def test_quick_json_rows(capsys):
 def test_bad_options_exit_with_status_2(capsys):
     assert run(parse(["--quick", "--distances", "0.3,x"])) == 2
     assert "--distances" in capsys.readouterr().err
+    assert run(parse(["--quick", "--threads", "0"])) == 2
+    assert "--threads" in capsys.readouterr().err
     assert run(parse(["--quick", "--angles", "95"])) == 2
