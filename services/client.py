@@ -11,7 +11,8 @@ status, subscribe to any topic. ``StackClient`` is async; ``BlockingClient`` wra
 ``hydrosoft-stack goal TASK [--dx M] [--dy M] [--dyaw DEG] [--droll DEG] [--wait S] [--json]`` is this from the
 command line; with ``--json`` it prints one document ``{"status", "error_mm", "elapsed_s", "solves",
 "mean_solve_ms"}`` (error by the stack's own tracked pose) and in sim mode ``"true_error_mm"`` from sim_world's
-``eval/object_pose``, plus ``"resumes"`` when the goal was sent again to a restarted planner.
+``eval/object_pose``, plus ``"resumes"`` when the goal was sent again to a restarted planner and
+``"reapproaches"`` when the bubble was brought back onto a lost object (``services/reapproach.py``).
 
 A planner that dies while a goal runs stops the arm (the commander's watchdog) and is restarted by the launcher;
 the restarted planner has no goal. ``wait`` then resumes the goal this client started: the same absolute target
@@ -244,6 +245,8 @@ async def _goal(args: argparse.Namespace) -> dict:
                   "solves": reply.solves, "mean_solve_ms": reply.mean_solve_ms}
         if reply.outcome_reason:
             result["reason"] = reply.outcome_reason
+        if reply.reapproaches:
+            result["reapproaches"] = reply.reapproaches
         if client.resumes:
             result["resumes"] = client.resumes
         if reply.goal is not None and reply.goal.target_pose is not None:

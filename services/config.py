@@ -190,7 +190,9 @@ class PlannerConfig(Strict):
     period (must be under half the commander's heartbeat_timeout_s). target_lead_s: how long each target stays
     valid (its deadline). threads: torch intra-op threads of the solve (1 by default: with the other services on
     a small machine, two threads that wait for each other at every kernel's barrier were several times slower
-    than one under load; raise it on a machine with cores to spare)."""
+    than one under load; raise it on a machine with cores to spare). max_reapproaches: how often one goal may bring
+    the bubble back onto an object it lost (``services/reapproach.py``; one-arm scenes) before it fails; 0: a lost
+    object fails the goal at once."""
 
     model: Literal["nh", "snh", "pf", "pff"] = "nh"
     spacing: float = 0.0125
@@ -206,8 +208,11 @@ class PlannerConfig(Strict):
     heartbeat_period_s: float = 0.1
     target_lead_s: float = 0.5
     threads: int = 1
+    max_reapproaches: int = 3
 
     def __post_init__(self) -> None:
+        _require(self.max_reapproaches >= 0, "planner.max_reapproaches",
+                 f"must be >= 0, got {self.max_reapproaches}")
         _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s",
                   "threads")
         for key, value in self.max_age_s.items():
@@ -223,7 +228,9 @@ class SimConfig(Strict):
     eager plant, sharing two cores with the planner's solves, falls behind real time while the simulated arm does
     not, and the cube then lags the bubble. ur_tick_hz: the simulated UR controllers' cycle, which also caps their
     RTDE streams: a CB3's 125 Hz by default, not an e-Series' 500 Hz, as the commander servoes and reads at 125 Hz
-    and each extra cycle is a Python loop turn in sim_world (at least ``limits.servo_rate_hz``)."""
+    and each extra cycle is a Python loop turn in sim_world (at least ``limits.servo_rate_hz``). object_offset_m:
+    the object starts this far (m, task frame x and y) from the scene's pose, under no bubble when it is far enough:
+    a lost object for the planner to re-approach (``services/reapproach.py``)."""
 
     rate_hz: float = 50.0
     ur_tick_hz: float = 125.0
@@ -232,9 +239,12 @@ class SimConfig(Strict):
     image_noise: float = 2.0
     image_blur_px: float = 0.6
     depth_noise_m: float = 0.0002
+    object_offset_m: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         _positive(self, "sim", "rate_hz", "spacing_factor", "ur_tick_hz")
+        _require(all(math.isfinite(v) and abs(v) <= 0.5 for v in self.object_offset_m), "sim.object_offset_m",
+                 f"must be two finite numbers within 0.5 m, got {list(self.object_offset_m)}")
         _require(self.rate_hz >= 50.0, "sim.rate_hz", f"must be at least 50 Hz, got {self.rate_hz}")
 
 

@@ -490,7 +490,8 @@ class StatusReply(Reply, frozen=True, kw_only=True):
     target_pose resolved once started (the object pose it must reach, base frame). status: the server's own
     ServiceStatus. outcome: "" (never started), running, reached, failed (reason in outcome_reason), timeout or
     stopped. error_mm: the latest ADD error of the object (its tracked pose) against the target, mm. elapsed_s:
-    since Start, s. solves: MPC solves since Start. mean_solve_ms: their mean wall time, ms."""
+    since Start, s. solves: MPC solves since Start. mean_solve_ms: their mean wall time, ms. reapproaches: how often
+    the bubble was brought back onto a lost object since Start."""
 
     topic = "reply/status"
 
@@ -503,6 +504,7 @@ class StatusReply(Reply, frozen=True, kw_only=True):
     elapsed_s: float = 0.0
     solves: int = 0
     mean_solve_ms: float = 0.0
+    reapproaches: int = 0
 
 
 class Request(Message, frozen=True, kw_only=True):

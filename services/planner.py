@@ -11,7 +11,12 @@ solve and no target, also when an input went stale during the solve: the command
 The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. ``Start`` is refused without
 fresh inputs to start from (the drift cost is anchored at the object and TCP poses the goal starts at). A goal ends
 ``reached`` (the tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed``
-(with a reason: an unknown task, an unreachable goal) or ``stopped``.
+(with a reason: an unknown task, an unreachable goal, an object lost) or ``stopped``.
+
+In a one-arm scene the planner solves only while the bubble touches the object (``reapproach.in_contact``); an
+object out of contact for ``reapproach.LOST_AFTER_S`` is lost, and the planner drives the arm back onto it
+(``services/reapproach.py``: up, across, down to the scene's pressing pose) before it plans again, at most
+``planner.max_reapproaches`` times per goal.
 
 Frames: the bus carries base-frame poses; the planner works in the task scene's frame (``scene.task_frame``,
 ``services/task_frame.py``). Its inputs are converted on arrival (``fresh_inputs``), its targets, goal and
@@ -50,6 +55,8 @@ from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Stale
 from hydrosoft.services import service_main
 from hydrosoft.services.config import StackConfig
+from hydrosoft.services.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
+from hydrosoft.services.safety import check_target
 from hydrosoft.services.runtime import Service
 from hydrosoft.services.task_frame import TaskFrame
 
@@ -80,8 +87,9 @@ class PlannerCore:
     model: the compiled task scene at the planner's spacing, contact model and dtype. arms: for each config arm,
     its body index in the model. sensors: the model's sensor bodies (``tactile.sensor_bodies``). fixed_poses:
     ``(M, 7)`` the scene's body poses (unactuated bodies stay there). metric_points: ``(N, 3)`` object-frame
-    points (5 mm spacing) on which the ADD error is measured. frame: the task frame in the base frame. Poses are
-    in the task frame unless a name says base.
+    points (5 mm spacing) on which the ADD error is measured. frame: the task frame in the base frame.
+    grasp_offset: ``(3,)`` m, the one arm's TCP position relative to the object in the scene (``reapproach``), or
+    ``None`` in a scene with several arms (no re-approach). Poses are in the task frame unless a name says base.
     """
 
     config: StackConfig
@@ -95,6 +103,7 @@ class PlannerCore:
     metric_points: torch.Tensor
     membranes: dict[str, Ellipsoid] = field(default_factory=dict)
     frame: TaskFrame = field(default_factory=lambda: TaskFrame.from_pose(se3.identity()))
+    grasp_offset: torch.Tensor | None = None
 
     @classmethod
     def build(cls, config: StackConfig) -> PlannerCore:
@@ -114,8 +123,12 @@ class PlannerCore:
         dynamics = CompiledStep(model, dynamic=False) if pc.compile else functools.partial(step, model)
         metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
         membranes = {name: model.bodies[index] for name, index in arms.items()}
+        offset = None
+        if len(arms) == 1:
+            (index,) = arms.values()
+            offset = grasp_offset(state.object_pose[0].double(), state.body_poses[0, index].double())
         return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
-                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame))
+                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset)
 
     def solver(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]) -> CemGd:
         """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode), its drift
@@ -196,6 +209,7 @@ class Episode:
     error_mm: float = math.nan
     outcome: msg.Outcome = "running"
     reason: str = ""
+    contact: ContactWatch | None = None
 
     def finish(self, outcome: msg.Outcome, reason: str = "") -> None:
         if self.outcome == "running":
@@ -256,6 +270,8 @@ class Planner:
         frame = self.core.frame
         target = frame.to_task(resolve_target(self.goal, frame.to_base(start_pose)))
         episode = Episode(self.goal, target, self.core.solver(target, start_pose, arm_poses), time.monotonic())
+        if self.core.grasp_offset is not None:
+            episode.contact = ContactWatch(self.core.grasp_offset, self.config.planner.max_reapproaches)
         task = self.core.task
         if not task.reachable(start_pose, target, int(self.goal.timeout_s / self.core.model.dt)):
             episode.finish("failed", f"unreachable: the goal lies beyond what the action bounds allow within "
@@ -287,7 +303,8 @@ class Planner:
             outcome=episode.outcome, outcome_reason=episode.reason,
             error_mm=episode.error_mm if math.isfinite(episode.error_mm) else 0.0,
             elapsed_s=time.monotonic() - episode.started_s, solves=solves,
-            mean_solve_ms=1e3 * sum(episode.solve_s) / solves if solves else 0.0)
+            mean_solve_ms=1e3 * sum(episode.solve_s) / solves if solves else 0.0,
+            reapproaches=episode.contact.count if episode.contact is not None else 0)
 
     def _end_episode(self) -> None:
         self.last_outcome, self.episode = self.episode, None
@@ -371,6 +388,14 @@ class Planner:
             self.service.count_error("bad_input", str(err))
             await asyncio.sleep(IDLE_PERIOD_S)
             return
+        if self.episode is not episode:
+            return  # stopped meanwhile
+        decision = "plan" if episode.contact is None else episode.contact.decide(penetration, now)
+        if decision != "plan":
+            await self.out_of_contact(episode, decision, object_pose, arm_poses)
+            if self.episode is episode:
+                await asyncio.sleep(IDLE_PERIOD_S)
+            return
         observation = self.core.observation(object_pose, arm_poses, penetration)
         state = estimate_state(self.core.model, observation, self.core.sensors, episode.prediction)
         tic = time.perf_counter()
@@ -399,6 +424,45 @@ class Planner:
         states = await loop.run_in_executor(None, predict, self.core, state, result.plan.detach())
         await self.out.send(self.plan_message(result, states, stamps), topic=f"plan/{self.config.scene.task}")
         episode.prediction = carry_over(states, steps)
+
+    async def out_of_contact(self, episode: Episode, decision: Decision, object_pose: torch.Tensor,
+                             arm_poses: dict[str, torch.Tensor]) -> None:
+        """One tick of a goal whose bubble is off the object (``ContactWatch.decide``'s ``decision``): nothing while
+        it waits, the goal failed once the object is lost past its re-approaches, otherwise the re-approach's next
+        waypoint to the arm; once the bubble presses on the object again, a fresh solver anchored at the new
+        contact. A waypoint the commander would refuse (outside the workspace box) fails the goal and sends
+        nothing."""
+        watch = episode.contact
+        if decision == "lost":
+            self._fail(episode, f"lost the object: no contact for {LOST_AFTER_S} s after {watch.count} re-approaches "
+                                f"(planner.max_reapproaches = {watch.allowed})")
+            return
+        if decision == "wait":
+            return
+        if decision == "start":
+            self.service.log.info("lost contact with the object for %.1f s: re-approach %d of %d", LOST_AFTER_S,
+                                  watch.count, watch.allowed)
+        (name,) = self.core.arms
+        target = watch.target(object_pose, arm_poses[name])
+        if target is None:
+            self.service.log.info("re-approach %d done: planning from the new contact", watch.count)
+            episode.prediction = None
+            episode.solver = self.core.solver(episode.target, object_pose, arm_poses)
+            return
+        base = self.core.frame.to_base(target).numpy()
+        refusal = check_target(base, self.config.limits)
+        if refusal is not None:
+            self._fail(episode, f"lost the object out of reach: re-approach {watch.reapproach.phase_name}: {refusal}")
+            return
+        self.plan_seq += 1
+        deadline_ns = time.monotonic_ns() + int(self.config.planner.target_lead_s * 1e9)
+        await self.out.send(msg.ArmTarget(arm=name, tcp_pose=base, deadline_ns=deadline_ns, plan_seq=self.plan_seq),
+                            topic=f"arm_target/{name}")
+
+    def _fail(self, episode: Episode, reason: str) -> None:
+        episode.finish("failed", reason)
+        self.service.count_error("object_lost", reason)
+        self._end_episode()
 
     def plan_message(self, result, states: list[State], stamps: dict[str, int]) -> msg.Plan:
         """The Plan message of a solve, base frame: actions, predicted object poses (``states``, from ``predict``)

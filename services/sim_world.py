@@ -43,6 +43,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import torch
 from torch import Tensor
@@ -92,14 +93,20 @@ def plant_model(config: StackConfig, scene: Scene | None = None) -> tuple[Model,
     """The plant's compiled model and initial state (B = 1, float64) for ``config``.
 
     The task scene (or ``scene``, e.g. a wrench benchmark object's) with ``PLANT.model`` contact at spacing
-    ``planner.spacing * sim.spacing_factor`` (m), one step per tick: ``dt = 1 / sim.rate_hz`` s, ``epsilon`` scaled
+    ``planner.spacing * sim.spacing_factor`` (m), its object moved by ``sim.object_offset_m`` (then unpruned: the
+    bubble may touch any point once it comes back to the object), one step per tick: ``dt = 1 / sim.rate_hz`` s, ``epsilon`` scaled
     by ``dt / scene.dt`` (the mobility ``dt / epsilon`` kept), and ``ceil(substeps * PLANT.substep_factor * dt /
     scene.dt)`` sub-steps (sub-steps no longer than the evaluation plant's; the step adds more when the contacts need
     them).
     """
     scene = make_task(config.scene.task).scene if scene is None else scene
     spacing_m = config.planner.spacing * config.sim.spacing_factor
-    model, state, _ = compile_scene(with_contact(scene, PLANT.model, spacing_m))
+    dx, dy = config.sim.object_offset_m
+    moved = dx != 0.0 or dy != 0.0
+    if moved:
+        pose = [scene.object.pose[0] + dx, scene.object.pose[1] + dy, *scene.object.pose[2:]]
+        scene = msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, pose=pose))
+    model, state, _ = compile_scene(with_contact(scene, PLANT.model, spacing_m), prune=not moved)
     dt_s = 1.0 / config.sim.rate_hz
     substeps = max(1, math.ceil(model.substeps * PLANT.substep_factor * dt_s / model.dt - 1e-9))
     return replace(model, dt=dt_s, epsilon=model.epsilon * dt_s / model.dt, substeps=substeps), state
@@ -210,6 +217,14 @@ class SimPlant:
         if not all(bool(torch.isfinite(t).all()) for t in nxt[:3]):
             raise PlantStepError("non_finite_step", "the plant step gave non-finite poses or forces; state kept")
         return nxt
+
+    def warm_up(self) -> None:
+        """Run the step twice at rest, from the state without cached signed distances and then with them, and keep
+        neither result: a compiled step compiles its graph for each kind of state here, not in the physics loop
+        (an unpruned plant, ``sim.object_offset_m``, compiled a second graph at its second tick: 11 s)."""
+        u = torch.zeros(1, self.model.n_bodies, 6, dtype=self.model.dtype)
+        with torch.no_grad():
+            self._step(self._step(State(*self.state[:3]), u), u)
 
     def tcp_wrench(self, arm: str) -> np.ndarray:
         """The newest wrench ``(6,)`` [N, N m] on ``arm``'s body, TCP frame (``snapshot``; any thread)."""
@@ -374,6 +389,7 @@ def _warm_up(plant: SimPlant, camera: SimCamera, depth_cameras: Sequence[BubbleD
     """One plant tick at rest and one image of each camera, before READY: the first calls fill caches (slow; a
     compiled plant compiles here), and a scene that cannot be simulated or rendered fails at start rather than in
     the loop."""
+    plant.warm_up()
     snapshot = plant.snapshot
     plant.step_to(snapshot.tcp_poses)
     camera.render(snapshot.object_pose)

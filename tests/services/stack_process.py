@@ -58,13 +58,17 @@ def place_scene(text: str, task_frame: list[float]) -> str:
     return re.sub(r"workspace_max = \[[^\]]*\]", f"workspace_max = {high}", text, count=1)
 
 
-def stack_config(tmp_path: Path, compiled_plant: bool = False, task_frame: list[float] | None = None) -> Path:
-    """deploy/sim.toml with its run_dir, FT 300 link and UR address made private to this test, and its scene at
-    ``task_frame`` when one is given (``place_scene``)."""
+def stack_config(tmp_path: Path, compiled_plant: bool = False, task_frame: list[float] | None = None,
+                 object_offset_m: tuple[float, float] | None = None) -> Path:
+    """deploy/sim.toml with its run_dir, FT 300 link and UR address made private to this test, its scene at
+    ``task_frame`` when one is given (``place_scene``), and sim_world's object moved by ``object_offset_m`` (m, task
+    frame x, y) from under the bubble when one is given."""
     run_dir = tmp_path / "run"
     text = sim_toml_text(compiled_plant)
     if task_frame is not None:
         text = place_scene(text, task_frame)
+    if object_offset_m is not None:
+        text = text.replace("[sim]\n", f"[sim]\nobject_offset_m = {list(object_offset_m)}\n", 1)
     text = text.replace('"/tmp/hydrosoft-sim/ft300-bubble"', f'"{run_dir}/ft300-bubble"')
     text = text.replace('"/tmp/hydrosoft-sim"', f'"{run_dir}"').replace('"127.0.0.2"', f'"{free_ur_host()}"')
     path = tmp_path / "sim.toml"

@@ -44,6 +44,8 @@ def test_a_displacement_goal_moves_and_turns_the_start_pose():
 def test_the_core_follows_the_config(core):
     assert core.model.dtype == torch.float32 and core.model.body_names == ("bubble", "table")
     assert core.arms == {"bubble": 0} and core.sensors.tolist() == [0]
+    # re-approach presses the bubble down to the scene's pose over the cube: 5 cm above its centre
+    torch.testing.assert_close(core.grasp_offset, torch.tensor([0.0, 0.0, 0.05], dtype=torch.float64))
     start = core.task.initial_pose()
     assert core.error_mm(start, start) == 0.0
     assert core.error_mm(start, resolve_target(msg.Goal(task="pushing", dx_m=0.04, tolerance_mm=5, timeout_s=1),

@@ -91,6 +91,24 @@ def test_moving_the_tcp_drags_the_cube_and_the_bubble_lands_exactly_on_the_tcp()
 
 
 
+def test_a_cube_placed_off_the_bubble_is_untouched_until_the_bubble_comes_down_on_it():
+    """``sim.object_offset_m``: the cube starts 6 cm to the side, so the bubble does not touch it; the plant is not
+    pruned to the starting contacts, so the bubble presses it once moved up, across and down onto it."""
+    plant = SimPlant.from_config(pushing_config(sim="[sim]\nobject_offset_m = [0.0, 0.06]\n"))
+    np.testing.assert_allclose(plant.snapshot.object_pose, CUBE_POSE + [0.0, 0.06, 0, 0, 0, 0, 0], atol=1e-12)
+    assert not plant.model.touchable  # unpruned
+    plant.step_to({"bubble": BUBBLE_POSE})
+    assert np.abs(plant.tcp_wrench("bubble")).max() == 0.0
+    tcp = BUBBLE_POSE.copy()
+    for axis, end in ((2, BUBBLE_POSE[2] + 0.02), (1, 0.06), (2, BUBBLE_POSE[2])):
+        while abs(tcp[axis] - end) > 1e-12:
+            tcp[axis] += float(np.clip(end - tcp[axis], -0.001, 0.001))
+            plant.step_to({"bubble": tcp})
+    force_z = plant.tcp_wrench("bubble")[2]
+    assert abs(force_z) > 1.0, plant.tcp_wrench("bubble")  # the 5 mm press of the scene: about 1.9 N
+    np.testing.assert_allclose(plant.snapshot.object_pose[:2], [0.0, 0.06], atol=1e-3)
+
+
 def test_the_plant_keeps_each_ticks_signed_distances_and_they_are_the_states_own():
     """A tick caches the signed distances of its end (the next tick's stability check reuses them instead of
     solving every closest point again); they are those of the state's poses, and a plant that recomputes them every

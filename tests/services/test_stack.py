@@ -1,7 +1,8 @@
 """The whole stack in sim-hardware mode as separate processes: the launcher starts sim_world (plant, simulated UR
 controller, FT 300 pty, rendered camera and depth images), the arm commander (the real ur_rtde client), the F/T
-reader (the real serial driver), the bubble camera, the tag tracker and the planner; the client pushes the cube,
-the planner is SIGKILLed during a second goal (the arm stops, the launcher restarts it) and the client resumes
+reader (the real serial driver), the bubble camera, the tag tracker and the planner; the cube starts 6 cm to the side
+of the bubble (``sim.object_offset_m``), so the planner first re-approaches it (up, across, down onto it), then the
+client's goal pushes it; the planner is SIGKILLed during a second goal (the arm stops, the launcher restarts it) and the client resumes
 that goal on the new planner, which reaches it. The scene lies away from the base origin, turned 90 degrees
 (``scene.task_frame``), as a lab's table would: every pose on the bus is in the base frame, and the goals push the
 cube along the base's y, which is the task scene's x.
@@ -33,6 +34,8 @@ KILL_STOP_BOUND_S = 0.5 + 0.008 + 0.008 + 0.2
 #: T_base_task: the scene 0.4 m ahead of the base, 0.1 m to its right, the table 5 cm below the base's plane, its x
 #: along the base's y.
 TASK_FRAME = [0.4, -0.1, -0.05, math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]
+#: Where sim_world's cube starts, from under the bubble (task frame): the bubble (0.045 m half-width in y) misses it.
+OBJECT_OFFSET_M = (0.0, 0.06)
 
 
 async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
@@ -71,7 +74,7 @@ async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
 
 
 def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_path):
-    config_path = stack_config(tmp_path, compiled_plant=True, task_frame=TASK_FRAME)
+    config_path = stack_config(tmp_path, compiled_plant=True, task_frame=TASK_FRAME, object_offset_m=OBJECT_OFFSET_M)
     stack = Stack(config_path, tmp_path / "launcher.log")
     client = StackClient(load_config(config_path))
     try:
@@ -86,9 +89,11 @@ def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_p
 
         reply, true = asyncio.run(push())
         assert reply.outcome == "reached", (reply.outcome, reply.outcome_reason, reply.error_mm, stack.text()[-3000:])
-        assert abs(reply.goal.target_pose[0] - 0.4) < 0.005 and reply.goal.target_pose[1] > -0.1 + 0.03  # base frame
+        # base frame: the task frame's y is the base's -x, so the cube started at x = 0.4 - 0.06
+        assert abs(reply.goal.target_pose[0] - 0.34) < 0.005 and reply.goal.target_pose[1] > -0.1 + 0.03
         assert true is not None and true < 5.0, true
         assert reply.solves > 0
+        assert reply.reapproaches == 1, (reply.reapproaches, stack.text()[-3000:])
 
         stop_s, restarts = asyncio.run(kill_the_planner_mid_task(client))
         assert stop_s < KILL_STOP_BOUND_S, stop_s
