@@ -164,6 +164,16 @@ class PlannerCore:
         return se3.transform_points(se3.inverse(arm_pose), world).numpy()
 
 
+def arm_end_positions(task, arm_poses: dict[str, torch.Tensor], start_pose: torch.Tensor,
+                      target: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Where each arm's TCP ends ``(3,)`` (m, task frame) when the object goes from ``start_pose (7,)`` to ``target
+    (7,)`` and each arm keeps its contact from ``arm_poses`` (``(7,)`` each): its position moved by the object's
+    translation over the task's ``travel_ratio`` (twice as far for rolling, whose contact on top moves twice as fast
+    as the centre). The goal's workspace check (``Planner.start``)."""
+    travel = (target[:3] - start_pose[:3]) / task.travel_ratio
+    return {name: pose[:3] + travel for name, pose in arm_poses.items()}
+
+
 def targets_from_plan(core: PlannerCore, arm_poses: dict[str, torch.Tensor], plan: torch.Tensor,
                       steps: int) -> dict[str, torch.Tensor]:
     """Absolute TCP targets ``(7,)`` per arm, base frame: each arm's current pose (task frame) moved by the plan's
@@ -278,11 +288,11 @@ class Planner:
                                      f"{self.goal.timeout_s} s")
         else:
             ws_lo, ws_hi = self.config.limits.workspace_min, self.config.limits.workspace_max
-            shift = target[:3] - start_pose[:3]
-            for name, index in self.core.arms.items():
-                moved = frame.points_to_base(self.core.fixed_poses[index, :3] + shift)
+            for name, end in arm_end_positions(task, arm_poses, start_pose, target).items():
+                moved = frame.points_to_base(end)
                 if any(not lo <= float(v) <= hi for v, lo, hi in zip(moved, ws_lo, ws_hi)):
-                    episode.finish("failed", f"unreachable: arm {name} would leave the workspace box to get there")
+                    episode.finish("failed", f"unreachable: arm {name} would leave the workspace box to get there "
+                                             f"(to {[round(float(v), 4) for v in moved]} m, base frame)")
         episode.error_mm = self.core.error_mm(start_pose, target)
         if episode.outcome == "running":
             self.episode = episode

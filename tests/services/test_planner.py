@@ -15,7 +15,15 @@ from hydrosoft.geometry import se3
 from hydrosoft.services import messages as msg
 from hydrosoft.services.config import load_config
 from hydrosoft.dynamics import State, step
-from hydrosoft.services.planner import PlannerCore, carry_over, predict, resolve_target, targets_from_plan
+from hydrosoft.services.planner import (
+    PlannerCore,
+    arm_end_positions,
+    carry_over,
+    predict,
+    resolve_target,
+    targets_from_plan,
+)
+from hydrosoft.tasks import make_task
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 
@@ -58,6 +66,18 @@ def test_an_arm_that_is_not_a_scene_body_is_refused_by_name(tmp_path):
     path.write_text(text)
     with pytest.raises(ValueError, match="'gripper' is not a body of the pushing scene"):
         PlannerCore.build(load_config(path))
+
+
+def test_the_workspace_check_follows_the_arm_from_where_it_is():
+    """A cube already pushed 12 cm out: a further 3 cm takes the bubble to 15 cm (its own position plus the push),
+    not to the scene's pose plus 3 cm; rolling's bubble travels twice the cylinder's distance."""
+    start = torch.tensor([0.12, 0.0, 0.024, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    target = resolve_target(msg.Goal(task="pushing", dx_m=0.03, tolerance_mm=5, timeout_s=10), start)
+    arms = {"bubble": torch.tensor([0.125, 0.002, 0.074, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)}
+    ends = arm_end_positions(make_task("pushing"), arms, start, target)
+    torch.testing.assert_close(ends["bubble"], torch.tensor([0.155, 0.002, 0.074], dtype=torch.float64))
+    rolled = arm_end_positions(make_task("rolling"), arms, start, target)
+    torch.testing.assert_close(rolled["bubble"], torch.tensor([0.185, 0.002, 0.074], dtype=torch.float64))
 
 
 def test_targets_apply_the_first_plan_steps_to_the_current_tcp(core):
