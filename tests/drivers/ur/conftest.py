@@ -125,9 +125,16 @@ class LoopThread:
 
 
 @pytest.fixture(scope="module")
-def sim() -> Iterator[SimulatorProcess]:
-    """A simulated controller for the whole test module, on a 127.0.0.N of its own."""
-    process = SimulatorProcess(loopback_host())
+def tick_hz() -> float | None:
+    """The simulated controller's cycle (Hz) for ``sim``; None: the simulator's default (an e-Series' 500 Hz). A
+    module overrides this fixture to run its tests at other rates."""
+    return None
+
+
+@pytest.fixture(scope="module")
+def sim(tick_hz: float | None) -> Iterator[SimulatorProcess]:
+    """A simulated controller for the whole test module, on a 127.0.0.N of its own, cycling at ``tick_hz``."""
+    process = SimulatorProcess(loopback_host(), *(() if tick_hz is None else ("--tick-hz", str(tick_hz))))
     yield process
     process.stop()
 

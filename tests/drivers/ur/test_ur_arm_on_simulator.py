@@ -1,7 +1,9 @@
 """The real ur_rtde 1.6.5 client and ``URArm`` against the simulated controller (one per module, on its own 127.0.0.N).
 
 The tests share one simulator and one connected arm, so they run in file order and each leaves the controller
-healthy for the next; the last one closes the arm.
+healthy for the next; the last one closes the arm. They run twice: on a controller cycling at an e-Series' 500 Hz
+and at a CB3's 125 Hz (the sim stack's ``sim.ur_tick_hz``), where every round trip through the script takes up to
+four times longer.
 """
 
 from __future__ import annotations
@@ -26,6 +28,11 @@ SERVO_PERIOD_S = 1.0 / 125.0
 POLL_S = 0.005
 
 
+@pytest.fixture(scope="module", params=[500.0, 125.0], ids=["500hz", "125hz"])
+def tick_hz(request) -> float:
+    return request.param
+
+
 @pytest.fixture(scope="module")
 def arm(sim, loop_thread):
     config = URArmConfig(host=sim.host, max_age_s=MAX_AGE_S, reconnect_initial_s=0.1, reconnect_max_s=0.5)
@@ -40,8 +47,18 @@ def servo_count(sim) -> int:
     return sim.state()["counters"].get("commands[24]", 0)
 
 
+def settled_servo_count(sim) -> int:
+    """``servo_count`` once a servoL sent earlier has been acted on: unchanged over 20 ms (two 125 Hz ticks)."""
+    count = servo_count(sim)
+    while True:
+        time.sleep(0.02)
+        if (now := servo_count(sim)) == count:
+            return count
+        count = now
+
+
 def wait_servo_count(sim, expected: int, timeout_s: float = 0.5) -> int:
-    """``servo_count`` once it reaches ``expected`` (the script acts on the next 2 ms tick), or when time is up."""
+    """``servo_count`` once it reaches ``expected`` (the script acts on its next tick), or when time is up."""
     deadline = time.monotonic() + timeout_s
     while (count := servo_count(sim)) < expected and time.monotonic() < deadline:
         time.sleep(POLL_S)
@@ -173,8 +190,17 @@ def test_stop_brings_the_tcp_to_rest(sim, arm, loop_thread):
 
 
 def test_stream_stall_raises_stale_within_max_age(sim, arm, loop_thread):
+    """The stall starts once the client has seen the script ready again after the last test's stop (a watchdog kick
+    went out after it). A stall that starts before is another case: ur_rtde then spins on its stale copy of the
+    handshake register for every kick, none goes out, and the script's own watchdog stops the program, which is
+    the safe end (at 125 Hz the script's ready comes up to 16 ms after the stop's clear: the test's stall request
+    used to land first, every time)."""
+
     async def stall_and_watch():
         await wait_for_state(arm, lambda s: True, 1.0)
+        kicks = arm.counters["watchdog_kicks"]
+        while arm.counters["watchdog_kicks"] == kicks:
+            await asyncio.sleep(POLL_S)
         before = servo_count(sim)
         sim.request("stall", duration_s=0.6)
         t0 = time.monotonic()
@@ -263,7 +289,7 @@ def test_controller_gone_raises_not_connected_then_reconnects(sim, arm, loop_thr
 
 
 def test_bad_targets_are_refused_and_counted(sim, arm, loop_thread):
-    before = servo_count(sim)
+    before = settled_servo_count(sim)
     with pytest.raises(ValueError, match="non-finite"):
         loop_thread.run(arm.servo_to(np.array([0.3, np.nan, 0.4, 1.0, 0.0, 0.0, 0.0])), CALL_TIMEOUT_S)
     with pytest.raises(ValueError, match="shape"):
