@@ -262,7 +262,7 @@ class URArm:
         try:
             self._control = await self._on_thread(
                 self._control_thread,
-                lambda: rtde_control.RTDEControlInterface(cfg.host, -1.0, flags),
+                lambda: rtde_control.RTDEControlInterface(cfg.host, cfg.control_rate_hz, flags),
                 SETUP_CALL_TIMEOUT_S,
             )
         except (RuntimeError, asyncio.TimeoutError) as exc:

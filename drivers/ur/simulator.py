@@ -218,7 +218,8 @@ class SimulatedURController:
         return time.monotonic_ns() >= self._stall_until_ns
 
     def snapshot(self) -> dict[str, Any]:
-        """Inspectable state: pose (7,), twist (6,), runtime state, safety, watchdog, faults and counters."""
+        """Inspectable state: pose (7,), twist (6,), runtime state, safety, watchdog, the output rates (Hz) the open
+        RTDE sessions stream at, faults and counters."""
         model = self.model
         return {
             "pose": self.tcp_pose().tolist(),
@@ -227,6 +228,8 @@ class SimulatedURController:
             "protective_stop": model.protective_stop,
             "watchdog_period_s": model.script.watchdog_period_s,
             "rtde_sessions": len(self._sessions),
+            "output_rates_hz": sorted(1e9 / period_ns for session, _ in self._sessions.values()
+                                      for _, period_ns in session.outputs),
             "dropped": self._dropped,
             "faults": dict(self.faults),
             "counters": dict(self.counters),

@@ -140,9 +140,10 @@ def test_arm_state_matches_the_simulator_and_inputs_are_owned(sim, arm, loop_thr
         rtde_control.RTDEControlInterface(sim.host)
 
 
-def test_the_state_streams_at_the_configured_rate_not_the_controllers_fastest(arm, loop_thread):
+def test_the_state_streams_at_the_configured_rate_not_the_controllers_fastest(sim, arm, loop_thread):
     """URArmConfig.state_rate_hz (125 Hz by default) is what the receive interface asks for: the controller's
-    timestamps of successive states are 8 ms apart, not the 2 ms of its 500 Hz cycle."""
+    timestamps of successive states are 8 ms apart, not the 2 ms of its 500 Hz cycle. The control interface asks
+    for control_rate_hz (125 Hz by default) too."""
 
     async def stamps(seconds: float) -> list[int]:
         seen = []
@@ -156,8 +157,11 @@ def test_the_state_streams_at_the_configured_rate_not_the_controllers_fastest(ar
 
     gaps_ms = np.diff(loop_thread.run(stamps(0.5), CALL_TIMEOUT_S)) / 1e6
     assert len(gaps_ms) >= 20 and np.median(gaps_ms) == pytest.approx(8.0, abs=0.5), gaps_ms
+    assert sim.state()["output_rates_hz"] == [125.0, 125.0]  # the arm's two clients
     with pytest.raises(ValueError, match="state_rate_hz must be at most 500"):
         URArmConfig(host="127.0.0.9", state_rate_hz=1000.0)
+    with pytest.raises(ValueError, match="control_rate_hz must be at most 500"):
+        URArmConfig(host="127.0.0.9", control_rate_hz=501.0)
 
 
 def test_servo_reaches_the_target(sim, arm, loop_thread):
