@@ -131,7 +131,8 @@ def test_bus_camera_returns_the_newest_new_image_once_then_goes_stale(tmp_path):
     async def scenario() -> None:
         with Bus() as bus:
             out = Publisher(bus, endpoint, source="test")
-            camera = BusCamera(LatestSubscriber(bus, endpoint, [image_topic("cam")]), "cam", timeout_s=0.3)
+            subscriber = LatestSubscriber(bus, endpoint, [image_topic("cam")])
+            camera = BusCamera(subscriber, "cam", timeout_s=0.3)
             with pytest.raises(NotConnected):
                 await camera.read()
             await camera.connect()
@@ -145,8 +146,11 @@ def test_bus_camera_returns_the_newest_new_image_once_then_goes_stale(tmp_path):
             with pytest.raises(Stale):
                 while True:  # the warm-up images still queued, then nothing new
                     await camera.read()
+            received = subscriber.received[image_topic("cam")]
             await out.send(msg.CameraImage.of("cam", np.zeros_like(bgr), 10), image_topic("cam"))
             await out.send(msg.CameraImage.of("cam", bgr, 20), image_topic("cam"))
+            while subscriber.received[image_topic("cam")] < received + 2:  # both in before the read
+                assert await subscriber.wait(1.0), "the two images never arrived"
             frame = await camera.read()
             assert frame.hw_stamp_ns == 20 and frame.stamp_ns <= time.monotonic_ns()
             np.testing.assert_array_equal(frame.image, bgr)
