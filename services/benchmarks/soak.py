@@ -5,7 +5,8 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
 
 - **idle** (``--idle-seconds``, no goal): each service's CPU use (% of one core, from ``/proc``) and the sum;
 - **soak** (``--minutes``): goals back to back, there and back again (pushing and rolling: +-3 cm along x;
-  rotation: +-20 deg), each waited for (``GOAL_TIMEOUT_S``) and its outcome and true error kept. Meanwhile every
+  rotation: +-20 deg), each waited for (``GOAL_TIMEOUT_S``) and its outcome, true error and re-approaches of a
+  lost object kept. Meanwhile every
   ``SAMPLE_PERIOD_S`` each service's resident memory and CPU time are sampled, and every plan the planner publishes
   is read for its way from the camera to the arm targets (``msg.Plan``'s stamps), split into detection (image to
   the tracker's pose), queue (pose to the planner taking it), estimation (to the solve's start), solve (to the
@@ -148,7 +149,7 @@ async def _read_plans(config: StackConfig, samples: Samples, t0_s: float, until_
 
 async def _goals(config_path: Path, task: str, until_s: float) -> list[dict[str, object]]:
     """Goals of ``SOAK_GOALS[task]`` back to back until ``until_s`` (monotonic); each one's outcome, planner error,
-    true error (mm), solves and wall time."""
+    true error (mm), solves, re-approaches of a lost cube and wall time."""
     results = []
     while time.monotonic() < until_s:
         goal = SOAK_GOALS[task][len(results) % 2]
@@ -161,9 +162,10 @@ async def _goals(config_path: Path, task: str, until_s: float) -> list[dict[str,
             client.close()
         results.append({"goal": goal, "outcome": reply.outcome, "error_mm": round(reply.error_mm, 2),
                         "true_error_mm": None if true is None else round(true, 2), "solves": reply.solves,
-                        "seconds": round(time.monotonic() - tic_s, 1)})
-        print(f"[soak] goal {len(results)} {goal}: {reply.outcome}, {reply.error_mm:.2f} mm, {reply.solves} solves",
-              file=sys.stderr, flush=True)
+                        "reapproaches": reply.reapproaches, "seconds": round(time.monotonic() - tic_s, 1)})
+        lost = f", {reply.reapproaches} re-approaches" if reply.reapproaches else ""
+        print(f"[soak] goal {len(results)} {goal}: {reply.outcome}, {reply.error_mm:.2f} mm, {reply.solves} solves"
+              f"{lost}", file=sys.stderr, flush=True)
     return results
 
 
@@ -233,7 +235,9 @@ def format_table(result: dict[str, object]) -> str:
     lines = [f"idle: {result['idle']['cpu_percent_total']} % of one core in all ("
              + ", ".join(f"{n} {s['cpu_percent']}" for n, s in result["idle"]["services"].items()) + ")"]
     outcomes = [g["outcome"] for g in result["goals"]]
-    lines.append(f"soak: {result['soak_seconds']} s, {len(outcomes)} goals, {outcomes.count('reached')} reached")
+    reapproaches = sum(g.get("reapproaches", 0) for g in result["goals"])
+    lines.append(f"soak: {result['soak_seconds']} s, {len(outcomes)} goals, {outcomes.count('reached')} reached, "
+                 f"{reapproaches} re-approaches of a lost cube")
     lines.append("errors counted: " + ("; ".join(f"{name} " + ", ".join(f"{kind} {n}" for kind, n in kinds.items())
                                                  for name, kinds in result["errors"].items()) or "none"))
     lines.append(f"{'':<24}{'first window':>24}{'last window':>24}{'growth':>10}")

@@ -46,10 +46,12 @@ def test_windows_compare_memory_cpu_and_latency_and_the_growth_names_each():
     grown = growth(first, last)
     assert grown["rss.planner"] == round(157 / 103 - 1, 3) and grown["latency.solve"] == 0.2
     table = format_table({"idle": {"cpu_percent_total": 12.5, "services": {"planner": {"cpu_percent": 12.5}}},
-                          "soak_seconds": 600.0, "goals": [{"outcome": "reached"}, {"outcome": "timeout"}],
+                          "soak_seconds": 600.0, "goals": [{"outcome": "reached", "reapproaches": 1},
+                                                           {"outcome": "timeout", "reapproaches": 2}],
                           "first": first, "last": last, "growth": grown,
                           "errors": {"sim_world": {"physics_behind": 7, "tag_camera": 1}}})
-    assert "idle: 12.5 % of one core in all (planner 12.5)" in table and "2 goals, 1 reached" in table
+    assert "idle: 12.5 % of one core in all (planner 12.5)" in table
+    assert "2 goals, 1 reached, 3 re-approaches of a lost cube" in table
     assert "errors counted: sim_world physics_behind 7, tag_camera 1" in table
     assert "latency solve" in table and "0.2" in table
 
