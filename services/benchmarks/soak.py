@@ -271,6 +271,11 @@ def run(args: argparse.Namespace) -> int:
     if args.window * 2 > 60 * args.minutes:
         print("error: --window must be at most half the soak (--minutes)", file=sys.stderr)
         return 2
+    shortest_s = 2 * SAMPLE_PERIOD_S
+    if args.idle_seconds < shortest_s or args.window < shortest_s:
+        print(f"error: --idle-seconds and --window must be at least {shortest_s:g} s (two samples, "
+              f"{SAMPLE_PERIOD_S:g} s apart, make a CPU figure)", file=sys.stderr)
+        return 2
     result = measure(args.config, args.minutes, args.window, args.idle_seconds, args.keep)
     if not args.json:
         print(format_table(result))

@@ -4,13 +4,23 @@ bench soak``), not here."""
 
 from __future__ import annotations
 
+import argparse
 import os
 
 import numpy as np
+import pytest
 
 from hydrosoft.services import messages as msg
 from hydrosoft.services.benchmarks.launched_stack import resident_mb
-from hydrosoft.services.benchmarks.soak import Samples, format_table, growth, latency_split, window_summary
+from hydrosoft.services.benchmarks.soak import (
+    Samples,
+    add_arguments,
+    format_table,
+    growth,
+    latency_split,
+    run,
+    window_summary,
+)
 
 MS = 1_000_000
 
@@ -58,3 +68,13 @@ def test_windows_compare_memory_cpu_and_latency_and_the_growth_names_each():
 
 def test_resident_memory_of_this_process():
     assert 10 < resident_mb(os.getpid()) < 20_000
+
+
+@pytest.mark.parametrize("argv, named", [(["--minutes", "1", "--window", "40"], "--window must be at most half"),
+                                         (["--idle-seconds", "5"], "--idle-seconds and --window"),
+                                         (["--minutes", "1", "--window", "5"], "--idle-seconds and --window")])
+def test_settings_that_cannot_be_measured_are_refused_before_launching(argv, named, capsys):
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert run(parser.parse_args(argv)) == 2
+    assert named in capsys.readouterr().err
