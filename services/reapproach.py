@@ -42,7 +42,7 @@ def in_contact(penetration: Tensor) -> bool:
 def grasp_offset(object_pose: Tensor, tcp_pose: Tensor) -> Tensor:
     """``(3,)`` m: the TCP's position relative to the object's centre, task frame, for the scene's ``object_pose
     (7,)`` and the arm's ``tcp_pose (7,)`` (the pressing pose ``Reapproach`` returns to)."""
-    return (tcp_pose[:3] - object_pose[:3]).clone()
+    return tcp_pose[:3] - object_pose[:3]
 
 
 def waypoint(phase: str, object_pose: Tensor, tcp_pose: Tensor, offset: Tensor) -> Tensor:

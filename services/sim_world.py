@@ -94,10 +94,10 @@ def plant_model(config: StackConfig, scene: Scene | None = None) -> tuple[Model,
 
     The task scene (or ``scene``, e.g. a wrench benchmark object's) with ``PLANT.model`` contact at spacing
     ``planner.spacing * sim.spacing_factor`` (m), its object moved by ``sim.object_offset_m`` (then unpruned: the
-    bubble may touch any point once it comes back to the object), one step per tick: ``dt = 1 / sim.rate_hz`` s, ``epsilon`` scaled
-    by ``dt / scene.dt`` (the mobility ``dt / epsilon`` kept), and ``ceil(substeps * PLANT.substep_factor * dt /
-    scene.dt)`` sub-steps (sub-steps no longer than the evaluation plant's; the step adds more when the contacts need
-    them).
+    bubble may touch any point once it comes back to the object), one step per tick: ``dt = 1 / sim.rate_hz`` s,
+    ``epsilon`` scaled by ``dt / scene.dt`` (the mobility ``dt / epsilon`` kept), and ``ceil(substeps *
+    PLANT.substep_factor * dt / scene.dt)`` sub-steps (sub-steps no longer than the evaluation plant's; the step adds
+    more when the contacts need them).
     """
     scene = make_task(config.scene.task).scene if scene is None else scene
     spacing_m = config.planner.spacing * config.sim.spacing_factor
@@ -386,12 +386,11 @@ async def log_rates_forever(service: Service, stats: Sequence[DurationStats]) ->
 
 
 def _warm_up(plant: SimPlant, camera: SimCamera, depth_cameras: Sequence[BubbleDepthCamera]) -> None:
-    """One plant tick at rest and one image of each camera, before READY: the first calls fill caches (slow; a
-    compiled plant compiles here), and a scene that cannot be simulated or rendered fails at start rather than in
-    the loop."""
+    """The plant's steps at rest (``SimPlant.warm_up``) and one image of each camera, before READY: the first calls
+    fill caches (slow; a compiled plant compiles here), and a scene that cannot be simulated or rendered fails at
+    start rather than in the loop."""
     plant.warm_up()
     snapshot = plant.snapshot
-    plant.step_to(snapshot.tcp_poses)
     camera.render(snapshot.object_pose)
     for depth in depth_cameras:
         depth.render(snapshot.tcp_poses[depth.arm], snapshot.object_pose)

@@ -2,8 +2,8 @@
 controller, FT 300 pty, rendered camera and depth images), the arm commander (the real ur_rtde client), the F/T
 reader (the real serial driver), the bubble camera, the tag tracker and the planner; the cube starts 6 cm to the side
 of the bubble (``sim.object_offset_m``), so the planner first re-approaches it (up, across, down onto it), then the
-client's goal pushes it; the planner is SIGKILLed during a second goal (the arm stops, the launcher restarts it) and the client resumes
-that goal on the new planner, which reaches it. The scene lies away from the base origin, turned 90 degrees
+client's goal pushes it; the planner is SIGKILLed during a second goal (the arm stops, the launcher restarts it)
+and the client resumes that goal on the new planner, which reaches it. The scene lies away from the base origin, turned 90 degrees
 (``scene.task_frame``), as a lab's table would: every pose on the bus is in the base frame, and the goals push the
 cube along the base's y, which is the task scene's x.
 
