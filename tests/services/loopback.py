@@ -12,11 +12,13 @@ import socket
 from hydrosoft.drivers.ur.config import RTDE_PORT, SIM_CONTROL_PORT
 
 
-def free_ur_host(first: int, count: int) -> str:
-    """A 127.0.0.N with N in ``first .. first + count - 1`` (tried from a pid-dependent start) whose RTDE and
-    simulator-control ports are free now. Raises RuntimeError when none is."""
+def free_ur_host(first: int, count: int, taken: tuple[str, ...] = ()) -> str:
+    """A 127.0.0.N with N in ``first .. first + count - 1`` (tried from a pid-dependent start), not in ``taken``,
+    whose RTDE and simulator-control ports are free now. Raises RuntimeError when none is."""
     for offset in range(count):
         host = f"127.0.0.{first + (os.getpid() + offset) % count}"
+        if host in taken:
+            continue
         try:
             for port in (RTDE_PORT, SIM_CONTROL_PORT):
                 with socket.socket() as probe:

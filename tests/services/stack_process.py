@@ -22,13 +22,14 @@ from hydrosoft.services.client import StackClient
 import loopback
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+SIM_BIMANUAL_TOML = Path(__file__).parents[2] / "deploy" / "sim-bimanual.toml"
 READY_TIMEOUT_S = 240.0  # every service up and READY on a busy 2-core machine
 STOP_BOUND_S = 10.0
 
 
-def free_ur_host() -> str:
-    """A free 127.0.0.N for this module's simulated UR controllers (``loopback.free_ur_host``)."""
-    return loopback.free_ur_host(60, 60)
+def free_ur_host(taken: tuple[str, ...] = ()) -> str:
+    """A free 127.0.0.N, not in ``taken``, for this module's simulated UR controllers (``loopback.free_ur_host``)."""
+    return loopback.free_ur_host(60, 60, taken)
 
 
 def sim_toml_text(compiled_plant: bool = False) -> str:
@@ -72,6 +73,18 @@ def stack_config(tmp_path: Path, compiled_plant: bool = False, task_frame: list[
     text = text.replace('"/tmp/hydrosoft-sim/ft300-bubble"', f'"{run_dir}/ft300-bubble"')
     text = text.replace('"/tmp/hydrosoft-sim"', f'"{run_dir}"').replace('"127.0.0.2"', f'"{free_ur_host()}"')
     path = tmp_path / "sim.toml"
+    path.write_text(text)
+    return path
+
+
+def bimanual_stack_config(tmp_path: Path) -> Path:
+    """deploy/sim-bimanual.toml (compiled plant, as deployed) with its run_dir, both FT 300 links and both UR
+    addresses made private to this test."""
+    run_dir = tmp_path / "run"
+    text = SIM_BIMANUAL_TOML.read_text().replace('"/tmp/hydrosoft-bimanual', f'"{run_dir}')
+    left = free_ur_host()
+    text = text.replace('"127.0.0.3"', f'"{left}"').replace('"127.0.0.4"', f'"{free_ur_host((left,))}"')
+    path = tmp_path / "sim-bimanual.toml"
     path.write_text(text)
     return path
 
