@@ -56,7 +56,7 @@ from hydrosoft.services.bus import Stale
 from hydrosoft.services import service_main
 from hydrosoft.services.config import StackConfig
 from hydrosoft.services.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
-from hydrosoft.services.safety import check_target
+from hydrosoft.services.safety import check_target, outside_workspace
 from hydrosoft.services.runtime import Service
 from hydrosoft.services.task_frame import TaskFrame
 
@@ -287,12 +287,11 @@ class Planner:
             episode.finish("failed", f"unreachable: the goal lies beyond what the action bounds allow within "
                                      f"{self.goal.timeout_s} s")
         else:
-            ws_lo, ws_hi = self.config.limits.workspace_min, self.config.limits.workspace_max
             for name, end in arm_end_positions(task, arm_poses, start_pose, target).items():
-                moved = frame.points_to_base(end)
-                if any(not lo <= float(v) <= hi for v, lo, hi in zip(moved, ws_lo, ws_hi)):
+                refusal = outside_workspace(frame.points_to_base(end).numpy(), self.config.limits)
+                if refusal is not None:
                     episode.finish("failed", f"unreachable: arm {name} would leave the workspace box to get there "
-                                             f"(to {[round(float(v), 4) for v in moved]} m, base frame)")
+                                             f"({refusal})")
         episode.error_mm = self.core.error_mm(start_pose, target)
         if episode.outcome == "running":
             self.episode = episode
@@ -324,14 +323,13 @@ class Planner:
     async def _halt_arms(self) -> None:
         """Tell every commander to stop now: a target at the arm's current pose whose deadline has passed (the
         last real target would otherwise stay valid, and the arm keep moving, until its own deadline)."""
+        poses = {}
         for arm in self.config.arms:
             try:
-                pose = self.inputs.latest(f"arm_state/{arm.name}", 1.0).value.tcp_pose
+                poses[arm.name] = np.array(self.inputs.latest(f"arm_state/{arm.name}", 1.0).value.tcp_pose)
             except Stale:
                 continue
-            self.plan_seq += 1
-            await self.out.send(msg.ArmTarget(arm=arm.name, tcp_pose=np.array(pose), deadline_ns=time.monotonic_ns(),
-                                              plan_seq=self.plan_seq), topic=f"arm_target/{arm.name}")
+        await self.send_targets(poses, time.monotonic_ns())
 
     # --- the loop ---
 
@@ -425,11 +423,7 @@ class Planner:
             return
         steps = max(1, round(solve_s / self.core.model.dt))
         targets = targets_from_plan(self.core, arm_poses, result.plan.detach(), steps)
-        deadline_ns = time.monotonic_ns() + int(self.config.planner.target_lead_s * 1e9)
-        plan_seq = self.plan_seq = self.plan_seq + 1
-        for name, pose in targets.items():
-            await self.out.send(msg.ArmTarget(arm=name, tcp_pose=pose.numpy(), deadline_ns=deadline_ns,
-                                              plan_seq=plan_seq), topic=f"arm_target/{name}")
+        await self.send_targets({name: pose.numpy() for name, pose in targets.items()}, self.target_deadline_ns())
         stamps["targets_ns"] = time.monotonic_ns()
         states = await loop.run_in_executor(None, predict, self.core, state, result.plan.detach())
         await self.out.send(self.plan_message(result, states, stamps), topic=f"plan/{self.config.scene.task}")
@@ -464,10 +458,19 @@ class Planner:
         if refusal is not None:
             self._fail(episode, f"lost the object out of reach: re-approach {watch.reapproach.phase_name}: {refusal}")
             return
+        await self.send_targets({name: base}, self.target_deadline_ns())
+
+    def target_deadline_ns(self) -> int:
+        """The deadline (``time.monotonic_ns()``) of a target sent now: ``planner.target_lead_s`` from now."""
+        return time.monotonic_ns() + int(self.config.planner.target_lead_s * 1e9)
+
+    async def send_targets(self, poses: dict[str, np.ndarray], deadline_ns: int) -> None:
+        """Send each arm's TCP target ``(7,)`` (m, wxyz, base frame), all with one new ``plan_seq`` and
+        ``deadline_ns`` (the plan they come from: a solve, a re-approach waypoint, or the halt at a goal's end)."""
         self.plan_seq += 1
-        deadline_ns = time.monotonic_ns() + int(self.config.planner.target_lead_s * 1e9)
-        await self.out.send(msg.ArmTarget(arm=name, tcp_pose=base, deadline_ns=deadline_ns, plan_seq=self.plan_seq),
-                            topic=f"arm_target/{name}")
+        for name, pose in poses.items():
+            await self.out.send(msg.ArmTarget(arm=name, tcp_pose=pose, deadline_ns=deadline_ns, plan_seq=self.plan_seq),
+                                topic=f"arm_target/{name}")
 
     def _fail(self, episode: Episode, reason: str) -> None:
         episode.finish("failed", reason)

@@ -38,9 +38,16 @@ def check_target(pose, limits: LimitsConfig) -> str | None:
     norm = float(np.linalg.norm(array[3:]))
     if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
         return f"target quaternion norm is {norm:.9f}, expected 1"
+    return outside_workspace(array[:3], limits)
+
+
+def outside_workspace(position, limits: LimitsConfig) -> str | None:
+    """Why the TCP ``position (3,)`` (m, base frame) lies outside the workspace box ``limits.workspace_min ..
+    workspace_max``, or None when it lies inside (borders included)."""
+    array = np.asarray(position, dtype=np.float64)
     lo, hi = np.asarray(limits.workspace_min), np.asarray(limits.workspace_max)
-    if np.any(array[:3] < lo) or np.any(array[:3] > hi):
-        return (f"target position {np.round(array[:3], 4).tolist()} m is outside the workspace box "
+    if np.any(array < lo) or np.any(array > hi):
+        return (f"target position {np.round(array, 4).tolist()} m is outside the workspace box "
                 f"{list(limits.workspace_min)} .. {list(limits.workspace_max)} m")
     return None
 

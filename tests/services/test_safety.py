@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from hydrosoft.services.config import LimitsConfig
-from hydrosoft.services.safety import NO_TARGET, check_target, interpolate, is_moving, rotation_angle_rad, watchdog
+from hydrosoft.services.safety import (NO_TARGET, check_target, interpolate, is_moving, outside_workspace,
+                                      rotation_angle_rad, watchdog)
 
 LIMITS = LimitsConfig(workspace_min=(-0.1, -0.1, 0.0), workspace_max=(0.1, 0.1, 0.2), max_speed_m_s=0.1,
                       max_angular_speed_rad_s=1.0, max_force_n=20.0, heartbeat_timeout_s=0.5, state_timeout_s=0.2)
@@ -25,10 +26,12 @@ def test_targets_outside_the_box_on_any_side_are_refused(axis):
     inside_edge = HOME.copy()
     inside_edge[axis] = LIMITS.workspace_max[axis]
     assert check_target(inside_edge, LIMITS) is None
+    assert outside_workspace(inside_edge[:3], LIMITS) is None  # the planner's check of where a goal takes the arm
     for bound, sign in ((LIMITS.workspace_max, 1), (LIMITS.workspace_min, -1)):
         outside = HOME.copy()
         outside[axis] = bound[axis] + sign * 1e-6
         assert "outside the workspace" in check_target(outside, LIMITS)
+        assert outside_workspace(outside[:3], LIMITS) == check_target(outside, LIMITS)
 
 
 def test_malformed_targets_are_refused():
