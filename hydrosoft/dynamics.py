@@ -274,7 +274,7 @@ def _world_points(model: Model, object_pose: Tensor) -> Tensor:
     tensor: each coordinate is contiguous over the points (see ``contact_geometry``).
     """
     R, t = _frame(object_pose)
-    return (R @ model.points.mT + t).mT
+    return (se3.small_matmul(R, model.points.mT) + t).mT
 
 
 def object_wrench(model: Model, state: State) -> Tensor:
@@ -320,7 +320,7 @@ def _relative_frame(object_pose: Tensor, body_poses: Tensor) -> tuple[Tensor, Te
     R_o, t_o = _frame(object_pose)
     R_b, t_b = _frame(body_poses)
     R_bT = R_b.mT
-    return R_bT @ R_o.unsqueeze(1), R_bT @ (t_o.unsqueeze(1) - t_b), R_b, R_o
+    return se3.small_matmul(R_bT, R_o.unsqueeze(1)), se3.small_matmul(R_bT, t_o.unsqueeze(1) - t_b), R_b, R_o
 
 
 def touchable_points(model: Model) -> tuple[Tensor | None, ...]:
@@ -345,7 +345,7 @@ def _body_groups(model: Model) -> list[tuple[slice, Tensor | None]]:
 def _distances(model: Model, A: Tensor, c: Tensor, P: Tensor, bodies: slice) -> Tensor:
     """Signed distances ``(B, g, n)`` (m) of the object-frame points ``P (3, n)`` to the bodies ``bodies`` (``g`` of
     them), seen through the relative frames ``A (B, M, 3, 3)``, ``c (B, M, 3, 1)`` (``_relative_frame``)."""
-    local = (A[:, bodies] @ P + c[:, bodies]).mT
+    local = (se3.small_matmul(A[:, bodies], P) + c[:, bodies]).mT
     return torch.stack([model.bodies[m](local[:, j]) for j, m in enumerate(range(bodies.start, bodies.stop))], 1)
 
 
@@ -382,6 +382,7 @@ def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses:
     A0, c0, _, _ = _relative_frame(prev.object_pose, prev.body_poses)
     cached = None if prev.phi is None else prev.phi.split(pair_counts(model), dim=-1)  # per body
 
+    mm = se3.small_matmul
     geometries = []
     for bodies, index in _body_groups(model):
         points, normals, areas = _group_points(model, index)
@@ -390,8 +391,8 @@ def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses:
         geometries.append(ContactStep(
             phi_prev=_distances(model, A0, c0, P, bodies) if cached is None else torch.stack(cached[bodies], dim=1),
             phi_next=_distances(model, A1, c1, P, bodies),
-            displacement=((R @ (A0[:, bodies] - A1[:, bodies])) @ P + R @ (c0[:, bodies] - c1[:, bodies])).mT,
-            normal=(R_o1 @ -normals.mT).mT.unsqueeze(1),
+            displacement=(mm(mm(R, A0[:, bodies] - A1[:, bodies]), P) + mm(R, c0[:, bodies] - c1[:, bodies])).mT,
+            normal=mm(R_o1, -normals.mT).mT.unsqueeze(1),
             area=areas,
         ))
     return geometries
@@ -425,7 +426,7 @@ def _with_support_normal(forces: Tensor, geometry: ContactStep, load: Tensor, sc
 
 def _body_turns(model: Model, body_poses: Tensor, next_poses: Tensor) -> Tensor:
     """Rotation increments ``R_1 R_0^T (B, M, 3, 3)`` of the bodies over a step; identity for unactuated bodies."""
-    turn = se3.quat_to_matrix(next_poses[..., 3:]) @ se3.quat_to_matrix(body_poses[..., 3:]).mT
+    turn = se3.small_matmul(se3.quat_to_matrix(next_poses[..., 3:]), se3.quat_to_matrix(body_poses[..., 3:]).mT)
     eye = torch.eye(3, dtype=turn.dtype, device=turn.device)
     return torch.where(model.actuated.view(1, -1, 1, 1) > 0, turn, eye)
 
@@ -456,7 +457,7 @@ def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: 
         previous = state.forces[:, bodies]
         if index is not None:
             previous = previous[:, :, index]
-        previous = previous @ turns[:, bodies].mT
+        previous = se3.small_matmul(previous, turns[:, bodies].mT)
         is_support = bodies.start == support
         if is_support:
             load = support_load(model, torch.cat([f for f in forces if f is not None], dim=1))

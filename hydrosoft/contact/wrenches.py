@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from hydrosoft.geometry.se3 import small_matmul
+
 
 def wrench(forces: Tensor, points: Tensor, about: Tensor) -> Tensor:
     """Net wrench ``[force (3) N, torque (3) N m]`` of point forces about a reference point.
@@ -22,7 +24,7 @@ def wrench(forces: Tensor, points: Tensor, about: Tensor) -> Tensor:
     per-point cross product): ``torque = (S_yz - S_zy, S_zx - S_xz, S_xy - S_yx)``.
     """
     lever = points - about.unsqueeze(-2)
-    S = lever.mT @ forces
+    S = small_matmul(lever.mT, forces)
     torque = torch.stack(
         [S[..., 1, 2] - S[..., 2, 1], S[..., 2, 0] - S[..., 0, 2], S[..., 0, 1] - S[..., 1, 0]], dim=-1
     )

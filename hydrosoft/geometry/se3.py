@@ -43,9 +43,31 @@ def _split(x2: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _cross(a: Tensor, b: Tensor) -> Tensor:
-    """Cross product over the last axis (size 3), broadcasting the leading dimensions."""
+    """Cross product over the last axis (size 3), broadcasting the leading dimensions.
+
+    Under ``torch.compile`` it is spelled out per component, which inductor fuses into the kernels around it
+    (aten's cross is an external call it cannot fuse); eager, it is aten's one call.
+    """
+    if torch.compiler.is_compiling():
+        ax, ay, az = a.unbind(-1)
+        bx, by, bz = b.unbind(-1)
+        return torch.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], dim=-1)
     a, b = torch.broadcast_tensors(a, b)
     return torch.linalg.cross(a, b, dim=-1)
+
+
+def small_matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``a @ b`` for ``a (..., m, k)``, ``b (..., k, n)`` with a short contraction (a rotation applied to points,
+    a product of 3 x 3 matrices) or small operands (a 3 x 3 moment summed over points).
+
+    Under ``torch.compile`` it is a sum of broadcast products, which inductor fuses into the kernels around it: a
+    batched matmul is an external BLAS call per batch of tiny matrices, which it cannot fuse and which costs more
+    than the arithmetic. Eager, it is the matmul (one call, where the broadcast form would allocate
+    ``(..., m, k, n)``).
+    """
+    if torch.compiler.is_compiling():
+        return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+    return a @ b
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -298,3 +298,25 @@ def test_angle_between_gradients_finite_at_equal_rotations():
     qb = se3.so3_exp(torch.tensor([0.0, 0.0, 0.5], dtype=F64))
     assert torch.allclose(se3.angle_between(qa, qb), torch.tensor(0.5, dtype=F64))
     assert torch.autograd.gradcheck(se3.angle_between, (qa, qb.requires_grad_()))
+
+
+@pytest.mark.parametrize("shapes", [((5, 2, 3, 3), (3, 7)), ((5, 2, 3, 3), (5, 1, 3, 3)), ((4, 6, 3), (4, 3, 3)),
+                                    ((5, 3, 40), (5, 40, 3))])
+def test_traced_small_matmul_and_cross_match_the_eager_ones_with_gradients(shapes):
+    """Under torch.compile the small products and the cross product are spelled out (so inductor fuses them); they
+    must equal the eager matmul and aten's cross, values and gradients, to rounding."""
+    g = torch.Generator().manual_seed(3)
+    a, b = (torch.randn(shape, generator=g, dtype=F64, requires_grad=True) for shape in shapes)
+    u, v = (torch.randn(4, 6, 3, generator=g, dtype=F64, requires_grad=True) for _ in range(2))
+
+    def products(a, b, u, v):
+        return se3.small_matmul(a, b), se3._cross(u, v)
+
+    traced = torch.compile(products, backend="eager", fullgraph=True)(a, b, u, v)
+    eager = products(a, b, u, v)
+    for t, e, inputs in zip(traced, eager, ((a, b), (u, v))):
+        torch.testing.assert_close(t, e, rtol=0, atol=1e-13)
+        weights = torch.randn(e.shape, generator=g, dtype=F64)
+        for gt, ge in zip(torch.autograd.grad((t * weights).sum(), inputs), torch.autograd.grad((e * weights).sum(), inputs)):
+            torch.testing.assert_close(gt, ge, rtol=0, atol=1e-12)
+    assert torch.equal(eager[0], a @ b) and torch.equal(eager[1], torch.linalg.cross(u, v))
