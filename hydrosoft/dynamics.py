@@ -38,7 +38,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from hydrosoft.contact import ContactModel, ContactStep, Material, wrench
+from hydrosoft.contact import ContactModel, ContactStep, Material, PressureFieldFrictionless, wrench
 from hydrosoft.geometry import se3
 
 
@@ -396,6 +396,33 @@ def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses:
             area=areas,
         ))
     return geometries
+
+
+def pressure_wrenches(model: Model, object_pose: Tensor, body_poses: Tensor) -> Tensor:
+    """The wrench ``(B, M, 6)`` (N, N m) the object's pressure field applies to each body at the given poses, about
+    each body's origin: the pose-to-wrench query of a hydroelastic contact (what Drake's hydroelastic query
+    answers), with PF's and PFF's normal force law (eq. 3) and no friction.
+
+    ``object_pose (B, 7)``, ``body_poses (B, M, 7)``. It depends on the poses alone (no force state, no motion), so
+    it is what PFF's step gives and PF's gives without slip, at one signed-distance evaluation per point and body
+    instead of two (``advance_forces``); only the points each body can touch are evaluated (``touchable_points``).
+    A planar model's support body gets its pressure-field force too, not the vertical load balance the step gives
+    it (``support_load``).
+    """
+    A, c, _, R_o = _relative_frame(object_pose, body_poses)
+    points = _world_points(model, object_pose)
+    law = PressureFieldFrictionless()
+    wrenches = []
+    for bodies, index in _body_groups(model):
+        group_points, normals, areas = _group_points(model, index)
+        phi = _distances(model, A, c, group_points.mT, bodies)
+        normal = se3.small_matmul(R_o, -normals.mT).mT.unsqueeze(1)
+        geometry = ContactStep(phi_prev=phi, phi_next=phi, displacement=normal.new_zeros(()).expand_as(normal),
+                               normal=normal, area=areas)
+        forces = law.step(geometry, normal, Material(*(t[bodies] for t in model.material)))
+        at = points if index is None else points[:, index]
+        wrenches.append(wrench(-forces, at.unsqueeze(1), body_poses[:, bodies, :3]))
+    return torch.cat(wrenches, dim=1)
 
 
 def support_load(model: Model, forces: Tensor) -> Tensor:

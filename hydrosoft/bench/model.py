@@ -1,7 +1,7 @@
 """``hydrosoft-stack bench model``: step speed, memory and force accuracy of the four contact models.
 
-Three sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
-"pruning": [...]}``, otherwise as tables. Progress goes to stderr.
+Four sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
+"wrench": [...], "pruning": [...]}``, otherwise as tables. Progress goes to stderr.
 
 ``rows``: one quasi-dynamic step (``dynamics.step``) of the planar pushing scene, a Soft Bubble (ellipsoid) pressed
 5 mm into a cube resting on the table (half-space): ``M = 2`` bodies, the cube's surface discretised to about
@@ -36,6 +36,13 @@ surface and the most path steps): coarser surface spacing, fewer path steps, flo
 beta, and the path-independent PF / PFF. ``force_rel_error = max_k |F_k - F_ref,k|_2 / max_k |F_ref,k|_2`` over
 the path samples the setting shares with the reference (``F``: the 3-vector net force in N); ``step_ms`` is the
 mean time of one ``advance_forces`` step (B = 1) along the path.
+
+``wrench``: the pose-to-wrench query of one primitive pair at batch 1 (``dynamics.pressure_wrenches``: signed
+distances, the pressure field's normal forces, the net wrench on the bubble), the wrench benchmark's cube and R25
+cylinder (``bench.wrench_scenes``, 5 mm spacing) with the Soft Bubble pressed 6 mm into each, eager and (with
+``--compile``) compiled, float64 and float32: ``query_ms`` (best of the loop means), ``points``, the normal force
+``force_z_n`` (N, the same in every mode), and ``compile_s`` (first call) for compiled rows. Drake's hydroelastic
+query takes 0.06-0.2 ms for such pairs (``config.drake_query_ms``).
 
 ``pruning``: step time of the compiled task scenes (pushing, rotation, rolling, in-hand) with pruning (the
 default) and without (``prune=False``), float32, and the largest difference of the net contact force after
@@ -75,8 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dtypes", default=None, help="comma list: float32,float64 (float64 is always timed)")
     parser.add_argument("--batches", default=None, help="comma list of batch sizes (default 1,16,64,256)")
     parser.add_argument("--points", default=None, help="comma list of surface point counts (default 100,500,2000)")
-    parser.add_argument("--sections", default="rows,accuracy,pruning",
-                        help="comma list of sections to run (default rows,accuracy,pruning)")
+    parser.add_argument("--sections", default="rows,accuracy,wrench,pruning",
+                        help="comma list of sections to run: rows, accuracy, wrench (pose-to-wrench query), pruning "
+                             "(default all four)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -94,7 +102,13 @@ def run(args: argparse.Namespace) -> int:
             grid[key] = getattr(args, key)
     sections = set(args.sections.split(","))
     bench = _Bench(torch.device(args.device), quick=args.quick)
-    doc: dict[str, Any] = {"config": bench.config(grid, args.compile), "rows": [], "accuracy": [], "pruning": []}
+    unknown = sections - {"rows", "accuracy", "wrench", "pruning"}
+    if unknown:
+        print(f"bench model: unknown section {', '.join(sorted(unknown))}; the sections are rows, accuracy, wrench, "
+              f"pruning", file=sys.stderr)
+        return 2
+    doc: dict[str, Any] = {"config": bench.config(grid, args.compile), "rows": [], "accuracy": [], "wrench": [],
+                           "pruning": []}
     if "rows" in sections:
         doc["rows"] = bench.rows(
             models=grid["models"].split(","),
@@ -105,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if "accuracy" in sections:
         doc["accuracy"] = bench.accuracy()
+    if "wrench" in sections:
+        doc["wrench"] = bench.wrench_query(compiled=args.compile)
     if "pruning" in sections:
         doc["pruning"] = bench.pruning()
     if args.json:
@@ -193,6 +209,7 @@ class _Bench:
             "compile": compiled,
             "scene": "pushing task scene: bubble ellipsoid (6 x 4.5 x 3 cm) 5 mm into a 5 cm cube on the table "
                      "half-space, M = 2 bodies, prune=False, substeps = 1",
+            "drake_query_ms": [0.06, 0.2],
             "timing_method": f"best of {self.repeats} repeats of the mean over a loop of >= {self.min_repeat_s} s, "
                              "variants of one configuration interleaved",
             "memory_method": "torch.cuda.max_memory_allocated above the start" if self.device.type == "cuda"
@@ -471,6 +488,43 @@ class _Bench:
             })
         return out
 
+    def wrench_query(self, compiled: bool, objects: tuple[str, ...] = ("cube", "cylinder_r25"),
+                     press_m: float = 0.006) -> list[dict]:
+        """Pose-to-wrench query times at batch 1 (``dynamics.pressure_wrenches``), per object, dtype and mode."""
+        torch = self.torch
+        from hydrosoft.bench.wrench_scenes import BUBBLE_RADII_M, SPACING_M, bench_object, start_pose, wrench_scene
+        from hydrosoft.dynamics import pressure_wrenches
+        from hydrosoft.scene import compile_scene
+
+        out = []
+        for name in objects:
+            obj = bench_object(name)
+            bubble = start_pose(obj)
+            bubble[2] = obj.top_z() + BUBBLE_RADII_M[2] - press_m  # its lowest point press_m deep
+            scene = wrench_scene(name, "pff", SPACING_M, object_pose=obj.pose(), bubble_pose=bubble)
+            model64, state, _ = compile_scene(scene, device=self.device)
+            for dtype in ("float64", "float32"):
+                model = model64.to(dtype=getattr(torch, dtype))
+                object_pose = state.object_pose.to(model.dtype)
+                body_poses = state.body_poses.to(model.dtype)
+                queries = {"eager": functools.partial(pressure_wrenches, model)}
+                if compiled:
+                    queries["compiled"] = torch.compile(functools.partial(pressure_wrenches, model), dynamic=False,
+                                                        options={"cpp_wrapper": True})
+                for mode, query in queries.items():
+                    _progress(f"wrench: {name} {dtype} {mode}")
+                    with torch.no_grad():
+                        tic = time.perf_counter()
+                        first = query(object_pose, body_poses)
+                        compile_s = time.perf_counter() - tic
+                        seconds = self._interleaved({mode: lambda: query(object_pose, body_poses)})[mode]
+                    row = {"object": name, "points": model.n_points, "dtype": dtype, "mode": mode, "batch": 1,
+                           "press_mm": 1e3 * press_m, "query_ms": 1e3 * seconds, "force_z_n": float(first[0, 0, 2])}
+                    if mode == "compiled":
+                        row["compile_s"] = compile_s
+                    out.append(row)
+        return out
+
     def pruning(self) -> list[dict]:
         torch = self.torch
         from hydrosoft.dynamics import step
@@ -537,6 +591,13 @@ def _print_tables(doc: dict) -> None:
         for r in doc["accuracy"]:
             print(f"{r['setting']:>32} {r['points']:>5} {r['path_steps']:>5} {r['force_rel_error']:>10.2e} "
                   f"{r['peak_force_n']:>8.3f} {r['step_ms']:>8.3f}")
+    if doc["wrench"]:
+        low, high = cfg["drake_query_ms"]
+        print(f"\npose-to-wrench query, batch 1 (Drake's hydroelastic query: {low}-{high} ms)")
+        print(f"{'object':>13} {'N':>5} {'dtype':>7} {'mode':>8} {'query ms':>9} {'F_z N':>7}")
+        for r in doc["wrench"]:
+            print(f"{r['object']:>13} {r['points']:>5} {r['dtype']:>7} {r['mode']:>8} {r['query_ms']:>9.4f} "
+                  f"{r['force_z_n']:>7.3f}")
     if doc["pruning"]:
         print("\npruning (float32 eager step)")
         print(f"{'task':>9} {'B':>3} {'N full':>6} {'N kept':>6} {'bodies':>6} {'full ms':>8} {'pruned ms':>9} "

@@ -33,7 +33,7 @@ def _run(args, capsys):
 
 def test_quick_bench_json_schema_and_values(quick_args, capsys):
     doc = _run(quick_args, capsys)
-    assert set(doc) == {"config", "rows", "accuracy", "pruning"}
+    assert set(doc) == {"config", "rows", "accuracy", "wrench", "pruning"}
     assert doc["config"]["threads"] == 1 and doc["config"]["memory_method"]
 
     rows = doc["rows"]
@@ -62,6 +62,16 @@ def test_quick_bench_json_schema_and_values(quick_args, capsys):
     # the float32 replay agrees with the float64 reference to far better than 1% (the stated float32 tolerance)
     assert next(r for r in accuracy if r["setting"] == "float32")["force_rel_error"] < 1e-2
 
+    wrench = doc["wrench"]
+    assert {(r["object"], r["dtype"], r["mode"]) for r in wrench} == {
+        (o, d, "eager") for o in ("cube", "cylinder_r25") for d in ("float32", "float64")}
+    for r in wrench:
+        assert r["batch"] == 1 and r["points"] > 200 and math.isfinite(r["query_ms"]) and r["query_ms"] > 0
+        # the bubble pressed 6 mm into the object pushes up on it; float32 gives the same force
+        same = next(o for o in wrench if o["object"] == r["object"] and o["dtype"] == "float64")
+        assert 0.5 < r["force_z_n"] < 10 and math.isclose(r["force_z_n"], same["force_z_n"], rel_tol=1e-5), r
+    assert doc["config"]["drake_query_ms"] == [0.06, 0.2]
+
     pruning = doc["pruning"]
     assert {r["task"] for r in pruning} == {"pushing", "rotation", "rolling", "in_hand"}
     for r in pruning:
@@ -77,5 +87,12 @@ def test_tables_without_json(capsys):
         ["--quick", "--models", "nh", "--batches", "1", "--points", "100", "--sections", "rows,pruning"])
     assert bench_model.run(args) == 0
     out = capsys.readouterr().out
-    assert "step speed and memory" in out and "pruning" in out
+    assert "step speed and memory" in out and "pruning" in out and "pose-to-wrench" not in out
     assert not out.lstrip().startswith("{")
+
+
+def test_an_unknown_section_is_refused(capsys):
+    parser = argparse.ArgumentParser()
+    bench_model.add_arguments(parser)
+    assert bench_model.run(parser.parse_args(["--quick", "--sections", "rows,wrenches"])) == 2
+    assert "unknown section wrenches" in capsys.readouterr().err

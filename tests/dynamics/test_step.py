@@ -8,7 +8,8 @@ import torch
 
 from hydrosoft.contact import Material, make
 from hydrosoft.contact.cone import split_normal
-from hydrosoft.dynamics import Model, State, advance_forces, body_wrenches, object_wrench, press_in, step
+from hydrosoft.dynamics import (Model, State, advance_forces, body_wrenches, object_wrench, press_in,
+                                pressure_wrenches, step)
 from hydrosoft.geometry import sdf, se3, surface
 from hydrosoft.scene import SceneError, compile_scene
 from hydrosoft.tasks.scenes import TASK_SCENES, task_scene
@@ -197,3 +198,29 @@ def test_float32_dynamics_tracks_float64_over_press_shear_release():
     assert (f64[-1]).norm() < 1e-9  # released
     assert (p32 - p64).abs().max() < 1e-4
     assert (f32 - f64).abs().max() < 0.01 * f64.norm(dim=-1).max()
+
+
+@pytest.mark.parametrize("task", ["pushing", "in_hand"])
+def test_pressure_wrenches_are_the_pressure_field_step_from_rest_at_the_same_poses(task):
+    """The pose-to-wrench query equals PFF's contact update from a force-free state at unchanged poses, for every
+    body of a pruned scene (the pushing scene's bubble on its own points; in-hand's two bubbles), and PF's (no slip,
+    so no friction); a batch of distinct poses, float64, to rounding. A planar scene's support body is left out:
+    the step sets its normal force from the vertical load, the query from its pressure field."""
+    for contact in ("pff", "pf"):
+        scene = msgspec.structs.replace(task_scene(task), contact=contact)
+        model, state, _ = compile_scene(scene)
+        g = torch.Generator().manual_seed(2)
+        twist = torch.zeros(4, model.n_bodies, 6, dtype=torch.float64)
+        twist[..., :3] = 1e-3 * torch.randn(4, model.n_bodies, 3, generator=g, dtype=torch.float64)
+        twist[..., 3:] = 0.02 * torch.randn(4, model.n_bodies, 3, generator=g, dtype=torch.float64)
+        twist = twist * model.actuated.view(1, -1, 1)
+        bodies = se3.retract(state.body_poses.expand(4, -1, -1), twist)
+        objects = state.object_pose.expand(4, -1)
+        query = pressure_wrenches(model, objects, bodies)
+        rest = State(objects, bodies, torch.zeros(4, *state.forces.shape[1:], dtype=torch.float64))
+        reference = body_wrenches(model, advance_forces(model, rest, objects, bodies))
+        if model.planar and model.support is not None:  # the support's normal force is set from the load instead
+            keep = [m for m in range(model.n_bodies) if m != model.support]
+            query, reference = query[:, keep], reference[:, keep]
+        assert query[..., :3].norm(dim=-1).min() > 0.1  # every body presses on the object
+        torch.testing.assert_close(query, reference, rtol=0, atol=1e-12)
