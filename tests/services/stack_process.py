@@ -136,3 +136,15 @@ def children_left(session_pid: int) -> list[str]:
     """Processes still in the launcher's session (``ps``), excluding zombies."""
     out = subprocess.run(["ps", "-eo", "pid,sid,stat,args"], capture_output=True, text=True).stdout.splitlines()
     return [line for line in out[1:] if line.split()[1] == str(session_pid) and not line.split()[2].startswith("Z")]
+
+
+def assert_stopped_in_order(stack: Stack, elapsed_s: float, arms: tuple[str, ...]) -> None:
+    """The launcher stopped within ``STOP_BOUND_S`` (``elapsed_s``, from ``Stack.stop``), left no process, and logged
+    the planner stopped first, then every arm's commander, and sim_world after them."""
+    assert elapsed_s < STOP_BOUND_S, elapsed_s
+    assert not children_left(stack.process.pid), children_left(stack.process.pid)
+    text = stack.text()
+    planner, sim_world = text.find("stopped planner"), text.find("stopped sim_world")
+    commanders = [text.find(f"stopped arm_commander-{arm}") for arm in arms]
+    assert -1 not in (planner, sim_world, *commanders), text[-3000:]
+    assert planner < min(commanders) and max(commanders) < sim_world, text[-3000:]

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 import pytest
-from stack_process import READY_TIMEOUT_S, STOP_BOUND_S, Stack, children_left, stack_config
+from stack_process import READY_TIMEOUT_S, Stack, assert_stopped_in_order, stack_config
 
 from hydrosoft.services.client import StackClient, true_error_mm
 from hydrosoft.services.config import load_config
@@ -113,8 +113,4 @@ def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_p
     finally:
         client.close()
         elapsed = stack.stop()
-    assert elapsed < STOP_BOUND_S, elapsed
-    assert not children_left(stack.process.pid), children_left(stack.process.pid)
-    text = stack.text()
-    order = [text.find(f"stopped {name}") for name in ("planner", "arm_commander-bubble", "sim_world")]
-    assert -1 not in order and order == sorted(order), text[-3000:]
+    assert_stopped_in_order(stack, elapsed, ("bubble",))

@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from stack_process import STOP_BOUND_S, Stack, bimanual_stack_config, children_left
+from stack_process import Stack, assert_stopped_in_order, bimanual_stack_config
 
 from hydrosoft.geometry.se3 import angle_between
 from hydrosoft.services.client import StackClient, true_error_mm
@@ -63,10 +63,4 @@ def test_the_bimanual_sim_stack_rotates_the_grasped_cube_with_both_arms_and_shut
     finally:
         client.close()
         elapsed = stack.stop()
-    assert elapsed < STOP_BOUND_S, elapsed
-    assert not children_left(stack.process.pid), children_left(stack.process.pid)
-    text = stack.text()
-    planner, sim_world = text.find("stopped planner"), text.find("stopped sim_world")
-    arms = [text.find(f"stopped arm_commander-{arm}") for arm in ARMS]
-    assert -1 not in (planner, sim_world, *arms), text[-3000:]
-    assert planner < min(arms) and max(arms) < sim_world, text[-3000:]
+    assert_stopped_in_order(stack, elapsed, ARMS)
