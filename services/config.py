@@ -6,6 +6,8 @@ bad key raises ``ConfigError`` naming the file and the key (``limits.max_speed_m
 Layout (see ``deploy/sim.toml`` for a commented example)::
 
     run_dir, log_level, mode          where ipc sockets and pty links live; "sim" or "lab"
+    compile_cache_dir                 torch's compile cache for the compiled planner and plant (kept between
+                                      launches; default /tmp/torchinductor_USER)
     [scene]                           the task whose scene is on the table, where it lies (task_frame), the tags
     [camera]                          the tag camera: intrinsics, pose in the base frame, rate
     [[arms]]                          per arm: the scene body it carries (its TCP is that body's frame), the UR
@@ -37,6 +39,7 @@ Pose = tuple[float, float, float, float, float, float, float]
 Vec3 = tuple[float, float, float]
 RestartPolicy = Literal["never", "on-failure", "always"]
 ENDPOINT_KINDS = ("data", "status", "cmd")
+SDF_SOLVER_STEPS_MAX = 32  # hydrosoft.geometry.sdf.Ellipsoid.MAX_SOLVER_STEPS, not imported: config loads no torch
 
 
 class ConfigError(ValueError):
@@ -186,6 +189,11 @@ class LimitsConfig(Strict):
 class PlannerConfig(Strict):
     """The MPC (``hydrosoft.tasks.evaluation.PlannerSettings`` names): contact model, surface spacing (m), samples
     B, elites, horizon K, gradient steps G, dtype, compile (compile the step during start-up), seed.
+    sdf_solver_steps: None solves the bubble ellipsoid's closest point to convergence; an integer runs that many
+    fixed solver steps (``hydrosoft.geometry.sdf.Ellipsoid.solver_steps``; 3 is within 1e-7 m of the converged
+    distance up to 2 cm from the membrane, deeper than any press of the stack's tasks). Fixed steps make the
+    compiled step loop-free, so torch's compile cache can keep it between launches (a ``torch.while_loop`` cannot
+    be cached) and the solve is faster.
     max_age_s: per input topic kind, the oldest sample the planner acts on (s). heartbeat_period_s: its heartbeat
     period (must be under half the commander's heartbeat_timeout_s). target_lead_s: how long each target stays
     valid (its deadline). threads: torch intra-op threads of the solve (1 by default: with the other services on
@@ -203,6 +211,7 @@ class PlannerConfig(Strict):
     dtype: Literal["float32", "float64"] = "float32"
     compile: bool = False
     seed: int = 0
+    sdf_solver_steps: int | None = None
     max_age_s: dict[str, float] = msgspec.field(
         default_factory=lambda: {"object_pose": 0.5, "arm_state": 0.2, "deformation": 0.5})
     heartbeat_period_s: float = 0.1
@@ -213,6 +222,9 @@ class PlannerConfig(Strict):
     def __post_init__(self) -> None:
         _require(self.max_reapproaches >= 0, "planner.max_reapproaches",
                  f"must be >= 0, got {self.max_reapproaches}")
+        _require(self.sdf_solver_steps is None or 0 <= self.sdf_solver_steps <= SDF_SOLVER_STEPS_MAX,
+                 "planner.sdf_solver_steps", f"must be 0..{SDF_SOLVER_STEPS_MAX} (or left out: solve to "
+                 f"convergence), got {self.sdf_solver_steps}")
         _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s",
                   "threads")
         for key, value in self.max_age_s.items():
@@ -276,6 +288,7 @@ class StackConfig(Strict):
     arms: list[ArmConfig]
     run_dir: str = "/tmp/hydrosoft"
     log_level: str = "INFO"
+    compile_cache_dir: str | None = None
     mode: Literal["sim", "lab"] = "sim"
     scene: SceneConfig = SceneConfig()
     camera: CameraConfig = CameraConfig()

@@ -32,6 +32,7 @@ import argparse
 import asyncio
 import functools
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -46,15 +47,15 @@ from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import CompiledStep, State, step
 from hydrosoft.geometry import se3
 from hydrosoft.geometry.sdf import Ellipsoid
-from hydrosoft.scene import build_surface, compile_scene
+from hydrosoft.scene import Scene, build_surface, compile_scene
 from hydrosoft.tactile import TactileObservation, estimate_state, sensor_bodies
-from hydrosoft.tasks import make_task
+from hydrosoft.tasks import Task, make_task
 from hydrosoft.tasks.base import mean_point_distance
-from hydrosoft.tasks.evaluation import METRIC_SPACING_M, PlannerSettings, with_contact
+from hydrosoft.tasks.evaluation import METRIC_SPACING_M, PlannerSettings, with_contact, with_solver_steps
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Stale
 from hydrosoft.services import service_main
-from hydrosoft.services.config import StackConfig
+from hydrosoft.services.config import PlannerConfig, StackConfig
 from hydrosoft.services.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
 from hydrosoft.services.safety import check_target, outside_workspace
 from hydrosoft.services.runtime import Service
@@ -78,6 +79,11 @@ def resolve_target(goal: msg.Goal, start_pose: torch.Tensor) -> torch.Tensor:
         return as_pose(goal.target_pose)
     delta = torch.tensor([goal.dx_m, goal.dy_m, 0.0, goal.droll_rad, 0.0, goal.dyaw_rad], dtype=torch.float64)
     return se3.retract(start_pose, delta)
+
+
+def planner_scene(task: Task, planner: PlannerConfig) -> Scene:
+    """``task``'s scene as the planner models it: its contact model, surface spacing and bubble SDF solve."""
+    return with_solver_steps(with_contact(task.scene, planner.model, planner.spacing), planner.sdf_solver_steps)
 
 
 @dataclass
@@ -112,8 +118,8 @@ class PlannerCore:
         task = make_task(config.scene.task)
         settings = PlannerSettings(model=pc.model, spacing=pc.spacing, samples=pc.samples, elites=pc.elites,
                                    horizon=pc.horizon, grad_steps=pc.grad_steps, dtype=getattr(torch, pc.dtype),
-                                   seed=pc.seed, compile=pc.compile)
-        model, state, _ = compile_scene(with_contact(task.scene, pc.model, pc.spacing), dtype=settings.dtype)
+                                   seed=pc.seed, sdf_solver_steps=pc.sdf_solver_steps, compile=pc.compile)
+        model, state, _ = compile_scene(planner_scene(task, pc), dtype=settings.dtype)
         arms = {}
         for arm in config.arms:
             if arm.name not in model.body_names:
@@ -499,12 +505,14 @@ async def run(service: Service, config: StackConfig) -> None:
     torch.set_num_threads(config.planner.threads)
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
-        service.log.info("compiling the planner step (the first solve)")
-        _, initial, _ = compile_scene(with_contact(core.task.scene, config.planner.model, config.planner.spacing),
-                                      dtype=core.model.dtype)
+        service.log.info("compiling the planner step (the first solve; compile cache %s)",
+                         os.environ.get(service_main.CACHE_ENV, "torch's default"))
+        started = time.monotonic()
+        _, initial, _ = compile_scene(planner_scene(core.task, config.planner), dtype=core.model.dtype)
         arm_poses = {name: initial.body_poses[0, index].double() for name, index in core.arms.items()}
         warm = core.solver(core.task.initial_pose(), initial.object_pose[0].double(), arm_poses)
         await loop.run_in_executor(None, warm.solve, initial)
+        service.log.info("planner step compiled in %.1f s", time.monotonic() - started)
     planner = Planner(service, config, core)
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
     serving = asyncio.create_task(server.serve(), name="planner.serve")

@@ -103,6 +103,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-dtypes", type=_csv, default=["float64", "float32"], metavar="D1,D2",
                         help="planner float types whose replanning rate is measured, in one run so that their "
                              "ratio holds (default float64,float32; the episodes plan in float64)")
+    parser.add_argument("--sdf-solver-steps", type=int, default=None, metavar="N",
+                        help="the planner's bubble ellipsoid in N fixed solver steps (PlannerSettings."
+                             "sdf_solver_steps; 2-3 are exact to rounding near the membrane) instead of solving "
+                             "to convergence; the plants always converge")
 
 
 def _log(text: str) -> None:
@@ -134,12 +138,13 @@ def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
     }
 
 
-def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") -> dict:
+def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
+                    sdf_solver_steps: int | None = None) -> dict:
     """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
     first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the
     mean of ``solves`` timed solves (``solve_ms``, ms) split into rollout / backward / CEM, and the replanning
-    rate (Hz) it allows."""
+    rate (Hz) it allows. ``sdf_solver_steps``: the planner's bubble ellipsoid solve (``PlannerSettings``)."""
     import msgspec
     import torch
 
@@ -151,7 +156,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
 
     task = make_task("pushing")
     settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
-                               compile=compile, dtype=getattr(torch, dtype))
+                               compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps)
     setup = prepare(task, settings)
     model = setup.planner_model
     surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
@@ -176,7 +181,8 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64") 
     compiled = getattr(setup.dynamics, "compiled", False)
     return {
         "task": "pushing", "dtype": dtype, "samples": 64, "horizon": 10, "grad_steps": 2,
-        "surface_points": surface_points, "points": model.n_points, "pairs": pairs, "substeps": model.substeps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
+        "surface_points": surface_points, "points": model.n_points, "pairs": pairs, "substeps": model.substeps,
+        "sdf_solver_steps": sdf_solver_steps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
     }
@@ -274,8 +280,9 @@ def run(args: argparse.Namespace) -> int:
     for name in args.tasks:
         task = make_task(name, args.steps)
         for model in args.models:
-            planner = PlannerSettings(model=model, compile=args.compile, **{k: preset[k] for k in (
-                "spacing", "samples", "elites", "horizon", "grad_steps", "open_loop_iterations")})
+            planner = PlannerSettings(model=model, compile=args.compile, sdf_solver_steps=args.sdf_solver_steps,
+                                      **{k: preset[k] for k in ("spacing", "samples", "elites", "horizon",
+                                                                "grad_steps", "open_loop_iterations")})
             noise = {"pose_noise_m": args.pose_noise_mm / 1e3, "pose_noise_rad": math.radians(args.pose_noise_deg),
                      "deformation_noise_m": args.deformation_noise_mm / 1e3}
             plants = {"finer": PlantSettings(model=model if args.plant == "same" else args.plant, **noise),
@@ -299,13 +306,13 @@ def run(args: argparse.Namespace) -> int:
                              f"{result.initial_error_mm:.1f} -> {result.error_mm:.2f} mm ({result.status}, "
                              f"{len(result.errors_mm) - 1} steps), {time.perf_counter() - tic:.1f} s")
                     rows.append(_row(plant_name, name, model, loop, results))
-    replanning = [replanning_rate(rate_solves, args.compile, dtype) for dtype in args.rate_dtypes
-                  ] if rate_solves > 0 else None
+    replanning = [replanning_rate(rate_solves, args.compile, dtype, args.sdf_solver_steps)
+                  for dtype in args.rate_dtypes] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "quick": args.quick, "plant": args.plant, "plants": args.plants,
                 "same_models": same_models,
                 "threads": args.threads,
-                "compile": args.compile,
+                "compile": args.compile, "sdf_solver_steps": args.sdf_solver_steps,
                 "noise": {"pose_mm": args.pose_noise_mm, "pose_deg": args.pose_noise_deg,
                           "deformation_mm": args.deformation_noise_mm},
                 "steps": {name: make_task(name, args.steps).steps for name in args.tasks},
@@ -317,9 +324,10 @@ def run(args: argparse.Namespace) -> int:
         for r in replanning or []:
             mode = "compiled" if r["compiled"] else "eager"
             compiling = ", compiling the step unless a planner of the same shapes did before" if r["compiled"] else ""
+            sdf = "converged" if r["sdf_solver_steps"] is None else f"in {r['sdf_solver_steps']} solver steps"
             print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
                   f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
-                  f"point-body pairs), {r['substeps']} sub-steps, {r['threads']} thread(s), "
+                  f"point-body pairs), {r['substeps']} sub-steps, bubble SDF {sdf}, {r['threads']} thread(s), "
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f}, backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first solve "
                   f"{r['first_solve_ms'] / 1e3:.1f} s{compiling})")

@@ -49,7 +49,7 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
         assert rate["samples"] == 64 and rate["horizon"] == 10 and rate["grad_steps"] == 2
         assert 150 <= rate["surface_points"] <= 250 and rate["pairs"] <= rate["points"] * 2 and rate["rate_hz"] > 0
         assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"]
-        assert rate["compiled"] is False and rate["first_solve_ms"] > 0
+        assert rate["compiled"] is False and rate["first_solve_ms"] > 0 and rate["sdf_solver_steps"] is None
     assert document["settings"]["compile"] is False
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
     assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -79,10 +79,12 @@ def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp
     """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes)."""
     monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend="eager"))
     args = parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--quick", "--steps", "1", "--goals",
-                 "1", "--rate-solves", "1", "--rate-dtypes", "float32", "--compile", "--out", str(tmp_path))
+                 "1", "--rate-solves", "1", "--rate-dtypes", "float32", "--compile", "--sdf-solver-steps", "3",
+                 "--out", str(tmp_path))
     try:
         assert control.run(args) == 0
     finally:
         torch._dynamo.reset()
     out = capsys.readouterr().out
-    assert "float32" in out and "sub-steps, 1 thread(s), compiled:" in out and "compiling the step" in out
+    assert "float32" in out and "sub-steps, bubble SDF in 3 solver steps, 1 thread(s), compiled:" in out
+    assert "compiling the step" in out

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
-from hydrosoft.services.config import ConfigError, load_config, parse_config
+from hydrosoft.services.config import SDF_SOLVER_STEPS_MAX, ConfigError, load_config, parse_config
+from hydrosoft.services.service_main import CACHE_ENV, use_compile_cache
 
 DEPLOY = Path(__file__).parents[2] / "deploy"
 ONE_ARM = 'arms = [{ name = "bubble" }]\n'
@@ -34,6 +36,7 @@ def test_the_shipped_configs_load(name):
     (ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.9, 0, 0, 0.1]\n", "scene.task_frame"),  # not unit length
     (ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.995, 0.0998, 0, 0]\n", "scene.task_frame"),  # 11.5 deg tilt
     ('arms = [{ name = "a" }, { name = "a" }]\n', "arms"),
+    (ONE_ARM + "[planner]\nsdf_solver_steps = 33\n", "planner.sdf_solver_steps"),
 ])
 def test_a_bad_key_is_named(text, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
@@ -62,3 +65,26 @@ def test_a_level_task_frame_is_taken_and_a_tilted_one_named_with_its_tilt():
     assert parse_config(ONE_ARM, "test.toml").scene.task_frame == (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
     with pytest.raises(ConfigError, match=r"scene\.task_frame: its z axis is 180\.0 deg .*\[qw, qx, qy, qz\] order"):
         parse_config(ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.0, 0.0, 1.0, 0.0]\n", "test.toml")  # 180 about y
+
+
+def test_the_sdf_step_bound_is_the_ellipsoids():
+    """config.py names the bound without importing torch; it must be the ellipsoid's own."""
+    from hydrosoft.geometry.sdf import Ellipsoid
+    assert SDF_SOLVER_STEPS_MAX == Ellipsoid.MAX_SOLVER_STEPS
+    assert parse_config(ONE_ARM + f"[planner]\nsdf_solver_steps = {SDF_SOLVER_STEPS_MAX}\n").planner.sdf_solver_steps \
+        == SDF_SOLVER_STEPS_MAX
+
+
+def test_the_compile_cache_goes_to_the_config_dir_unless_the_environment_names_one(monkeypatch, tmp_path):
+    config = parse_config(ONE_ARM + f'compile_cache_dir = "{tmp_path}/torch"\n')
+    monkeypatch.delenv(CACHE_ENV, raising=False)
+    use_compile_cache(parse_config(ONE_ARM))  # no key: torch's default stays
+    assert CACHE_ENV not in os.environ
+    use_compile_cache(config)
+    assert os.environ[CACHE_ENV] == f"{tmp_path}/torch"
+    monkeypatch.setenv(CACHE_ENV, "/elsewhere")
+    use_compile_cache(config)
+    assert os.environ[CACHE_ENV] == "/elsewhere"
+    monkeypatch.delenv(CACHE_ENV)
+    use_compile_cache(parse_config(ONE_ARM + 'compile_cache_dir = "~/cache"\n'))
+    assert os.environ[CACHE_ENV] == str(Path("~/cache").expanduser())

@@ -60,6 +60,17 @@ def test_the_core_follows_the_config(core):
                                                start)) == pytest.approx(40.0, rel=1e-9)
 
 
+def test_the_bubble_sdf_is_solved_as_the_config_says(core, tmp_path):
+    """deploy/sim.toml's fixed 3-step bubble solve reaches the planner's model and its tactile membranes; without
+    the key the planner solves to convergence."""
+    config = load_config(SIM_TOML)
+    assert config.planner.sdf_solver_steps == 3
+    assert core.membranes["bubble"].solver_steps == 3 and core.model.bodies[0].solver_steps == 3
+    path = tmp_path / "converged.toml"
+    path.write_text(SIM_TOML.read_text().replace("sdf_solver_steps = 3", ""))
+    assert PlannerCore.build(load_config(path)).membranes["bubble"].solver_steps is None
+
+
 def test_an_arm_that_is_not_a_scene_body_is_refused_by_name(tmp_path):
     text = SIM_TOML.read_text().replace('name = "bubble"', 'name = "gripper"')
     path = tmp_path / "bad.toml"
