@@ -77,7 +77,8 @@ def test_the_sdf_step_bound_is_the_ellipsoids():
 
 def test_the_compile_cache_goes_to_the_config_dir_unless_the_environment_names_one(monkeypatch, tmp_path):
     config = parse_config(ONE_ARM + f'compile_cache_dir = "{tmp_path}/torch"\n')
-    monkeypatch.delenv(CACHE_ENV, raising=False)
+    monkeypatch.setenv(CACHE_ENV, "placeholder")  # records the variable's state before the test, restored after
+    monkeypatch.delenv(CACHE_ENV)
     use_compile_cache(parse_config(ONE_ARM))  # no key: torch's default stays
     assert CACHE_ENV not in os.environ
     use_compile_cache(config)

@@ -1,0 +1,76 @@
+"""``hydrosoft-stack compile``: it compiles the planner's step as the planner's start-up does, or says why not."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import pytest
+import torch
+
+from hydrosoft.dynamics import CompiledStep
+from hydrosoft.services import planner
+from hydrosoft.services.cli import main
+from hydrosoft.services.service_main import CACHE_ENV
+
+SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+
+
+@pytest.fixture
+def no_cache_env(monkeypatch):
+    """TORCHINDUCTOR_CACHE_DIR unset for the test and restored after it."""
+    monkeypatch.setenv(CACHE_ENV, "placeholder")  # records the variable's state before the test
+    monkeypatch.delenv(CACHE_ENV)
+
+
+def compiled_config(tmp_path: Path) -> Path:
+    """deploy/sim.toml with the planner compiled and its compile cache under ``tmp_path``."""
+    path = tmp_path / "compiled.toml"
+    text = SIM_TOML.read_text().replace("compile = false ", "compile = true ", 1)
+    path.write_text(f'compile_cache_dir = "{tmp_path}/cache"\n' + text)
+    return path
+
+
+def failing_backend(graph, example_inputs):
+    raise RuntimeError("no C++ compiler")
+
+
+def test_an_eager_planner_has_nothing_to_compile(capsys):
+    assert main(["compile", str(SIM_TOML)]) == 0
+    assert "nothing to compile" in capsys.readouterr().out
+
+
+def test_a_bad_config_is_refused_by_key(tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    path.write_text(SIM_TOML.read_text().replace("sdf_solver_steps = 3", "sdf_solver_steps = -1"))
+    assert main(["compile", str(path)]) == 2
+    assert "planner.sdf_solver_steps" in capsys.readouterr().err
+
+
+def test_it_compiles_the_planner_step_into_the_configs_cache(tmp_path, capsys, monkeypatch, no_cache_env):
+    """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes)."""
+    backends = []
+
+    def recording_backend(graph, example_inputs):
+        backends.append(len(example_inputs))
+        return graph.forward
+
+    monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend=recording_backend))
+    try:
+        assert main(["compile", str(compiled_config(tmp_path))]) == 0
+    finally:
+        torch._dynamo.reset()
+    out = capsys.readouterr().out
+    assert f"into {tmp_path}/cache" in out and "planner step compiled in" in out
+    assert len(backends) >= 2  # a solve's signatures: gradient-enabled and no-grad rollouts at least
+
+
+def test_a_step_that_falls_back_to_eager_fails(tmp_path, capsys, monkeypatch, no_cache_env):
+    monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend=failing_backend))
+    try:
+        with pytest.warns(RuntimeWarning, match="running eager"):
+            assert main(["compile", str(compiled_config(tmp_path))]) == 1
+    finally:
+        torch._dynamo.reset()
+    err = capsys.readouterr().err
+    assert "fell back to eager" in err and "no C++ compiler" in err
