@@ -85,6 +85,10 @@ class FT300Faults:
                 raise ValueError(f"FT300Faults.{field.name}={value} is not a probability in [0, 1]")
 
 
+#: A clean line: frames go out as they are, and the fault generator is not drawn from.
+NO_FAULTS = FT300Faults()
+
+
 class FaultCounts(NamedTuple):
     """What ``inject_faults`` did to one frame."""
 
@@ -157,7 +161,7 @@ class SimulatedFT300:
             disconnect. An existing symlink there is replaced; any other file is refused.
         slave_address: Modbus address it answers to (factory 9).
         faults: line faults applied to stream frames; change them later with ``set_faults``.
-        seed: seed of the fault generator.
+        seed: seed of the fault generator (drawn from only for frames sent while some fault rate is set).
         streaming: start out streaming, as a sensor left streaming by an earlier run.
     """
 
@@ -168,7 +172,7 @@ class SimulatedFT300:
         rate_hz: float = STREAM_RATE_HZ,
         link: str | os.PathLike[str] | None = None,
         slave_address: int = SLAVE_ADDRESS,
-        faults: FT300Faults = FT300Faults(),
+        faults: FT300Faults = NO_FAULTS,
         seed: int = 0,
         streaming: bool = False,
     ) -> None:
@@ -186,6 +190,7 @@ class SimulatedFT300:
         self._lock = threading.Lock()
         self._stats = SimulatorStats()
         self._history: deque[np.ndarray] = deque(maxlen=HISTORY_FRAMES)
+        self._last_encoded: tuple[bytes, bytes, np.ndarray] | None = None  # (wrench bytes, frame, carried wrench)
         self._commands: deque[tuple[Callable[[], object], Future]] = deque()
         self._master_fd: int | None = None
         self._slave_fd: int | None = None
@@ -485,15 +490,18 @@ class SimulatedFT300:
 
     def _send_frame(self) -> None:
         try:
-            wrench = np.asarray(self._source(), dtype=np.float64)
-            frame = encode_frame(wrench)
+            frame, carried = self._encoded(np.asarray(self._source(), dtype=np.float64))
         except Exception:
             log.exception("%r: wrench source failed; frame skipped", self)
             self._count(source_errors=1)
             return
         with self._lock:
             faults = self._faults
-            self._history.append(quantize_wrench(wrench))
+            self._history.append(carried)
+        if faults == NO_FAULTS:  # a clean line: the frame as it is, and nothing drawn from the fault generator
+            self._count(frames_sent=1)
+            self._write(frame)
+            return
         delivered, counts = inject_faults(frame, faults, self._rng)
         self._count(
             frames_sent=1,
@@ -503,6 +511,17 @@ class SimulatedFT300:
             garbage_bytes=counts.garbage_bytes,
         )
         self._write(delivered)
+
+    def _encoded(self, wrench: np.ndarray) -> tuple[bytes, np.ndarray]:
+        """The frame carrying ``wrench (6,)`` and the wrench as the frame carries it (read-only); a wrench equal to
+        the previous one (a plant at rest) reuses the previous pair. Raises ``ValueError`` as ``encode_frame``."""
+        key = wrench.tobytes()
+        if self._last_encoded is None or self._last_encoded[0] != key:
+            frame = encode_frame(wrench)
+            carried = quantize_wrench(wrench)
+            carried.flags.writeable = False
+            self._last_encoded = (key, frame, carried)
+        return self._last_encoded[1], self._last_encoded[2]
 
 
 # -- command line ------------------------------------------------------------------------------------------------

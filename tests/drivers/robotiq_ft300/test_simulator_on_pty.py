@@ -15,16 +15,18 @@ import serial
 
 from hydrosoft.drivers.robotiq_ft300.protocol import (
     FC_WRITE_MULTIPLE_REGISTERS,
+    FRAME_SIZE,
     STOP_BURST,
     WRITE_REPLY_SIZE,
     FrameScanner,
+    encode_frame,
     exception_reply,
     start_stream_reply,
     start_stream_request,
     write_registers_request,
 )
 from hydrosoft.drivers.robotiq_ft300.sensor import FT300Sensor
-from hydrosoft.drivers.robotiq_ft300.simulator import SimulatedFT300
+from hydrosoft.drivers.robotiq_ft300.simulator import FT300Faults, SimulatedFT300, inject_faults
 
 from .support import fast_config, run_async, wait_for_sample
 
@@ -90,6 +92,30 @@ def test_rate_is_close_to_the_setting(make_simulator):
         elapsed_s = time.monotonic() - start
     assert len(frames) == 50
     assert 0.4 < elapsed_s < 0.8  # 50 frames at 100 Hz; loose for two shared cores
+
+
+def test_frames_follow_the_wrench_and_a_clean_line_leaves_the_fault_generator_alone(make_simulator):
+    applied = {"wrench": np.array([1.0, 2.0, 3.0, 0.1, 0.2, 0.3])}
+    simulator = make_simulator(wrench_source=lambda: applied["wrench"], seed=7)
+    with open_client(simulator.port_path) as port:
+        port.write(start_stream_request())
+        port.read(WRITE_REPLY_SIZE)
+        before = read_frames(port, 10)
+        applied["wrench"] = np.array([-4.0, 5.0, -6.0, 0.4, -0.5, 0.6])
+        time.sleep(0.05)
+        port.reset_input_buffer()
+        after = read_frames(port, 10)
+        clean = port.read(FRAME_SIZE)  # the stream's writes are whole frames: it stays aligned
+        faults = FT300Faults(bit_flip_rate=1.0)
+        simulator.set_faults(faults)
+        damaged = clean
+        while damaged == clean:
+            damaged = port.read(FRAME_SIZE)
+    np.testing.assert_array_equal(before[-1], [1.0, 2.0, 3.0, 0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(after[-1], [-4.0, 5.0, -6.0, 0.4, -0.5, 0.6])
+    np.testing.assert_array_equal(simulator.sent_wrenches()[-1], [-4.0, 5.0, -6.0, 0.4, -0.5, 0.6])
+    # the first faulty frame is the seed's first draw: the clean frames before it drew nothing
+    assert damaged == inject_faults(encode_frame(applied["wrench"]), faults, np.random.default_rng(7))[0]
 
 
 def test_link_is_refused_over_a_regular_file(tmp_path):
