@@ -14,8 +14,10 @@ with a fresh heartbeat (one arriving during the stop itself waits for the stop's
 It publishes ``ArmState`` on ``arm_state/ARM`` every period (with ``servo_active`` and ``stop_reason``) while the
 driver delivers state. While it holds the arm at rest with no target (``ServoLogic.holding_at_rest``), its period
 is that of ``limits.idle_rate_hz`` instead, and a target's arrival wakes it at once: an idle stack's commander and
-the readers of its state do a fifth of the work (ur_rtde's receive threads poll on regardless). On shutdown (SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then closes the
-driver, which stops the controller's script (stopScript).
+the readers of its state do a fifth of the work (ur_rtde's receive threads poll on regardless). The wrenches (100
+Hz) do not wake it: each tick reads those that came since the last one and keeps the newest. On shutdown
+(SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then closes the driver, which stops the controller's
+script (stopScript).
 
 The decisions live in ``ServoLogic`` (no sockets, no driver; unit tested); ``Commander`` is the thin I/O around it.
 """
@@ -44,6 +46,10 @@ MODULE = "arm_commander"
 #: The newest wrench counts as a force reading for this long (s); older: "no fresh F/T reading", the arm stops.
 #: The FT 300 streams at 100 Hz; this allows a few missed frames and a busy reader.
 WRENCH_MAX_AGE_S = 0.25
+#: Wrenches the F/T subscription queues between two ticks. Each tick reads them all and keeps the newest, so the
+#: queue holds far more than a tick's worth (4 at 100 Hz and the idle rate's 25 Hz): a full queue would leave newer
+#: wrenches waiting behind it in the OS buffers, unread by that tick.
+WRENCH_QUEUE = 1000
 #: Targets and heartbeats are read at any age here; ``safety.watchdog`` judges their age.
 ANY_AGE_S = float("inf")
 #: Longest the shutdown waits for the arm to be seen at rest after its stop, s (within the runtime's
@@ -163,9 +169,10 @@ class Commander:
     def __init__(self, service: Service, config: StackConfig, arm: str, driver: Arm) -> None:
         self.service, self.arm, self.driver = service, arm, driver
         self.logic = ServoLogic(config.limits, arm)
-        self.inputs = service.subscriber(
-            [config.endpoint("planner"), config.endpoint("planner", "status"), config.endpoint(f"ft_reader-{arm}")],
-            topics=[f"arm_target/{arm}", "heartbeat/planner", f"wrench/{arm}"], background=True)
+        self.inputs = service.subscriber([config.endpoint("planner"), config.endpoint("planner", "status")],
+                                         topics=[f"arm_target/{arm}", "heartbeat/planner"], background=True)
+        self.wrenches = service.subscriber(config.endpoint(f"ft_reader-{arm}"), [f"wrench/{arm}"],
+                                           rcvhwm=WRENCH_QUEUE)
         self.out = service.publisher(config.endpoint(f"{MODULE}-{arm}"))
         self._stop_task: asyncio.Task[None] | None = None
         self._restart_task: asyncio.Task[None] | None = None
@@ -174,15 +181,20 @@ class Commander:
         self.idle = False  # the last tick found the arm held at rest with no target
 
     def _newest(self, topic: str, max_age_s: float, kind: type[msg.Message]) -> Received | None:
-        """The newest message on ``topic`` within ``max_age_s`` (s) with its stamp, or None."""
+        """The newest target or heartbeat on ``topic`` within ``max_age_s`` (s) with its stamp, or None."""
         try:
             return self.inputs.latest(topic, max_age_s, kind)
         except Stale:
             return None
 
     def _force_n(self) -> float | None:
-        received = self._newest(f"wrench/{self.arm}", WRENCH_MAX_AGE_S, msg.Wrench)
-        return None if received is None else float(np.linalg.norm(received.value.wrench[:3]))
+        """The contact force (N) of the newest wrench, read now, or None when there is none within
+        ``WRENCH_MAX_AGE_S``."""
+        try:
+            received = self.wrenches.latest(f"wrench/{self.arm}", WRENCH_MAX_AGE_S, msg.Wrench)
+        except Stale:
+            return None
+        return float(np.linalg.norm(received.value.wrench[:3]))
 
     async def tick(self) -> None:
         """One servo period: read, decide, command or stop, publish."""

@@ -53,6 +53,7 @@ from hydrosoft.services.bus import (
     Received,
     RequestServer,
     Stale,
+    SUB_RCVHWM,
 )
 from hydrosoft.services.messages import BusError, Heartbeat, ServiceState, ServiceStatus, topic_for
 
@@ -138,10 +139,12 @@ class Service:
         *,
         background: bool = False,
         curve: Curve | None = None,
+        rcvhwm: int = SUB_RCVHWM,
     ) -> LatestSubscriber:
         """A latest-value subscriber whose malformed messages count as this service's errors. ``background``:
-        start its ``run`` task here (then read it with ``latest`` only); otherwise await its ``wait``."""
-        subscriber = LatestSubscriber(self.bus, endpoints, topics, curve=curve, errors=self.errors)
+        start its ``run`` task here (then read it with ``latest`` only); otherwise await its ``wait``, or call
+        ``latest`` alone (it drains what queued since: then ``rcvhwm`` must hold all of that)."""
+        subscriber = LatestSubscriber(self.bus, endpoints, topics, curve=curve, rcvhwm=rcvhwm, errors=self.errors)
         self._subscribers.append(subscriber)
         if background:
             self._tasks.add(asyncio.create_task(subscriber.run(), name=f"{self.name}.subscriber"))

@@ -555,6 +555,26 @@ def test_the_arm_stops_when_the_force_exceeds_the_limit_or_the_ft_goes_silent(ri
     assert silent_reason == "no fresh F/T reading"
 
 
+def test_a_held_arm_reads_the_newest_of_all_the_wrenches_that_came_since_its_last_tick(rig):
+    burst = 300  # wrenches sent within one idle period, far more than a default subscriber queue holds
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.force_n = None  # the test sends the wrenches itself
+        await asyncio.sleep(IDLE_SETTLE_S)
+        for _ in range(burst):
+            await planner.wrenches.send(msg.Wrench(sensor=ARM, wrench=np.zeros(6), tared=True), f"wrench/{ARM}")
+        await asyncio.sleep(0.005)  # the publisher's own queue empties: the last wrench is not dropped there
+        over = np.array([0, 0, LIMITS.max_force_n + 1.0, 0, 0, 0.0])
+        await planner.wrenches.send(msg.Wrench(sensor=ARM, wrench=over, tared=True), f"wrench/{ARM}")
+        sent = await planner.send_target(HOME + [0.01, 0, 0, 0, 0, 0, 0], TARGET_LEAD_S)
+        state = await until(lambda: (s := planner.arm_state()) and s.stamp_ns > sent.stamp_ns and s, 1.0,
+                            "an ArmState after the target")
+        return state.servo_active, state.stop_reason
+
+    servo_active, reason = scenario(run, rig)
+    assert not servo_active and "above the limit" in reason, reason
+
+
 def test_a_held_arm_is_checked_at_the_idle_rate_and_a_target_wakes_the_commander_at_once(rig):
     trials = 8
     idle_period_s = 1.0 / LIMITS.idle_rate_hz
