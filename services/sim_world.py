@@ -161,6 +161,7 @@ class SimPlant:
             raise ValueError(f"arms {unactuated} carry bodies the scene does not actuate")
         self.snapshot = self._snapshot()
         self._at_rest = False  # the last tick moved no body and changed nothing: the state is a fixed point
+        self._last_tcp_poses: dict[str, bytes] = {}  # the TCP poses the last step_to was given, as bytes
 
     @classmethod
     def from_config(cls, config: StackConfig) -> SimPlant:
@@ -183,6 +184,7 @@ class SimPlant:
                 (a torch ``RuntimeError`` or an ``ArithmeticError``) or a non-finite result; the state is then
                 unchanged (all ``ticks`` steps or none).
         """
+        self._last_tcp_poses = {}
         target = self.state.body_poses.clone()
         for arm, index in self.arm_index.items():
             try:
@@ -194,7 +196,8 @@ class SimPlant:
             target[0, index] = torch.as_tensor(self.frame.to_task_np(pose), dtype=self.model.dtype)
         still = torch.equal(target, self.state.body_poses)
         if still and self._at_rest:
-            self.snapshot = replace(self.snapshot, stamp_ns=time.monotonic_ns())
+            self._remember(tcp_poses)
+            self.keep_still()
             return
         u = body_control(self.state.body_poses[0], target[0]).unsqueeze(0) / ticks
         nxt = self.state
@@ -205,6 +208,30 @@ class SimPlant:
                          and torch.equal(nxt.forces, self.state.forces))
         self.state = State(nxt.object_pose, target, nxt.forces, nxt.phi)
         self.snapshot = self._snapshot()
+        self._remember(tcp_poses)
+
+    def rests_at(self, tcp_poses: Mapping[str, np.ndarray]) -> bool:
+        """Whether ``step_to(tcp_poses)`` would only advance the snapshot's stamp: the state is a fixed point (see
+        ``step_to``) and every arm's TCP pose is a float64 ``(7,)`` array equal, bit for bit, to the one the last
+        completed ``step_to`` was given. A cheap check (no torch) for the physics loop, which then calls
+        ``keep_still`` instead of stepping."""
+        if not self._at_rest:
+            return False
+        for arm in self.arm_index:
+            pose = tcp_poses.get(arm)
+            if not isinstance(pose, np.ndarray) or pose.dtype != np.float64 or (
+                    pose.tobytes() != self._last_tcp_poses.get(arm)):
+                return False
+        return True
+
+    def keep_still(self) -> None:
+        """A tick at rest (``rests_at``): only the snapshot's stamp advances."""
+        self.snapshot = replace(self.snapshot, stamp_ns=time.monotonic_ns())
+
+    def _remember(self, tcp_poses: Mapping[str, np.ndarray]) -> None:
+        """Keep the TCP poses a completed ``step_to`` was given (as float64 bytes), for ``rests_at``."""
+        self._last_tcp_poses = {arm: np.asarray(tcp_poses[arm], dtype=np.float64).tobytes()
+                                for arm in self.arm_index}
 
     def _step(self, state: State, u: Tensor) -> State:
         """One plant step of ``u (1, M, 6)`` from ``state`` (no gradient); PlantStepError when it fails."""
@@ -305,10 +332,11 @@ async def start_devices(service: Service, config: StackConfig,
 
 async def physics_forever(service: Service, plant: SimPlant, controllers: Mapping[str, SimulatedURController],
                            stats: DurationStats) -> None:
-    """Tick the plant towards the controllers' TCP poses (in a thread of its own), one step per ``plant.model.dt``
-    s of real time: a tick that starts late takes the steps it is due (at most ``MAX_LAG_TICKS + 1``) over the motion
-    since the last one, so simulated time keeps up with the simulated arm's real time on a busy machine. Further
-    behind, it counts ``physics_behind`` and restarts its schedule from now (simulated time then lags)."""
+    """Tick the plant towards the controllers' TCP poses (in a thread of its own; a tick at rest, ``rests_at``, in
+    the loop without a step), one step per ``plant.model.dt`` s of real time: a tick that starts late takes the steps
+    it is due (at most ``MAX_LAG_TICKS + 1``) over the motion since the last one, so simulated time keeps up with the
+    simulated arm's real time on a busy machine. Further behind, it counts ``physics_behind`` and restarts its
+    schedule from now (simulated time then lags)."""
     loop = asyncio.get_running_loop()
     period_s = plant.model.dt
     physics = ThreadPoolExecutor(max_workers=1, thread_name_prefix="physics")
@@ -323,10 +351,13 @@ async def physics_forever(service: Service, plant: SimPlant, controllers: Mappin
             due = 1 + max(0, int(late_s / period_s))
             tcp_poses = {arm: controller.tcp_pose() for arm, controller in controllers.items()}
             tic_s = time.perf_counter()
-            try:
-                await loop.run_in_executor(physics, plant.step_to, tcp_poses, due)
-            except PlantStepError as error:
-                service.count_error(error.kind, str(error))
+            if plant.rests_at(tcp_poses):
+                plant.keep_still()
+            else:
+                try:
+                    await loop.run_in_executor(physics, plant.step_to, tcp_poses, due)
+                except PlantStepError as error:
+                    service.count_error(error.kind, str(error))
             stats.add(time.perf_counter() - tic_s, due)
             next_s += due * period_s
             await asyncio.sleep(max(next_s - loop.time(), 0.0))

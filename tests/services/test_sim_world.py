@@ -91,6 +91,29 @@ def test_moving_the_tcp_drags_the_cube_and_the_bubble_lands_exactly_on_the_tcp()
 
 
 
+def test_a_plant_at_rest_is_recognised_without_a_step_and_keeping_still_only_advances_the_stamp():
+    plant = SimPlant.from_config(pushing_config())
+    rest = {"bubble": BUBBLE_POSE.copy()}
+    assert not plant.rests_at(rest)  # nothing stepped yet
+    plant.step_to(rest)
+    assert plant.rests_at(rest)
+    state, before = plant.state, plant.snapshot
+    plant.keep_still()
+    assert plant.state is state and plant.snapshot.stamp_ns >= before.stamp_ns
+    np.testing.assert_array_equal(plant.snapshot.object_pose, before.object_pose)
+    np.testing.assert_array_equal(plant.snapshot.tcp_wrenches["bubble"], before.tcp_wrenches["bubble"])
+    moved = BUBBLE_POSE + [1e-9, 0, 0, 0, 0, 0, 0]
+    assert not plant.rests_at({"bubble": moved})
+    assert not plant.rests_at({}) and not plant.rests_at({"bubble": BUBBLE_POSE.tolist()})
+    with pytest.raises(PlantStepError):
+        plant.step_to({"bubble": np.full(7, np.nan)})
+    assert not plant.rests_at(rest)  # after a failed tick only a completed one counts
+    plant.step_to(rest)
+    assert plant.rests_at(rest)
+    plant.step_to({"bubble": moved})
+    assert not plant.rests_at({"bubble": moved})  # the bubble moved in that tick: step again before resting
+
+
 def test_a_cube_placed_off_the_bubble_is_untouched_until_the_bubble_comes_down_on_it():
     """``sim.object_offset_m``: the cube starts 6 cm to the side, so the bubble does not touch it; the plant is not
     pruned to the starting contacts, so the bubble presses it once moved up, across and down onto it."""
