@@ -81,15 +81,11 @@ class Arm(Protocol):
 
 @runtime_checkable
 class ForceTorqueSensor(Protocol):
-    """A streaming six-axis force/torque sensor. ``read`` returns the newest sample or raises ``Stale``;
-    ``read_newer(after_ns, timeout_s)`` waits (s) for one stamped after ``after_ns``, woken by its arrival, and
-    raises the driver's error, or ``Stale``, when none comes in time."""
+    """A streaming six-axis force/torque sensor. ``read`` returns the newest sample or raises ``Stale``."""
 
     async def connect(self) -> None: ...
 
     async def read(self) -> WrenchSample: ...
-
-    async def read_newer(self, after_ns: int, timeout_s: float) -> WrenchSample: ...
 
     async def close(self) -> None: ...
 

@@ -5,7 +5,7 @@ appear (in sim mode sim_world links its simulated FT 300's pseudo-terminal there
 (``drivers.robotiq_ft300.FT300Sensor``) and tares it: the bias is the mean of the samples of the first ``TARE_S``
 (the arm must not touch anything meanwhile; a tare the sensor interrupts starts again). Then it publishes every
 new sample minus that bias as ``wrench/ARM`` (``Wrench``, ``tared=True``, N and N m in the sensor frame) at the
-sensor's rate (~100 Hz), woken by each sample's arrival (``read_newer``), not polling for it.
+sensor's rate (~100 Hz).
 
 A sensor that sends nothing new for ``STALE_AFTER_S`` (stale, unplugged or reconnecting: the driver reconnects on
 its own) is counted under the driver error's kind (``stale``, ``not_connected``, ...) once per ``STALE_AFTER_S``,
@@ -49,6 +49,8 @@ CONNECT_RETRY_S = 0.5
 TARE_S = 0.2
 #: The service publishes nothing and counts an error after this long without a new sample, s (10 frame periods).
 STALE_AFTER_S = 0.1
+#: How often the driver is polled for a new sample, s (half the FT 300's 10 ms frame period).
+POLL_PERIOD_S = 0.005
 #: How often the driver's CRC error count is read, s.
 HEALTH_PERIOD_S = 1.0
 
@@ -75,6 +77,25 @@ def error_kind(error: DriverError) -> str:
         if isinstance(error, kind):
             return name
     return "driver"
+
+
+async def next_sample(sensor: ForceTorqueSensor, after_ns: int, timeout_s: float = STALE_AFTER_S,
+                      poll_s: float = POLL_PERIOD_S) -> WrenchSample:
+    """The sensor's newest sample stamped after ``after_ns`` (``time.monotonic_ns``), polling every ``poll_s`` for
+    up to ``timeout_s``. Raises the driver's last error (``Stale``, ``NotConnected``, ...) or, when it kept
+    handing out the same sample, ``Stale``."""
+    deadline_ns = time.monotonic_ns() + round(timeout_s * 1e9)
+    while True:
+        error: DriverError | None = None
+        try:
+            sample = await sensor.read()
+            if sample.stamp_ns > after_ns:
+                return sample
+        except DriverError as err:
+            error = err
+        if time.monotonic_ns() >= deadline_ns:
+            raise error or Stale(f"no new F/T sample within {timeout_s} s")
+        await asyncio.sleep(poll_s)
 
 
 async def wait_for_port(port: str, timeout_s: float = PORT_WAIT_S) -> None:
@@ -105,7 +126,7 @@ async def tare(sensor: ForceTorqueSensor, duration_s: float = TARE_S) -> np.ndar
     end_ns = time.monotonic_ns() + round(duration_s * 1e9)
     wrenches, last_ns = [], 0
     while last_ns < end_ns or not wrenches:
-        sample = await sensor.read_newer(last_ns, STALE_AFTER_S)
+        sample = await next_sample(sensor, last_ns)
         wrenches.append(sample.wrench)
         last_ns = sample.stamp_ns
     return bias_of(wrenches)
@@ -133,7 +154,7 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
         last_ns = 0
         while True:
             try:
-                sample = await sensor.read_newer(last_ns, STALE_AFTER_S)
+                sample = await next_sample(sensor, last_ns)
             except DriverError as error:
                 service.count_error(error_kind(error), str(error))
                 if service.state != "degraded":

@@ -4,9 +4,8 @@ Connecting stops any stream the sensor is already sending (0xFF bursts until the
 driver does), starts the stream with the Modbus request, checks the reply and waits for a first valid frame. A
 reader thread (pyserial blocks) then feeds a ``FrameScanner`` and keeps the newest wrench with the monotonic time it
 arrived; ``read()`` hands it out, or raises ``Stale`` when it is older than ``max_age_s`` and ``NotConnected``
-while the link is down; ``read_newer`` waits for a sample newer than a given one, woken by the thread (no polling).
-The thread drops the link on a serial error or when no valid frame came for ``restart_after_s``, and opens it again
-with doubling backoff. ``close()`` stops the stream and closes the port.
+while the link is down. The thread drops the link on a serial error or when no valid frame came for
+``restart_after_s``, and opens it again with doubling backoff. ``close()`` stops the stream and closes the port.
 
 Check a sensor by hand: ``python -m hydrosoft.drivers.robotiq_ft300.sensor --port /dev/serial/by-id/...``.
 """
@@ -15,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import logging
 import sys
 import threading
@@ -26,7 +24,6 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from hydrosoft.drivers.arrivals import Arrivals
 from hydrosoft.drivers.base import WrenchSample
 from hydrosoft.drivers.errors import DriverError, NotConnected, ProtocolError, Stale
 from hydrosoft.drivers.robotiq_ft300.config import FT300Config
@@ -88,7 +85,6 @@ class FT300Sensor:
         self._lock = threading.Lock()
         self._scanner = FrameScanner()
         self._latest: WrenchSample | None = None
-        self._arrivals = Arrivals()
         self._frame_stamps_ns: deque[int] = deque()
         self._link_up_ns = 0
         self._port: serial.Serial | None = None
@@ -126,32 +122,6 @@ class FT300Sensor:
         """The newest sample. Raises ``NotConnected`` before ``connect``, after ``close`` and while the link is
         down; ``Stale`` when the newest frame is older than ``max_age_s``."""
         return self.latest()
-
-    async def read_newer(self, after_ns: int, timeout_s: float) -> WrenchSample:
-        """The newest sample once one stamped after ``after_ns`` (``time.monotonic_ns``) can be read, waiting up to
-        ``timeout_s`` (s) for it. The reader thread wakes the caller whenever it keeps a frame, so nothing polls.
-        After ``timeout_s`` it raises what ``read()`` raised last (``NotConnected``, ``Stale``), or ``Stale`` when
-        ``read()`` kept handing out samples not newer than ``after_ns``."""
-        loop = asyncio.get_running_loop()
-        deadline_s = loop.time() + timeout_s
-        while True:
-            arrival = self._arrivals.expect()  # before looking, so that a frame kept meanwhile wakes this wait
-            try:
-                error: DriverError | None = None
-                try:
-                    sample = self.latest()
-                    if sample.stamp_ns > after_ns:
-                        return sample
-                except DriverError as exc:
-                    error = exc
-                remaining_s = deadline_s - loop.time()
-                if remaining_s <= 0:
-                    raise error or Stale(f"{self}: no new sample within {timeout_s} s")
-                with contextlib.suppress(TimeoutError):  # then look once more, and raise
-                    async with asyncio.timeout(remaining_s):
-                        await arrival
-            finally:
-                self._arrivals.discard(arrival)
 
     def latest(self) -> WrenchSample:
         """``read()`` for callers outside asyncio (same result, same errors)."""
@@ -313,7 +283,6 @@ class FT300Sensor:
             self._latest = WrenchSample(wrench=newest, stamp_ns=stamp_ns, hw_stamp_ns=None)
             self._frame_stamps_ns.extend([stamp_ns] * len(wrenches))
             self._forget_old_stamps(stamp_ns)
-        self._arrivals.notify()
         return True
 
     def _forget_old_stamps(self, now_ns: int) -> None:

@@ -26,6 +26,7 @@ from hydrosoft.services.config import load_config
 from hydrosoft.services.ft_reader import (
     bias_of,
     error_kind,
+    next_sample,
     tare,
     wait_for_port,
     wrench_message,
@@ -40,8 +41,7 @@ STALL_S = 0.4  # below the driver's restart_after_s (0.5 s): the link stays up, 
 
 
 class ScriptedSensor:
-    """A ``ForceTorqueSensor`` whose ``read`` and ``read_newer`` return or raise the scripted items in turn, then
-    repeat the last."""
+    """A ``ForceTorqueSensor`` whose ``read`` returns or raises the scripted items in turn, then repeats the last."""
 
     def __init__(self, *items) -> None:
         self.items = list(items)
@@ -56,9 +56,6 @@ class ScriptedSensor:
         if isinstance(item, Exception):
             raise item
         return item
-
-    async def read_newer(self, after_ns: int, timeout_s: float) -> WrenchSample:
-        return await self.read()
 
     async def close(self) -> None:
         return None
@@ -91,6 +88,18 @@ def test_the_bias_is_the_mean_and_the_message_subtracts_it():
         bias_of([])
     with pytest.raises(ValueError, match="finite"):
         bias_of([np.array([np.nan, 0, 0, 0, 0, 0])])
+
+
+def test_next_sample_skips_a_sample_it_has_seen_and_raises_the_drivers_error_after_the_timeout():
+    sensor = ScriptedSensor(sample(10), sample(10), Stale("old"), sample(20))
+    assert run(next_sample(sensor, after_ns=10, poll_s=0.001)).stamp_ns == 20
+    assert sensor.reads == 4
+    with pytest.raises(NotConnected, match="unplugged"):
+        run(next_sample(ScriptedSensor(NotConnected("unplugged")), after_ns=0, timeout_s=0.05, poll_s=0.01))
+    tic_s = time.monotonic()
+    with pytest.raises(Stale, match="no new F/T sample"):  # the same sample again and again is stale too
+        run(next_sample(ScriptedSensor(sample(10)), after_ns=10, timeout_s=0.1, poll_s=0.01))
+    assert time.monotonic() - tic_s >= 0.1
 
 
 def test_the_tare_averages_new_samples_over_its_duration_and_fails_on_a_silent_sensor():

@@ -111,35 +111,6 @@ def test_stall_raises_stale_then_recovers_without_reconnecting(make_simulator):
     assert simulator.stats().stalls == 1 and health.reconnects == 0 and health.connected
 
 
-def test_read_newer_returns_each_new_sample_and_raises_the_drivers_error_when_none_comes(make_simulator):
-    simulator = make_simulator(wrench_source=CountingWrench())
-
-    async def scenario():
-        sensor = FT300Sensor(fast_config(simulator.port_path, restart_after_s=1.0))
-        with pytest.raises(NotConnected, match="not connected"):  # waits out its timeout, then says why
-            await sensor.read_newer(0, 0.05)
-        async with sensor:
-            first = await wait_for_sample(sensor)
-            stamps = [first.stamp_ns]
-            for _ in range(20):
-                stamps.append((await sensor.read_newer(stamps[-1], 0.5)).stamp_ns)
-            simulator.stall(0.4)
-            await wait_for_error(sensor, Stale, timeout_s=0.3)
-            tic_s = time.monotonic()
-            with pytest.raises(Stale, match="old"):
-                await sensor.read_newer(stamps[-1], 0.1)
-            waited_s = time.monotonic() - tic_s
-            with pytest.raises(asyncio.TimeoutError):  # a wait cancelled by its caller; the next one still works
-                await asyncio.wait_for(sensor.read_newer(time.monotonic_ns(), 1.0), 0.05)
-            after = await sensor.read_newer(stamps[-1], 1.0)
-            return stamps, waited_s, after
-
-    stamps, waited_s, after = run_async(scenario())
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))  # one new sample per call, none handed out twice
-    assert waited_s >= 0.1
-    assert after.stamp_ns > stamps[-1]
-
-
 def test_long_stall_restarts_the_stream(make_simulator):
     simulator = make_simulator(wrench_source=lambda: WRENCH)
 
