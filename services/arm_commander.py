@@ -213,9 +213,10 @@ class Commander:
         if (state is not None and not state.running and not state.protective_stop and not state.emergency_stop
                 and target is not None and target.value.deadline_ns > time.monotonic_ns()):
             self._restart_script()
+        force_n = self._force_n()  # before the decision's time: reading the wrenches queued since the last tick
         heartbeat = self._newest("heartbeat/planner", ANY_AGE_S, msg.Heartbeat)
         decision = self.logic.decide(time.monotonic_ns(), state, driver_error,
-                                     None if heartbeat is None else heartbeat.stamp_ns, self._force_n(),
+                                     None if heartbeat is None else heartbeat.stamp_ns, force_n,
                                      stopping=self.stopping)
         if decision.command is not None:
             try:

@@ -567,8 +567,8 @@ def test_a_held_arm_reads_the_newest_of_all_the_wrenches_that_came_since_its_las
         over = np.array([0, 0, LIMITS.max_force_n + 1.0, 0, 0, 0.0])
         await planner.wrenches.send(msg.Wrench(sensor=ARM, wrench=over, tared=True), f"wrench/{ARM}")
         sent = await planner.send_target(HOME + [0.01, 0, 0, 0, 0, 0, 0], TARGET_LEAD_S)
-        state = await until(lambda: (s := planner.arm_state()) and s.stamp_ns > sent.stamp_ns and s, 1.0,
-                            "an ArmState after the target")
+        state = await until(lambda: (s := planner.arm_state()) and s.stamp_ns > sent.stamp_ns and (
+            s.servo_active or "above the limit" in s.stop_reason) and s, 1.0, "servoing or a stop for the force")
         return state.servo_active, state.stop_reason
 
     servo_active, reason = scenario(run, rig)
