@@ -543,7 +543,7 @@ def _line_minimum(kinetic: Tensor, limit: Tensor, s: Tensor, ds: Tensor, slip_to
     k0, k1, k2 = kinetic.unbind(-1)
     a = s.square().sum(-1) + slip_tolerance**2
     b, c = (s * ds).sum(-1), ds.square().sum(-1)
-    curving = c * a - b * b  # |s|^2 |ds|^2 - (s . ds)^2 + tol^2 |ds|^2 >= 0: phi'' of each point times q^3
+    curving = c * a - b * b  # |s|^2 |ds|^2 - (s . ds)^2 + tol^2 |ds|^2 >= 0; a point's phi'' is limit curving / q^3
     lo, hi = torch.zeros_like(k1), torch.full_like(k1, LONGEST_STEP)
     alpha = torch.ones_like(k1)
     for _ in range(LINE_SEARCH_STEPS):
