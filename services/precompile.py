@@ -1,8 +1,8 @@
 """``hydrosoft-stack compile CONFIG``: fill torch's compile cache with the config's compiled planner step, so that
 the stack's first launch reports ready in seconds instead of minutes.
 
-With ``planner.compile`` the planner compiles its step before it reports ready: about 2.5 minutes on a 2-core
-machine the first time, 6 s once torch's compile cache (``compile_cache_dir``, or ``TORCHINDUCTOR_CACHE_DIR``)
+With ``planner.compile`` the planner compiles its step before it reports ready: 2.5-6.5 minutes on a 2-core
+machine the first time, 6-15 s once torch's compile cache (``compile_cache_dir``, or ``TORCHINDUCTOR_CACHE_DIR``)
 holds it. Run this once after an install or a torch upgrade, as the user the stack runs as (the cache is per
 directory), and before the first ``launch``. It opens no device and no socket. sim_world's plant is not compiled
 here: it solves the bubble to convergence (a ``torch.while_loop``), which torch cannot cache, so it compiles at
