@@ -4,16 +4,20 @@ Camera: in sim mode ``sim_devices.BusCamera`` on sim_world's ``image/tag_camera`
 ``camera.device``. Calibration (``camera_calibration``): the ``camera.calibration`` file when set (intrinsics and
 ``T_base_camera``), otherwise the numbers of ``[camera]`` (``pose`` = ``T_base_camera``).
 
-For each image, ``TagTracker.track`` runs ``tag_tracking``: ``detect_tags``, ``tag_pose`` per tag and
-``object_pose_from_tags`` with the object's layout (``object_layout``: the one sim_world renders, so sim and
-tracker agree on where every tag sits). The service publishes, stamped ``hw_stamp_ns`` = the image's exposure stamp:
+For each image, ``TagTracker.track`` runs ``tag_tracking``: ``RegionOfInterest.detect`` (``detect_tags`` around
+where the object's tags were last seen, the whole image every ``FULL_FRAME_PERIOD_S`` or when that finds fewer of
+them), ``solve_tag`` per tag and ``object_pose_from_tags`` with the object's layout (``object_layout``: the one
+sim_world renders, so sim and tracker agree on where every tag sits) and those solutions. The service publishes,
+stamped ``hw_stamp_ns`` = the image's exposure stamp:
 
-- ``tags/tag_camera`` (``TagDetections``) for every image: the tags whose own pose was accepted;
+- ``tags/tag_camera`` (``TagDetections``) for every image: the tags found whose own pose was accepted (tags of other
+  objects away from the object only in whole-image searches, at least every ``FULL_FRAME_PERIOD_S``);
 - ``object_pose/object`` (``ObjectPose``) only when the object's pose was accepted; a rejection is counted in the
   service's errors under ``rejection_kind(reason)`` with the reason as its text.
 
-The pure parts (``object_layout``, ``camera_calibration``, ``TagTracker``, ``detections_message``,
-``pose_message``, ``pose_quality``, ``rejection_kind``) are tested without sockets; ``serve`` is the thin loop.
+The pure parts (``object_layout``, ``camera_calibration``, ``TagTracker``, ``full_frame_every``,
+``detections_message``, ``pose_message``, ``pose_quality``, ``rejection_kind``) are tested without sockets; ``serve``
+is the thin loop.
 """
 
 from __future__ import annotations
@@ -50,13 +54,14 @@ from hydrosoft.services.sim_devices import BusCamera, image_topic
 from hydrosoft.services.tag_tracking import (
     MAX_REPROJECTION_RMS_PX,
     ObjectPose,
+    RegionOfInterest,
     Rejection,
     TagDetection,
     TagPose,
-    detect_tags,
     make_detector,
     object_pose_from_tags,
-    tag_pose,
+    reject_ambiguous,
+    solve_tag,
 )
 from hydrosoft.tasks import make_task
 
@@ -68,6 +73,9 @@ CYLINDER_TAG_CAPS = ("+z", "-z")  # tag id = index here
 TAG_SIZE_STEP_M = 0.0005  # a tag shrunk to fit a cylinder's cap is rounded down to this (printable) step
 STALE_FRAME_PERIODS = 5.0  # the bus camera raises Stale after this many frame periods without a new image
 CAMERA_RETRY_S = 0.1  # pause after a camera error, so a camera that fails at once is not polled in a tight loop
+# The whole image is searched for tags at least this often (s): a tag coming into view away from the object's last
+# tags is found within it. In between only a crop around them is (deploy/sim.toml: the detector's 1.7 ms -> 0.5 ms).
+FULL_FRAME_PERIOD_S = 1.0
 
 _REJECTION_KINDS = (  # prefix of a tag_tracking.Rejection reason -> short error kind
     ("no tag of the object seen", "no_object_tag"),
@@ -202,40 +210,56 @@ class Tracked:
 
 @dataclass(eq=False)
 class TagTracker:
-    """The tracker of one object seen by one camera.
+    """The tracker of one object seen by one camera, one image after the other.
 
     layout: the object's tags. calibration: the camera (intrinsics and ``T_base_camera``, required).
     other_tag_size_m: edge (m) assumed for tags not on the object when their own pose is solved.
+    full_frame_every: the whole image is searched for tags at least on every this-many-th image, in between only
+    around the object's last tags (``RegionOfInterest``); 1 searches every image whole.
     """
 
     layout: TagLayout
     calibration: CameraCalibration
     other_tag_size_m: float
+    full_frame_every: int = 1
     detector: cv2.aruco.ArucoDetector = field(default_factory=make_detector)
+    region: RegionOfInterest = field(init=False)
 
     def __post_init__(self) -> None:
         if self.calibration.T_base_camera is None:
             raise ValueError("TagTracker: the camera calibration has no T_base_camera (extrinsics)")
+        self.region = RegionOfInterest(frozenset(self.layout.ids), self.full_frame_every)
 
     @classmethod
     def from_config(cls, config: StackConfig) -> TagTracker:
-        """The tracker of the config's object and tag camera."""
+        """The tracker of the config's object and tag camera, searching the whole image every
+        ``FULL_FRAME_PERIOD_S`` at the camera's ``fps``."""
         calibration = camera_calibration(config)
-        return cls(config_layout(config, calibration.T_base_camera), calibration, config.scene.tag_size_m)
+        return cls(config_layout(config, calibration.T_base_camera), calibration, config.scene.tag_size_m,
+                   full_frame_every=full_frame_every(config.camera.fps))
 
     def track(self, image: np.ndarray) -> Tracked:
-        """Tags and object pose in ``image`` (``(H, W, 3)`` BGR or ``(H, W)`` grey uint8). Raises ValueError when
-        ``image`` is not an image (``detect_tags``); an image without the object gives a ``Rejection``."""
+        """Tags and object pose in ``image`` (``(H, W, 3)`` BGR or ``(H, W)`` grey uint8), the next image of the
+        camera. Raises ValueError when ``image`` is not an image (``detect_tags``); an image without the object
+        gives a ``Rejection``."""
         intrinsics = self.calibration.intrinsics
-        detections = detect_tags(image, self.detector, intrinsics)
-        tags = []
-        for detection in detections:
-            tag = self.layout.tag(detection.id)
-            solved = tag_pose(detection.corners, tag.size_m if tag else self.other_tag_size_m, intrinsics)
-            if isinstance(solved, TagPose):
-                tags.append((detection, solved))
-        result = object_pose_from_tags(detections, self.layout, intrinsics, self.calibration.T_base_camera)
-        return Tracked(tuple(tags), result)
+        detections = self.region.detect(image, self.detector, intrinsics)
+        solved = [solve_tag(detection.corners, self._tag_size_m(detection.id), intrinsics)
+                  for detection in detections]
+        tags = tuple((detection, pose) for detection, pose in zip(detections, map(reject_ambiguous, solved))
+                     if isinstance(pose, TagPose))
+        result = object_pose_from_tags(detections, self.layout, intrinsics, self.calibration.T_base_camera, solved)
+        return Tracked(tags, result)
+
+    def _tag_size_m(self, tag_id: int) -> float:
+        """Edge (m) of tag ``tag_id``: the object's tag's, else ``other_tag_size_m``."""
+        tag = self.layout.tag(tag_id)
+        return tag.size_m if tag is not None else self.other_tag_size_m
+
+
+def full_frame_every(fps: float) -> int:
+    """``TagTracker.full_frame_every`` for a camera of ``fps`` images/s: the images in ``FULL_FRAME_PERIOD_S``."""
+    return max(1, round(FULL_FRAME_PERIOD_S * fps))
 
 
 def detections_message(tracked: Tracked, camera: str, hw_stamp_ns: int | None) -> msg.TagDetections:

@@ -5,28 +5,35 @@ a ``Rejection`` that says why no pose was produced, and never raise on a bad ima
 
 Pipeline for one image and one object:
 
-1. ``detect_tags``: OpenCV's 36h11 detector with sub-pixel corner refinement, then ``refine_corners``: each corner
-   is re-placed at the intersection of straight lines fitted to the sub-pixel edge points of the black square's
-   sides. OpenCV's corner refinement pulls a convex corner inwards (measured on rendered tags: 0.25-0.35 px, which
-   is a 1 % scale error, 4 mm of depth at 0.5 m, on a 57 px tag); the line fit removes that bias and averages the
-   noise along the whole edge (rendered tags at 0.3-1 m: 0.03 px median, 0.2 px p95 corner error, against 0.3 px
+0. ``RegionOfInterest``: where to detect. Once the object's tags were found, only a crop around where they were
+   last seen goes to the detector, whose cost grows with the pixels it scans (measured on one thread: a 1280 x 720
+   image 4.4-6.6 ms, the 150 px crop around a cube 1 m away 0.3 ms, the 420 px one at 0.3 m 3.3 ms; deploy/sim.toml's
+   640 x 480 image 1.7 ms, its crop 0.5 ms). The whole image is searched when the crop shows fewer of the object's
+   tags than the last image, when no tag of the object was seen last, and every ``full_frame_every``-th image.
+   The tags found are the same, corners bit for bit (``subpixel_corners``).
+1. ``detect_tags``: OpenCV's 36h11 detector, sub-pixel corners (``subpixel_corners``), then ``refine_corners``: each
+   corner is re-placed at the intersection of straight lines fitted to the sub-pixel edge points of the black
+   square's sides. OpenCV's corner refinement pulls a convex corner inwards (measured on rendered tags: 0.25-0.35 px,
+   which is a 1 % scale error, 4 mm of depth at 0.5 m, on a 57 px tag); the line fit removes that bias and averages
+   the noise along the whole edge (rendered tags at 0.3-1 m: 0.03 px median, 0.2 px p95 corner error, against 0.3 px
    and 1.0 px before).
-2. ``tag_pose``: ``cv2.solvePnPGeneric`` with ``SOLVEPNP_IPPE_SQUARE`` gives the two poses that explain a square's
-   image. A tag is rejected when it is too small (shortest side below ``MIN_TAG_SIDE_PX``), seen at a grazing angle
-   (its normal more than ``MAX_VIEW_ANGLE_DEG`` from the line of sight: its corners are then poorly placed), or
-   ambiguous: the two solutions differ by more than ``AMBIGUITY_MIN_ANGLE_DEG`` and the worse one fits too well to
-   be ruled out: its RMS reprojection error is less than ``1 / AMBIGUITY_MAX_RATIO`` times the better one's (with the
-   default 0.5: the image does not favour the better pose two to one) or less than
-   ``AMBIGUITY_MIN_ALTERNATIVE_RMS_PX`` (within corner noise, where the ratio of two tiny errors means nothing: a
-   small tag seen nearly head-on, whose tilt the image barely shows). Two solutions closer than that angle are the
-   same pose for our purposes.
+2. ``tag_pose`` (``solve_tag``, then ``reject_ambiguous``): ``cv2.solvePnPGeneric`` with ``SOLVEPNP_IPPE_SQUARE``
+   gives the two poses that explain a square's image. A tag is rejected when it is too small (shortest side below
+   ``MIN_TAG_SIDE_PX``), seen at a grazing angle (its normal more than ``MAX_VIEW_ANGLE_DEG`` from the line of sight:
+   its corners are then poorly placed), or ambiguous: the two solutions differ by more than
+   ``AMBIGUITY_MIN_ANGLE_DEG`` and the worse one fits too well to be ruled out: its RMS reprojection error is less
+   than ``1 / AMBIGUITY_MAX_RATIO`` times the better one's (with the default 0.5: the image does not favour the
+   better pose two to one) or less than ``AMBIGUITY_MIN_ALTERNATIVE_RMS_PX`` (within corner noise, where the ratio of
+   two tiny errors means nothing: a small tag seen nearly head-on, whose tilt the image barely shows). Two solutions
+   closer than that angle are the same pose for our purposes.
 3. ``object_pose_from_tags``: one non-linear PnP (``cv2.solvePnPRefineLM``) on all corners of the object's usable
-   tags, started from each tag's two IPPE solutions mapped to the object frame, keeping the lowest reprojection
-   error. One joint fit rather than an average of per-tag poses: it weights every corner by what it measures
-   (a large, head-on tag counts for more than a small, oblique one without hand-made weights), and corners on two
-   or three faces form a non-planar set, which resolves the flip ambiguity that a single tag has. The same ambiguity
-   test as in step 2 is then applied to the distinct minima of the joint fit, and a tag whose corners disagree with
-   the others (RMS residual above ``MAX_REPROJECTION_RMS_PX``) is dropped and the fit repeated.
+   tags, started from each tag's two IPPE solutions (``solve_tag``'s, passed in when the caller has them) mapped to
+   the object frame, keeping the lowest reprojection error. One joint fit rather than an average of per-tag poses: it
+   weights every corner by what it measures (a large, head-on tag counts for more than a small, oblique one without
+   hand-made weights), and corners on two or three faces form a non-planar set, which resolves the flip ambiguity
+   that a single tag has. The same ambiguity test as in step 2 is then applied to the distinct minima of the joint
+   fit, and a tag whose corners disagree with the others (RMS residual above ``MAX_REPROJECTION_RMS_PX``) is dropped
+   and the fit repeated.
 
 Frames: camera frame is OpenCV's (x right, y down, z forward); poses are ``(7,)`` ``[x, y, z, qw, qx, qy, qz]`` in
 metres; ``T_a_b`` is frame b's pose in frame a.
@@ -68,6 +75,19 @@ EDGE_SPAN = (0.15, 0.85)  # the part of each side sampled, as fractions of its l
 EDGE_SAMPLES_RANGE = (8, 40)  # number of profiles per side: one per 2 px of side, within this range
 EDGE_MAX_SHIFT_PX = 3.0  # a line-fit corner further than this from the detector's is a failed fit: keep the detector's
 EDGE_REFINE_PASSES = 2  # the second pass takes its profiles across the lines of the first
+# cv2.cornerSubPix of the detector's corners, as OpenCV's ArucoDetector runs it with CORNER_REFINE_SUBPIX: a window
+# of 0.3 of a cell (its default relativeCornerRefinmentWinSize), at most 5 px, 50 iterations or a step under 0.01 px.
+SUBPIX_WINDOW_CELLS = 0.3
+SUBPIX_MAX_WINDOW_PX = 5
+SUBPIX_MAX_ITERATIONS = 50
+SUBPIX_MIN_STEP_PX = 0.01
+# The region searched around the object's tags reaches this fraction of their extent (the larger side of their
+# corners' bounding box) beyond it: the object's motion between images (a 5 cm cube may move 2.5 cm, 25 cm/s at
+# 10 images/s; the sim arm pushes at most 5 cm/s), the change of view as it turns, and the quiet zone (1/8 of a side).
+REGION_MARGIN_FRACTION = 0.5
+# ... plus this many pixels: the detector's adaptive threshold reads up to 11 px around a pixel (windows up to 23 px),
+# and it drops tags nearer than 3 px to the border of the image it is given.
+REGION_MARGIN_PX = 16
 NEXT, PREVIOUS = [1, 2, 3, 0], [3, 0, 1, 2]  # index of each corner's (side's) neighbour, going clockwise and back
 
 
@@ -125,25 +145,107 @@ class ObjectPose:
     tag_rejections: dict[int, str]
 
 
+@dataclass(frozen=True)
+class PixelBox:
+    """A rectangle of image pixels: columns ``x0 <= x < x1`` and rows ``y0 <= y < y1`` (numpy slice bounds)."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+
+
+@dataclass(eq=False)
+class RegionOfInterest:
+    """Where to look for one object's tags in the next image: around where they were last seen, or everywhere.
+
+    ``detect`` searches ``region`` (``detect_tags`` on a crop) and falls back to the whole image when the crop
+    shows fewer of the object's tags than the previous image did; it searches the whole image outright when the
+    previous image showed none of them (``region`` is ``None``) and on every ``full_frame_every``-th image, so that
+    tags coming into view elsewhere (another face of the object turning into view, the object put down elsewhere)
+    are found within that many images. Tags of other objects outside the region are found only in whole-image
+    searches. After each image, ``region`` is the bounding box of the object's detected corners grown by
+    ``REGION_MARGIN_FRACTION`` of its larger side plus ``REGION_MARGIN_PX`` on every side, cut at the image's border.
+
+    tag_ids: the object's tag ids. full_frame_every: period of the whole-image search in images (1: every image,
+    no region). region: ``PixelBox`` to search in the next image (``None``: the whole image). expected_tags: how many
+    of the object's tags the previous image showed. images_since_full_frame: images since the last whole-image
+    search. full_frame_searches, region_searches: how many searches of each kind were run (a fallback runs both).
+    """
+
+    tag_ids: frozenset[int]
+    full_frame_every: int
+    region: PixelBox | None = None
+    expected_tags: int = 0
+    images_since_full_frame: int = 0
+    full_frame_searches: int = 0
+    region_searches: int = 0
+
+    def __post_init__(self) -> None:
+        if self.full_frame_every < 1:
+            raise ValueError(f"RegionOfInterest: full_frame_every must be at least 1, got {self.full_frame_every}")
+
+    def detect(self, image: np.ndarray, detector: cv2.aruco.ArucoDetector,
+               intrinsics: CameraIntrinsics | None = None) -> list[TagDetection]:
+        """The tags in ``image`` (as ``detect_tags``; arguments alike): those in the region when it shows all the
+        object's tags the previous image did, else all in the image. Updates the region for the next image."""
+        if self.region is not None and self.images_since_full_frame + 1 < self.full_frame_every:
+            detections = detect_tags(image, detector, intrinsics, self.region)
+            self.region_searches += 1
+            if self._object_tag_count(detections) >= self.expected_tags:
+                self._remember(detections, image.shape[:2], self.images_since_full_frame + 1)
+                return detections
+        detections = detect_tags(image, detector, intrinsics)
+        self.full_frame_searches += 1
+        self._remember(detections, image.shape[:2], 0)
+        return detections
+
+    def _object_tag_count(self, detections: list[TagDetection]) -> int:
+        """How many of ``detections`` are the object's tags."""
+        return sum(detection.id in self.tag_ids for detection in detections)
+
+    def _remember(self, detections: list[TagDetection], shape: tuple[int, int], images_since_full_frame: int) -> None:
+        """Keep where the object's tags are in an image of ``shape`` ``(H, W)`` and how many were seen."""
+        corners = [detection.corners for detection in detections if detection.id in self.tag_ids]
+        self.expected_tags = len(corners)
+        self.region = region_around(np.concatenate(corners), shape) if corners else None
+        self.images_since_full_frame = images_since_full_frame
+
+
+def region_around(corners: np.ndarray, shape: tuple[int, int]) -> PixelBox:
+    """The ``PixelBox`` around ``corners (N, 2)`` (px): their bounding box grown on every side by
+    ``REGION_MARGIN_FRACTION`` of its larger side plus ``REGION_MARGIN_PX``, cut at the border of an image of
+    ``shape`` ``(H, W)``."""
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    margin_px = REGION_MARGIN_FRACTION * float(np.max(high - low)) + REGION_MARGIN_PX
+    (x0, y0), (x1, y1) = np.floor(low - margin_px).astype(int), np.ceil(high + margin_px).astype(int) + 1
+    height, width = shape
+    return PixelBox(int(max(x0, 0)), int(max(y0, 0)), int(min(x1, width)), int(min(y1, height)))
+
+
 def make_detector() -> cv2.aruco.ArucoDetector:
-    """OpenCV's 36h11 detector tuned for pose: sub-pixel corner refinement (``detect_tags`` refines further)."""
+    """OpenCV's 36h11 detector, its corners left on whole pixels (the corners of the contour's polygon):
+    ``detect_tags`` refines them on the whole image (``subpixel_corners``, then ``refine_corners``)."""
     parameters = cv2.aruco.DetectorParameters()
-    parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    parameters.cornerRefinementMaxIterations = 50
-    parameters.cornerRefinementMinAccuracy = 0.01
+    parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
     return cv2.aruco.ArucoDetector(tag_dictionary(), parameters)
 
 
 def detect_tags(
-    image: np.ndarray, detector: cv2.aruco.ArucoDetector, intrinsics: CameraIntrinsics | None = None
+    image: np.ndarray,
+    detector: cv2.aruco.ArucoDetector,
+    intrinsics: CameraIntrinsics | None = None,
+    region: PixelBox | None = None,
 ) -> list[TagDetection]:
-    """The 36h11 tags in an image, corners refined by ``refine_corners``.
+    """The 36h11 tags in an image, or in a region of it, corners refined by ``refine_corners``.
 
     Args:
         image: ``(H, W)`` grey or ``(H, W, 3)`` BGR / ``(H, W, 4)`` BGRA; uint8, uint16 (its high byte is used) or
             float on the 0-255 scale (non-finite pixels read as black).
         detector: from ``make_detector``.
         intrinsics: when given and the lens has distortion, edge points are undistorted before lines are fitted.
+        region: when given, only this crop of the image (cut at the image's border) goes to the detector
+            (``_detect_in_crop``); corners are full-image pixels either way, and are refined on the whole image.
 
     Returns:
         One ``TagDetection`` per tag found (an id may repeat when two tags share it); ``[]`` for an image with no
@@ -155,16 +257,73 @@ def detect_tags(
     grey = _to_grey_uint8(image)
     if grey.size == 0:
         return []
+    markers = _detect_markers(grey, detector) if region is None else _detect_in_crop(grey, detector, region)
+    detections = []
+    for tag_id, polygon in markers:
+        quad = subpixel_corners(grey, polygon)
+        if not np.all(np.isfinite(quad)) or not cv2.isContourConvex(quad.astype(np.float32)):
+            continue
+        detections.append(TagDetection(tag_id, refine_corners(grey, quad, intrinsics)))
+    return detections
+
+
+def subpixel_corners(grey: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """``cv2.cornerSubPix`` of a tag's corners ``polygon (4, 2)`` (px) in ``grey`` ``(H, W)`` uint8, with the window
+    OpenCV's ``ArucoDetector`` gives it for ``CORNER_REFINE_SUBPIX``: ``SUBPIX_WINDOW_CELLS`` of the mean cell size,
+    rounded, 1 to ``SUBPIX_MAX_WINDOW_PX`` px (computed in float32 as OpenCV does: the corners are bit for bit the
+    detector's own). Returns ``(4, 2)`` float64 px.
+
+    The detector itself leaves its corners on whole pixels (``make_detector``): run here on the whole image, the
+    corners of a tag found in a crop are those found in the whole image, bit for bit. (Run on the crop, its float32
+    steps round differently, and for 2-4 % of the tags in rendered images, oblique ones, it stopped up to 0.9 px
+    elsewhere: up to 0.6 px after ``refine_corners``.)
+    """
+    quad = np.ascontiguousarray(polygon, dtype=np.float32).reshape(4, 2)
+    sides = quad - np.roll(quad, -1, axis=0)
+    perimeter_px = np.float32(0.0)
+    for side_px in np.sqrt(sides[:, 0] * sides[:, 0] + sides[:, 1] * sides[:, 1]):
+        perimeter_px += side_px
+    cell_px = perimeter_px / np.float32(4 * MARKER_CELLS)
+    window_px = min(SUBPIX_MAX_WINDOW_PX, max(1, int(np.rint(np.float32(SUBPIX_WINDOW_CELLS) * cell_px))))
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, SUBPIX_MAX_ITERATIONS, SUBPIX_MIN_STEP_PX)
+    return cv2.cornerSubPix(grey, quad, (window_px, window_px), (-1, -1), criteria).astype(np.float64)
+
+
+def _detect_markers(grey: np.ndarray, detector: cv2.aruco.ArucoDetector) -> list[tuple[int, np.ndarray]]:
+    """The detector's ``(id, corners (4, 2) float32 px)`` of the tags in ``grey`` ``(H, W)`` uint8."""
     corners, ids, _ = detector.detectMarkers(grey)
     if ids is None:
         return []
-    detections = []
-    for quad, tag_id in zip(corners, ids.ravel()):
-        quad = np.asarray(quad, dtype=np.float64).reshape(4, 2)
-        if not np.all(np.isfinite(quad)) or not cv2.isContourConvex(quad.astype(np.float32)):
-            continue
-        detections.append(TagDetection(int(tag_id), refine_corners(grey, quad, intrinsics)))
-    return detections
+    return [(int(tag_id), quad.reshape(4, 2)) for quad, tag_id in zip(corners, ids.ravel())]
+
+
+def _detect_in_crop(grey: np.ndarray, detector: cv2.aruco.ArucoDetector,
+                    region: PixelBox) -> list[tuple[int, np.ndarray]]:
+    """``_detect_markers`` of the crop ``region`` of ``grey`` (cut at its border), corners shifted back to
+    full-image pixels.
+
+    The detector's perimeter limits are fractions of the larger side of the image it is given: for the crop they
+    are scaled so that they are the same number of pixels as for the whole image (and put back afterwards), so the
+    crop accepts the tags the whole image would. A tag whose corners lie at least ``REGION_MARGIN_PX`` inside the
+    crop has the same corners (whole pixels) as in the whole image: the detector's adaptive threshold reads only
+    pixels nearer than that.
+    """
+    height, width = grey.shape
+    x0, y0, x1, y1 = max(region.x0, 0), max(region.y0, 0), min(region.x1, width), min(region.y1, height)
+    if x1 <= x0 or y1 <= y0:
+        return []
+    crop = grey[y0:y1, x0:x1]
+    whole_image = detector.getDetectorParameters()
+    cropped = detector.getDetectorParameters()
+    scale = max(height, width) / max(crop.shape)
+    cropped.minMarkerPerimeterRate = whole_image.minMarkerPerimeterRate * scale
+    cropped.maxMarkerPerimeterRate = whole_image.maxMarkerPerimeterRate * scale
+    detector.setDetectorParameters(cropped)
+    try:
+        markers = _detect_markers(crop, detector)
+    finally:
+        detector.setDetectorParameters(whole_image)
+    return [(tag_id, quad + np.float32([x0, y0])) for tag_id, quad in markers]
 
 
 def refine_corners(grey: np.ndarray, corners: np.ndarray, intrinsics: CameraIntrinsics | None = None) -> np.ndarray:
@@ -222,7 +381,12 @@ def tag_pose(corners: np.ndarray, size_m: float, intrinsics: CameraIntrinsics) -
         ``TagPose`` with both IPPE solutions' RMS reprojection errors, or a ``Rejection`` for a tag that is too small,
         seen at a grazing angle, ambiguous, or whose pose is not finite or not in front of the camera.
     """
-    solved = _solve_tag(corners, size_m, intrinsics)
+    return reject_ambiguous(solve_tag(corners, size_m, intrinsics))
+
+
+def reject_ambiguous(solved: TagPose | Rejection) -> TagPose | Rejection:
+    """``solve_tag``'s result, or a ``Rejection`` when its two solutions are distinct and the image does not rule
+    out the worse one (module docstring, step 2)."""
     if isinstance(solved, Rejection):
         return solved
     if _is_distinct(solved.T_camera_tag, solved.alternative_T_camera_tag) and _fits_too_well(
@@ -239,12 +403,15 @@ def object_pose_from_tags(
     layout: TagLayout,
     intrinsics: CameraIntrinsics,
     T_base_camera: np.ndarray,
+    solved: list[TagPose | Rejection] | None = None,
 ) -> ObjectPose | Rejection:
     """One pose of the object in the base frame from all its visible tags (module docstring, step 3).
 
     Args:
         detections: every tag in the image; tags not in ``layout`` (other objects) are ignored.
         layout: the object's tags. intrinsics: the camera. T_base_camera: ``(7,)`` the camera's pose in the base frame.
+        solved: ``solve_tag`` of each detection (same order; the object's tags at their ``layout`` size) when the
+            caller has them already; ``None``: the object's tags are solved here.
 
     Returns:
         ``ObjectPose``, or a ``Rejection`` when none of the object's tags was seen, none is usable (each tag's reason
@@ -256,26 +423,27 @@ def object_pose_from_tags(
     """
     T_base_camera = check_pose(T_base_camera, "T_base_camera")
     rejections: dict[int, str] = {}
-    seen: dict[int, list[np.ndarray]] = {}
-    for detection in detections:
+    seen: dict[int, list[int]] = {}  # tag id -> indices in detections
+    for index, detection in enumerate(detections):
         if layout.tag(detection.id) is not None:
-            seen.setdefault(detection.id, []).append(detection.corners)
+            seen.setdefault(detection.id, []).append(index)
     if not seen:
         return Rejection(f"no tag of the object seen (its ids: {list(layout.ids)})")
     usable: dict[int, np.ndarray] = {}
     starts: list[np.ndarray] = []
-    for tag_id, quads in sorted(seen.items()):
-        if len(quads) > 1:
-            rejections[tag_id] = f"seen {len(quads)} times in one image: cannot tell which is on the object"
+    for tag_id, indices in sorted(seen.items()):
+        if len(indices) > 1:
+            rejections[tag_id] = f"seen {len(indices)} times in one image: cannot tell which is on the object"
             continue
-        tag = layout.tag(tag_id)
-        solved = _solve_tag(quads[0], tag.size_m, intrinsics)
-        if isinstance(solved, Rejection):
-            rejections[tag_id] = solved.reason
+        tag, corners = layout.tag(tag_id), detections[indices[0]].corners
+        tag_solved = solved[indices[0]] if solved is not None else solve_tag(corners, tag.size_m, intrinsics)
+        if isinstance(tag_solved, Rejection):
+            rejections[tag_id] = tag_solved.reason
             continue
-        usable[tag_id] = quads[0]
+        usable[tag_id] = corners
         T_tag_object = inverse(tag.T_object_tag)
-        starts += [compose(solved.T_camera_tag, T_tag_object), compose(solved.alternative_T_camera_tag, T_tag_object)]
+        starts += [compose(tag_solved.T_camera_tag, T_tag_object),
+                   compose(tag_solved.alternative_T_camera_tag, T_tag_object)]
     while usable:
         fit = _fit_object(usable, starts, layout, intrinsics)
         if fit is None:
@@ -300,8 +468,9 @@ def object_pose_from_tags(
     return Rejection("no usable tag: " + "; ".join(f"{i}: {r}" for i, r in sorted(rejections.items())), rejections)
 
 
-def _solve_tag(corners: np.ndarray, size_m: float, intrinsics: CameraIntrinsics) -> TagPose | Rejection:
-    """Both IPPE solutions of one tag, with the size and view-angle checks but not the ambiguity check."""
+def solve_tag(corners: np.ndarray, size_m: float, intrinsics: CameraIntrinsics) -> TagPose | Rejection:
+    """Both IPPE solutions of one tag (arguments as ``tag_pose``), with the size and view-angle checks but not the
+    ambiguity check (``reject_ambiguous``): a tag ambiguous on its own still helps the object's joint fit."""
     corners = np.asarray(corners, dtype=np.float64).reshape(4, 2)
     if not np.all(np.isfinite(corners)):
         return Rejection("corners are not finite")

@@ -15,8 +15,22 @@ colon); ``render_ms`` and ``track_ms``: median wall times of rendering and of de
 ``track_cpu_ms_mean`` and ``track_cpu_ms_p95``: the tracker's CPU time per image (detection, corner refinement and
 pose: ``time.process_time``, all threads of the process, so OpenCV's worker threads count too).
 ``track_cpu_ms`` sums up the CPU time per image over all rows (``mean``, ``p95``, ``images``).
-``--json`` prints ``{"config": {...}, "rows": [...], "track_cpu_ms": {...}}``; otherwise a table and a line with
-``track_cpu_ms``. Progress goes to stderr.
+
+Sequences: the tracker as the service runs it (``TagTracker.track``, one image after the other) on a camera that
+stays put while the cube slides ``SEQUENCE_SPEED_M_S`` across the table and turns ``SEQUENCE_YAW_RATE_RAD_S``, one
+sequence of ``sequence_images`` images at ``SEQUENCE_FPS`` per distance, seen from ``SEQUENCE_ANGLE_DEG``. Each image
+goes to two trackers, in turns first: one searching around the cube's last tags (region of interest, the whole image
+every ``full_frame_every`` images as the service does) and one searching every whole image. Each sequence row:
+``distance_m``, ``view_angle_deg``, ``images``, ``poses`` (images with a pose, region tracker),
+``full_frame_searches`` and ``region_searches`` of the region tracker (a fallback from the region to the whole image
+counts in both), ``roi_cpu_ms_mean`` and ``full_frame_cpu_ms_mean`` (CPU per image), ``pose_mismatches`` (images
+where one tracker gave a pose and the other not) and ``max_pose_diff_mm``, ``max_pose_diff_deg`` between the two
+trackers' poses (``null`` when none). ``sequence_cpu_ms`` sums up all sequences: ``roi`` and ``full_frame``
+(``mean``, ``p95``), ``roi_to_full_frame`` (ratio of the means) and ``images``.
+
+``--json`` prints ``{"config": {...}, "rows": [...], "track_cpu_ms": {...}, "sequences": [...],
+"sequence_cpu_ms": {...}}``; otherwise a table, a line with ``track_cpu_ms`` and lines with the sequences' figures.
+Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -31,19 +45,24 @@ from collections import Counter
 import cv2
 import numpy as np
 
-from hydrosoft.drivers.camera.config import CameraIntrinsics
+from hydrosoft.drivers.camera.config import CameraCalibration, CameraIntrinsics
 from hydrosoft.drivers.poses import compose, inverse, look_at, rotation_angle_rad
 from hydrosoft.drivers.camera.render import Renderer, RenderOptions
 from hydrosoft.drivers.camera.tags import box_layout
-from hydrosoft.services.tag_tracking import ObjectPose, detect_tags, make_detector, object_pose_from_tags
+from hydrosoft.services.tag_tracker import TagTracker, full_frame_every
+from hydrosoft.services.tag_tracking import ObjectPose, Rejection, detect_tags, make_detector, object_pose_from_tags
 
 CUBE_EDGE_M = 0.05
 TAG_SIZE_M = 0.032
 INTRINSICS = dict(width=1280, height=720, fx=900.0, fy=900.0, cx=639.5, cy=359.5,
                   distortion=[-0.08, 0.02, 0.0, 0.0, 0.0])
 AIM_JITTER = 0.1  # aim point off the cube centre, as a fraction of the distance (about 6 deg off the optical axis)
-FULL = {"distances_m": "0.3,0.5,0.75,1.0", "angles_deg": "0,20,40,60", "samples": 30}
-QUICK = {"distances_m": "0.3,1.0", "angles_deg": "0,60", "samples": 3}
+FULL = {"distances_m": "0.3,0.5,0.75,1.0", "angles_deg": "0,20,40,60", "samples": 30, "sequence_images": 40}
+QUICK = {"distances_m": "0.3,1.0", "angles_deg": "0,60", "samples": 3, "sequence_images": 12}
+SEQUENCE_FPS = 10.0  # images/s of the sequences, as deploy/sim.toml's tag camera
+SEQUENCE_ANGLE_DEG = 40.0  # view angle of the sequences: two or three faces in view
+SEQUENCE_SPEED_M_S = 0.02  # the cube slides this fast (a slow push; the sim arm moves at most 0.05 m/s) ...
+SEQUENCE_YAW_RATE_RAD_S = 0.2  # ... and turns this fast, so faces turn into and out of view over a sequence
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,15 +111,28 @@ def run(args: argparse.Namespace) -> int:
             print(f"bench tracker: distance {distance} m, view angle {angle} deg", file=sys.stderr)
             rows.append(measure_setting(renderer, distance, angle, samples, rng, cpu_ms))
     track_cpu_ms = {"mean": float(np.mean(cpu_ms)), "p95": float(np.percentile(cpu_ms, 95)), "images": len(cpu_ms)}
+    sequences, roi_cpu_ms, full_frame_cpu_ms = [], [], []
+    for distance in distances:
+        print(f"bench tracker: sequence at distance {distance} m", file=sys.stderr)
+        sequences.append(measure_sequence(renderer, distance, grid["sequence_images"], rng, roi_cpu_ms,
+                                          full_frame_cpu_ms))
+    sequence_cpu_ms = {"roi": _cpu_summary(roi_cpu_ms), "full_frame": _cpu_summary(full_frame_cpu_ms),
+                       "roi_to_full_frame": float(np.mean(roi_cpu_ms) / np.mean(full_frame_cpu_ms)),
+                       "images": len(roi_cpu_ms)}
     config = {"cube_edge_m": CUBE_EDGE_M, "tag_size_m": TAG_SIZE_M, "intrinsics": INTRINSICS,
               "noise_std": args.noise, "blur_sigma_px": args.blur, "samples": samples, "seed": args.seed,
-              "aim_jitter": AIM_JITTER, "opencv_threads": cv2.getNumThreads()}
+              "aim_jitter": AIM_JITTER, "opencv_threads": cv2.getNumThreads(),
+              "sequence": {"images": grid["sequence_images"], "fps": SEQUENCE_FPS, "view_angle_deg": SEQUENCE_ANGLE_DEG,
+                           "speed_m_s": SEQUENCE_SPEED_M_S, "yaw_rate_rad_s": SEQUENCE_YAW_RATE_RAD_S,
+                           "full_frame_every": full_frame_every(SEQUENCE_FPS)}}
     if args.json:
-        print(json.dumps({"config": config, "rows": rows, "track_cpu_ms": track_cpu_ms}))
+        print(json.dumps({"config": config, "rows": rows, "track_cpu_ms": track_cpu_ms, "sequences": sequences,
+                          "sequence_cpu_ms": sequence_cpu_ms}))
     else:
         _print_table(rows)
         print(f"tracker CPU per image ({track_cpu_ms['images']} images, {intrinsics.width} x {intrinsics.height}): "
               f"mean {track_cpu_ms['mean']:.1f} ms, p95 {track_cpu_ms['p95']:.1f} ms")
+        _print_sequences(sequences, sequence_cpu_ms)
     return 0
 
 
@@ -146,6 +178,57 @@ def measure_setting(renderer: Renderer, distance_m: float, angle_deg: float, sam
     return row
 
 
+def measure_sequence(renderer: Renderer, distance_m: float, images: int, rng: np.random.Generator,
+                     roi_cpu_ms: list[float], full_frame_cpu_ms: list[float]) -> dict:
+    """Track a sequence of ``images`` images of the sliding, turning cube (module docstring, Sequences) with a
+    region-of-interest tracker and a whole-image one; appends each image's tracker CPU times (ms) to ``roi_cpu_ms``
+    and ``full_frame_cpu_ms``, and returns the sequence's row."""
+    layout = box_layout((CUBE_EDGE_M,) * 3, TAG_SIZE_M)
+    start = np.array([0.0, 0.0, CUBE_EDGE_M / 2])
+    T_base_camera = camera_pose(distance_m, SEQUENCE_ANGLE_DEG, rng.uniform(0.0, 2 * math.pi),
+                                start + rng.uniform(-AIM_JITTER, AIM_JITTER, 3) * distance_m)
+    T_camera_base = inverse(T_base_camera)
+    T_camera_table = compose(T_camera_base, np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
+    heading, yaw = rng.uniform(0.0, 2 * math.pi, 2)
+    velocity = SEQUENCE_SPEED_M_S * np.array([math.cos(heading), math.sin(heading), 0.0])
+    calibration = CameraCalibration(renderer.intrinsics, T_base_camera)
+    roi = TagTracker(layout, calibration, TAG_SIZE_M, full_frame_every=full_frame_every(SEQUENCE_FPS))
+    full_frame = TagTracker(layout, calibration, TAG_SIZE_M)
+    poses, mismatches, position_diff_mm, rotation_diff_deg = 0, 0, [], []
+    for index in range(images):
+        t_s = (index - (images - 1) / 2) / SEQUENCE_FPS  # the cube passes the aim point halfway
+        angle = yaw + SEQUENCE_YAW_RATE_RAD_S * t_s
+        T_base_object = np.array([*(start + velocity * t_s), math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)])
+        image = renderer.render(compose(T_camera_base, T_base_object), layout, rng, T_camera_table)
+        if index % 2 == 0:
+            found = _timed_track(roi, image, roi_cpu_ms)
+            expected = _timed_track(full_frame, image, full_frame_cpu_ms)
+        else:
+            expected = _timed_track(full_frame, image, full_frame_cpu_ms)
+            found = _timed_track(roi, image, roi_cpu_ms)
+        poses += isinstance(found, ObjectPose)
+        if isinstance(found, ObjectPose) != isinstance(expected, ObjectPose):
+            mismatches += 1
+        elif isinstance(found, ObjectPose):
+            position_diff_mm.append(1e3 * float(np.linalg.norm(found.T_base_object[:3] - expected.T_base_object[:3])))
+            rotation_diff_deg.append(math.degrees(rotation_angle_rad(found.T_base_object[3:],
+                                                                     expected.T_base_object[3:])))
+    return {"distance_m": distance_m, "view_angle_deg": SEQUENCE_ANGLE_DEG, "images": images, "poses": poses,
+            "full_frame_searches": roi.region.full_frame_searches, "region_searches": roi.region.region_searches,
+            "roi_cpu_ms_mean": float(np.mean(roi_cpu_ms[-images:])),
+            "full_frame_cpu_ms_mean": float(np.mean(full_frame_cpu_ms[-images:])), "pose_mismatches": mismatches,
+            "max_pose_diff_mm": max(position_diff_mm, default=None),
+            "max_pose_diff_deg": max(rotation_diff_deg, default=None)}
+
+
+def _timed_track(tracker: TagTracker, image: np.ndarray, cpu_ms: list[float]) -> ObjectPose | Rejection:
+    """``tracker.track(image)``'s object pose or rejection; appends the CPU time it took (ms) to ``cpu_ms``."""
+    start_cpu = time.process_time()
+    result = tracker.track(image).result
+    cpu_ms.append(1e3 * (time.process_time() - start_cpu))
+    return result
+
+
 def camera_pose(distance_m: float, angle_deg: float, azimuth_rad: float, target: np.ndarray) -> np.ndarray:
     """``T_base_camera (7,)`` of a camera ``distance_m`` from ``target (3,)``, ``angle_deg`` from the vertical above
     it, at ``azimuth_rad`` about the vertical; the image's top points away from the camera (up the view)."""
@@ -162,6 +245,11 @@ def _summary(name: str, values: list[float]) -> dict:
         return {f"{name}_median": None, f"{name}_p95": None, f"{name}_max": None}
     return {f"{name}_median": float(np.median(values)), f"{name}_p95": float(np.percentile(values, 95)),
             f"{name}_max": float(np.max(values))}
+
+
+def _cpu_summary(cpu_ms: list[float]) -> dict:
+    """``{mean, p95}`` (ms) of per-image CPU times ``cpu_ms`` (ms)."""
+    return {"mean": float(np.mean(cpu_ms)), "p95": float(np.percentile(cpu_ms, 95))}
 
 
 def _floats(text: str, option: str) -> list[float]:
@@ -185,6 +273,22 @@ def _print_table(rows: list[dict]) -> None:
               f"{cell(row['rot_err_deg_median'], 2):>12} {cell(row['rot_err_deg_p95'], 2):>6} "
               f"{cell(row['rot_err_deg_max'], 2):>6} | {row['render_ms']:>9.1f} {row['track_ms']:>8.1f} "
               f"{row['track_cpu_ms_mean']:>6.1f} {row['track_cpu_ms_p95']:>5.1f}  {row['rejections'] or ''}")
+
+
+def _print_sequences(sequences: list[dict], cpu_ms: dict) -> None:
+    def cell(value: float | None) -> str:
+        return "-" if value is None else f"{value:.4f}"
+
+    for row in sequences:
+        print(f"sequence at {row['distance_m']:.2f} m: {row['poses']}/{row['images']} poses, "
+              f"{row['full_frame_searches']} whole-image and {row['region_searches']} region searches, CPU per image "
+              f"{row['roi_cpu_ms_mean']:.1f} ms (region) vs {row['full_frame_cpu_ms_mean']:.1f} ms (whole image), "
+              f"pose mismatches {row['pose_mismatches']}, pose difference max {cell(row['max_pose_diff_mm'])} mm "
+              f"{cell(row['max_pose_diff_deg'])} deg")
+    print(f"tracker CPU per image over sequences ({cpu_ms['images']} images): region of interest mean "
+          f"{cpu_ms['roi']['mean']:.1f} ms (p95 {cpu_ms['roi']['p95']:.1f}), whole image mean "
+          f"{cpu_ms['full_frame']['mean']:.1f} ms (p95 {cpu_ms['full_frame']['p95']:.1f}): "
+          f"ratio {cpu_ms['roi_to_full_frame']:.2f}")
 
 
 if __name__ == "__main__":

@@ -22,9 +22,11 @@ from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher
 from hydrosoft.services.config import load_config, parse_config
 from hydrosoft.services.sim_devices import BusCamera, image_topic
 from hydrosoft.services.sim_world_render import tag_camera
+from hydrosoft.services.tag_tracking import Rejection
 from hydrosoft.services.tag_tracker import (
     TagTracker,
     detections_message,
+    full_frame_every,
     largest_cap_tag_m,
     object_layout,
     pose_message,
@@ -107,6 +109,33 @@ def test_an_image_without_the_object_is_a_counted_rejection_and_a_non_image_an_e
     assert detections_message(tracked, "tag_camera", None).ids.shape == (0,)
     with pytest.raises(ValueError):
         tracker.track(np.zeros((4, 4, 2), np.uint8))
+
+
+def test_searching_around_the_last_tags_tracks_as_the_whole_image_does():
+    """The config's tracker (whole image every second: 15 images at the default 15 fps) against one searching every
+    image whole, on the cube at rest, moved and turned, gone and back: the same tags and poses, bit for bit."""
+    config = pushing_config()
+    tracker = TagTracker.from_config(config)
+    whole = TagTracker(tracker.layout, tracker.calibration, tracker.other_tag_size_m)
+    assert tracker.full_frame_every == full_frame_every(config.camera.fps) == 15 and whole.full_frame_every == 1
+    blank = np.full((480, 640, 3), 90, np.uint8)
+    for image in [render(config, POSE_A)] * 3 + [render(config, POSE_B), blank, render(config, POSE_A)]:
+        found, expected = tracker.track(image), whole.track(image)
+        assert type(found.result) is type(expected.result)
+        if isinstance(expected.result, Rejection):
+            assert found.result.reason == expected.result.reason
+        else:
+            np.testing.assert_array_equal(found.result.T_base_object, expected.result.T_base_object)
+        found_message, expected_message = (detections_message(t, "tag_camera", 1) for t in (found, expected))
+        np.testing.assert_array_equal(found_message.ids, expected_message.ids)
+        np.testing.assert_array_equal(found_message.corners_px, expected_message.corners_px)
+        np.testing.assert_array_equal(found_message.poses, expected_message.poses)
+    region = tracker.region  # A whole, A twice in the region, B in the region, blank: region then whole, A whole
+    assert (region.full_frame_searches, region.region_searches) == (3, 4)
+
+
+def test_the_whole_image_is_searched_about_once_a_second():
+    assert [full_frame_every(fps) for fps in (10.0, 30.0, 2.5, 0.5)] == [10, 30, 2, 1]
 
 
 @pytest.mark.parametrize("reason, kind", [

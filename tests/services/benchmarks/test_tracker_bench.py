@@ -4,6 +4,7 @@ import argparse
 import json
 
 import cv2
+import pytest
 
 from hydrosoft.services.benchmarks.tracker import add_arguments, run
 
@@ -40,6 +41,18 @@ def test_quick_json_rows(capsys):
     assert document["config"]["tag_size_m"] == 0.032
     cpu = document["track_cpu_ms"]
     assert cpu["images"] == 12 and 0.0 < cpu["mean"] and cpu["p95"] >= min(row["track_cpu_ms_p95"] for row in rows)
+    assert document["config"]["sequence"]["images"] == 12 and document["config"]["sequence"]["full_frame_every"] == 10
+    sequences = document["sequences"]
+    assert [row["distance_m"] for row in sequences] == [0.3, 1.0]
+    for row in sequences:  # 12 images: whole at the first and the eleventh, and at any fallback
+        assert row["images"] == 12 and row["poses"] >= 10 and row["pose_mismatches"] == 0
+        assert row["full_frame_searches"] >= 2 and row["region_searches"] >= 8
+        assert row["max_pose_diff_mm"] == 0.0 and row["max_pose_diff_deg"] == 0.0  # the same corners, bit for bit
+        assert 0.0 < row["roi_cpu_ms_mean"] and 0.0 < row["full_frame_cpu_ms_mean"]
+    sequence_cpu = document["sequence_cpu_ms"]
+    assert sequence_cpu["images"] == 24 and 0.0 < sequence_cpu["roi"]["mean"] <= sequence_cpu["roi"]["p95"]
+    assert sequence_cpu["roi_to_full_frame"] == pytest.approx(sequence_cpu["roi"]["mean"] /
+                                                              sequence_cpu["full_frame"]["mean"])
 
 
 def test_bad_options_exit_with_status_2(capsys):
