@@ -565,6 +565,79 @@ def _line_minimum(kinetic: Tensor, limit: Tensor, s: Tensor, ds: Tensor, slip_to
     return candidates.gather(-1, energy.argmin(-1, keepdim=True))
 
 
+class FrictionSystem(NamedTuple):
+    """The terms of one sub-step's friction energy (``_implicit_friction_motion``), for ``B`` samples, ``M``
+    bodies, ``N`` points and ``d`` object velocity coordinates (3 planar, 6 spatial).
+
+    ``PJ (B, N, 3, d)`` maps the object twist to each point's tangential motion (m); ``carried (B, M, N, 3)`` is
+    each body's tangential motion at each point (m); ``limit (B, M, N)`` the friction limits ``mu f_n`` (N);
+    ``mass (B, d, d)`` the mass matrix (kg, kg m^2); ``v0 (B, d)`` the frictionless motion; ``gain`` (0-d,
+    s^2/kg-like: ``(h/epsilon) dt_sub``) scales the kinetic term; ``slip_tolerance`` (m) regularises the slip."""
+
+    PJ: Tensor
+    carried: Tensor
+    limit: Tensor
+    mass: Tensor
+    v0: Tensor
+    gain: Tensor
+    slip_tolerance: float
+
+
+def _newton_direction(system: FrictionSystem, v: Tensor) -> tuple[Tensor, Tensor]:
+    """The Newton direction ``(B, d)`` of the friction energy at ``v (B, d)`` and the per-point slips there
+    ``(B, M, N, 3)`` (m).
+
+    The projector is symmetric and idempotent and each slip's unit vector ``u`` is tangent, so the friction
+    Hessian ``sum J^T (f/|s|)(P - u u^T) J`` is ``sum W (PJ)^T PJ - G^T diag(f/|s|) G`` with ``W`` the weights
+    summed over bodies and ``G`` the rows ``(PJ)^T u`` (and the friction gradient ``G^T limit``): two batched
+    products over all points instead of a 3 x 3 product per point and body."""
+    PJ, carried, limit, mass, v0, gain, slip_tolerance = system
+    batch, n_points, _, dof = PJ.shape
+    PJ_rows = PJ.reshape(batch, 3 * n_points, dof)
+    s = (PJ * v.view(batch, 1, 1, dof)).sum(-1).unsqueeze(1) - carried
+    sigma = torch.sqrt(s.square().sum(-1) + slip_tolerance**2)
+    weight = limit / sigma
+    G = (PJ.unsqueeze(1) * (s / sigma.unsqueeze(-1)).unsqueeze(-1)).sum(-2).reshape(batch, -1, dof)
+    grad = (mass @ (v - v0).unsqueeze(-1)).squeeze(-1) / gain + (limit.reshape(batch, 1, -1) @ G).squeeze(1)
+    W = weight.sum(1).repeat_interleave(3, dim=-1).unsqueeze(-1)
+    hessian = mass / gain + PJ_rows.mT @ (W * PJ_rows) - G.mT @ (weight.reshape(batch, -1, 1) * G)
+    return -torch.linalg.solve(hessian, grad.unsqueeze(-1)).squeeze(-1), s
+
+
+def _newton_move(system: FrictionSystem, v: Tensor) -> Tensor:
+    """One Newton step of the friction energy from ``v (B, d)`` with its exact line search: the move ``(B, d)``."""
+    direction, s = _newton_direction(system, v)
+    PJ, mass, v0, gain = system.PJ, system.mass, system.v0, system.gain
+    ds = (PJ * direction.view(*direction.shape[:1], 1, 1, -1)).sum(-1).unsqueeze(1)
+    dv = v - v0
+    Mdv, Md = (mass @ dv.unsqueeze(-1)).squeeze(-1), (mass @ direction.unsqueeze(-1)).squeeze(-1)
+    kinetic = torch.stack([(dv * Mdv).sum(-1), (direction * Mdv).sum(-1), (direction * Md).sum(-1)], -1) / gain
+    return _line_minimum(kinetic, system.limit, s, ds, system.slip_tolerance) * direction
+
+
+@torch.compiler.disable
+def _minimise_friction_energy(move, system: FrictionSystem) -> Tensor:
+    """The minimiser ``(B, d)`` of the friction energy, without autograd: Newton steps ``move(system, v)`` from
+    ``system.v0`` until one moves the object less than ``NEWTON_TOLERANCE`` (m or rad), at most
+    ``FRICTION_NEWTON_STEPS``.
+
+    Kept out of ``torch.compile``'s graphs: a compiled step calls it between its two graphs and passes a compiled
+    ``_newton_move`` (``CompiledStep``), so the loop stops as soon as it converges and only one Newton step is
+    compiled instead of every step of the loop unrolled."""
+    # detached inputs and a fresh start: a compiled move is guarded on requires_grad and on aliasing, so every
+    # call, with or without gradients and from v0 or not, reuses one graph
+    system = system._replace(**{name: value.detach() for name, value in system._asdict().items()
+                                if isinstance(value, Tensor)})
+    with torch.no_grad():
+        v = system.v0.clone()
+        for _ in range(FRICTION_NEWTON_STEPS):
+            step_taken = move(system, v)
+            v = v + step_taken
+            if float(step_taken.abs().max()) < NEWTON_TOLERANCE:
+                break
+    return v
+
+
 def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w: Tensor, dt_sub: Tensor,
                               slip_tolerance: float) -> Tensor:
     """Object displacement ``(B, 6)`` of a sub-step with Coulomb friction solved implicitly (PF's friction).
@@ -578,12 +651,20 @@ def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w:
     friction (eq. 4) evaluated at the slip the motion itself produces (backward Euler, maximum dissipation).
     Friction therefore never exceeds the force that stops the slip in this sub-step, so it cannot overshoot and
     reverse the motion, whatever the step size. The energy is minimised by at most ``FRICTION_NEWTON_STEPS``
-    Newton steps, each with an exact line search (``_line_minimum``); eager solves stop early once converged
-    (``NEWTON_TOLERANCE``), compiled ones take every step. The loop runs without autograd: the gradient is the
+    Newton steps (``_minimise_friction_energy``), each with an exact line search (``_line_minimum``), stopping
+    once converged (``NEWTON_TOLERANCE``). The loop runs without autograd: the gradient is the
     implicit one, ``dv/dx = -H^-1 dg/dx`` at the minimiser (energy gradient ``g``, Hessian ``H``), from one Newton
     direction evaluated there with autograd on, so the backward costs one Newton step instead of the whole loop.
     The normal forces ``f_n`` are those of ``state.forces``; a point without normal force carries no friction.
     """
+    system = _friction_system(model, state, body_poses, w, dt_sub, slip_tolerance)
+    return _friction_motion(model, system, _minimise_friction_energy(_newton_move, system))
+
+
+def _friction_system(model: Model, state: State, body_poses: Tensor, w: Tensor, dt_sub: Tensor,
+                     slip_tolerance: float) -> FrictionSystem:
+    """The friction energy of the sub-step from ``state`` to the bodies' ``body_poses`` ``(B, M, 7)`` under the
+    normal and gravity wrench ``w (B, 6)`` (``_implicit_friction_motion``)."""
     gain = model.dt / model.epsilon * dt_sub
     R_o, t_o = _frame(state.object_pose)
     points = (R_o @ model.points.mT + t_o).mT
@@ -608,45 +689,18 @@ def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w:
         w_v = w
     v0 = gain * torch.linalg.solve(mass, w_v.unsqueeze(-1)).squeeze(-1)
     projector = torch.eye(3, dtype=w.dtype, device=w.device) - normal.unsqueeze(-1) * normal.unsqueeze(-2)
-    tol2 = slip_tolerance**2
     PJ = projector @ J
-    batch, n_points, _, dof = PJ.shape
-    PJ_rows = PJ.reshape(batch, 3 * n_points, dof)
     carried_t = (carried.unsqueeze(-2) @ projector.unsqueeze(1)).squeeze(-2)
+    return FrictionSystem(PJ, carried_t, limit, mass, v0, gain, slip_tolerance)
 
-    def newton_direction(v: Tensor) -> tuple[Tensor, Tensor]:
-        """The Newton direction ``(B, d)`` of the energy at ``v`` and the per-point slips there ``(B, M, N, 3)``.
 
-        The projector is symmetric and idempotent and each slip's unit vector ``u`` is tangent, so the friction
-        Hessian ``sum J^T (f/|s|)(P - u u^T) J`` is ``sum W (PJ)^T PJ - G^T diag(f/|s|) G`` with ``W`` the weights
-        summed over bodies and ``G`` the rows ``(PJ)^T u`` (and the friction gradient ``G^T limit``): two batched
-        products over all points instead of a 3 x 3 product per point and body."""
-        s = (PJ * v.view(batch, 1, 1, dof)).sum(-1).unsqueeze(1) - carried_t
-        sigma = torch.sqrt(s.square().sum(-1) + tol2)
-        weight = limit / sigma
-        G = (PJ.unsqueeze(1) * (s / sigma.unsqueeze(-1)).unsqueeze(-1)).sum(-2).reshape(batch, -1, dof)
-        grad = (mass @ (v - v0).unsqueeze(-1)).squeeze(-1) / gain + (limit.reshape(batch, 1, -1) @ G).squeeze(1)
-        W = weight.sum(1).repeat_interleave(3, dim=-1).unsqueeze(-1)
-        hessian = mass / gain + PJ_rows.mT @ (W * PJ_rows) - G.mT @ (weight.reshape(batch, -1, 1) * G)
-        return -torch.linalg.solve(hessian, grad.unsqueeze(-1)).squeeze(-1), s
-
-    with torch.no_grad():
-        v = v0
-        for _ in range(FRICTION_NEWTON_STEPS):
-            direction, s = newton_direction(v)
-            ds = (PJ * direction.view(batch, 1, 1, dof)).sum(-1).unsqueeze(1)
-            dv = v - v0
-            Mdv, Md = (mass @ dv.unsqueeze(-1)).squeeze(-1), (mass @ direction.unsqueeze(-1)).squeeze(-1)
-            kinetic = torch.stack([(dv * Mdv).sum(-1), (direction * Mdv).sum(-1), (direction * Md).sum(-1)], -1) / gain
-            move = _line_minimum(kinetic, limit, s, ds, slip_tolerance) * direction
-            v = v + move
-            if not torch.compiler.is_compiling() and float(move.abs().max()) < NEWTON_TOLERANCE:
-                break
+def _friction_motion(model: Model, system: FrictionSystem, v: Tensor) -> Tensor:
+    """The object displacement ``(B, 6)`` from the minimiser ``v (B, d)`` of ``system``, with its implicit gradient."""
     if torch.is_grad_enabled():
         # implicit gradient: at the minimiser, d(Newton direction)/d(inputs) = dv*/d(inputs), so adding the
         # direction minus its own value keeps v* and gives exactly that derivative (one step to differentiate
         # instead of the whole loop)
-        direction, _ = newton_direction(v)
+        direction, _ = _newton_direction(system, v)
         v = v + (direction - direction.detach())
     if model.planar:
         zero = torch.zeros_like(v[:, 0])
@@ -662,14 +716,18 @@ def _normal_wrench(model: Model, state: State) -> Tensor:
 
 
 def _substep(model: Model, state: State, u: Tensor, dt_sub: Tensor) -> State:
-    body_poses = se3.retract(state.body_poses, u * model.actuated.view(1, -1, 1))
+    body_poses = _moved_bodies(model, state, u)
     if getattr(model.contact, "implicit_friction", False):
-        w = _normal_wrench(model, state)
-        motion = _implicit_friction_motion(model, state, body_poses, w, dt_sub, model.contact.slip_tolerance)
+        motion = _implicit_friction_motion(model, state, body_poses, _normal_wrench(model, state), dt_sub,
+                                           model.contact.slip_tolerance)
     else:
         motion = _object_motion(model, state, object_wrench(model, state), dt_sub)
-    object_pose = se3.retract(state.object_pose, motion)
-    return advance_forces(model, state, object_pose, body_poses)
+    return advance_forces(model, state, se3.retract(state.object_pose, motion), body_poses)
+
+
+def _moved_bodies(model: Model, state: State, u: Tensor) -> Tensor:
+    """The bodies' poses ``(B, M, 7)`` after the sub-step's actions ``u (B, M, 6)`` (unactuated bodies stay)."""
+    return se3.retract(state.body_poses, u * model.actuated.view(1, -1, 1))
 
 
 def _integrate(model: Model, state: State, u: Tensor, substep, n: int) -> State:
@@ -707,13 +765,27 @@ def step(model: Model, state: State, u: Tensor) -> State:
     return _checked_step(model, state, u, functools.partial(_substep, model))[0]
 
 
-def _bound_substep(model: Model):
-    """The sub-step of ``model`` as a plain function ``(state, u_sub, dt_sub) -> state``."""
+def _bound_substep(model: Model, friction_move=None):
+    """The sub-step of ``model`` as a plain function ``(state, u_sub, dt_sub) -> state`` to compile.
 
-    def compiled_substep(state: State, u: Tensor, dt_sub: Tensor) -> State:
-        return _substep(model, state, u, dt_sub)
+    With implicit friction (PF) the Newton loop runs between two graphs, calling ``friction_move`` (a compiled
+    ``_newton_move``). The loop is called from this function itself, so the graph break falls in the compiled
+    (private) code and not in the shared ``_substep``, whose resume frames would count every model's graphs against
+    one recompile limit."""
+    if friction_move is None:
+        def compiled_substep(state: State, u: Tensor, dt_sub: Tensor) -> State:
+            return _substep(model, state, u, dt_sub)
 
-    return compiled_substep
+        return compiled_substep
+
+    def compiled_friction_substep(state: State, u: Tensor, dt_sub: Tensor) -> State:
+        body_poses = _moved_bodies(model, state, u)
+        system = _friction_system(model, state, body_poses, _normal_wrench(model, state), dt_sub,
+                                  model.contact.slip_tolerance)
+        motion = _friction_motion(model, system, _minimise_friction_energy(friction_move, system))
+        return advance_forces(model, state, se3.retract(state.object_pose, motion), body_poses)
+
+    return compiled_friction_substep
 
 
 def _private_copy(fn):
@@ -756,7 +828,10 @@ class CompiledStep:
         self.fallback_reason: str | None = None
         if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
             options["options"] = {"cpp_wrapper": True}
-        self._compiled = torch.compile(_private_copy(_bound_substep(model)), **options)
+        friction_move = None
+        if getattr(model.contact, "implicit_friction", False):
+            friction_move = torch.compile(_private_copy(_newton_move), **options)
+        self._compiled = torch.compile(_private_copy(_bound_substep(model, friction_move)), **options)
         # (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's next step
         # starts from that state, so its start check is already known (one stability check per step, not two)
         self._end_check: tuple[Tensor, int] | None = None

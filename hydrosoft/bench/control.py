@@ -32,6 +32,12 @@ Run times (single thread): ``--quick`` ~3.5 min; the full setting with ``--compi
 cores: pushing 11 min, rotation 11 min, rolling 20 min, in-hand 16 min. Run tasks as separate processes
 (``--tasks pushing`` ...) to use both cores.
 
+``--episodes FILE`` makes a run resumable (``hydrosoft.bench.episode_log``): each finished episode is appended
+to FILE as one JSON line, and a later run with the same FILE and settings reuses those episodes and runs only the
+rest, so a table of many hours can be run in pieces (stopped with Ctrl-C, on several machines, across days).
+Each row then also reports ``episodes_wall_s``, its episodes' own wall times, and ``settings.episodes`` says how
+many were reused and at which commits they ran.
+
 Torch runs single-threaded by default (``--threads``): on 2 shared cores the OpenMP intra-op threads stall
 behind other processes (a B = 64 step took 250 ms with 2 threads and 22 ms with 1).
 
@@ -103,6 +109,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-dtypes", type=_csv, default=["float64", "float32"], metavar="D1,D2",
                         help="planner float types whose replanning rate is measured, in one run so that their "
                              "ratio holds (default float64,float32; the episodes plan in float64)")
+    parser.add_argument("--episodes", type=Path, default=None, metavar="FILE",
+                        help="append each finished episode to FILE (JSON lines) and reuse the episodes already in "
+                             "it that ran with the same settings: a long run can stop and resume")
     parser.add_argument("--sdf-solver-steps", type=int, default=None, metavar="N",
                         help="the planner's bubble ellipsoid in N fixed solver steps (PlannerSettings."
                              "sdf_solver_steps; 2-3 are exact to rounding near the membrane) instead of solving "
@@ -257,6 +266,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the benchmark; returns the process exit status (2 for a bad option)."""
     import torch
 
+    from hydrosoft.bench.episode_log import EpisodeLog
     from hydrosoft.tasks import TASKS, make_task
     from hydrosoft.tasks.evaluation import PlannerSettings, PlantSettings, prepare, run_episode
 
@@ -275,37 +285,58 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     same_models = args.models if args.same_models is None else args.same_models
     runs = [(plant, model) for model in args.models for plant in args.plants if plant != "same" or model in same_models]
+    noise = {"pose_noise_m": args.pose_noise_mm / 1e3, "pose_noise_rad": math.radians(args.pose_noise_deg),
+             "deformation_noise_m": args.deformation_noise_mm / 1e3}
+    planner_keys = ("spacing", "samples", "elites", "horizon", "grad_steps", "open_loop_iterations")
+    log = None
+    if args.episodes is not None:
+        log = EpisodeLog(args.episodes, {**{k: preset[k] for k in planner_keys}, "compile": args.compile,
+                                         "sdf_solver_steps": args.sdf_solver_steps, "steps": args.steps,
+                                         "plant": args.plant, "noise": noise})
+        _log(f"bench control: {len(log.episodes)} episodes with these settings in {args.episodes}"
+             + (f" ({log.other_settings} lines of other settings and {log.malformed} malformed lines not used)"
+                if log.other_settings or log.malformed else ""))
     total = len(runs) * len(args.tasks) * len(args.loops) * goals
-    done = 0
+    done = reused = 0
     for name in args.tasks:
         task = make_task(name, args.steps)
         for model in args.models:
             planner = PlannerSettings(model=model, compile=args.compile, sdf_solver_steps=args.sdf_solver_steps,
-                                      **{k: preset[k] for k in ("spacing", "samples", "elites", "horizon",
-                                                                "grad_steps", "open_loop_iterations")})
-            noise = {"pose_noise_m": args.pose_noise_mm / 1e3, "pose_noise_rad": math.radians(args.pose_noise_deg),
-                     "deformation_noise_m": args.deformation_noise_mm / 1e3}
+                                      **{k: preset[k] for k in planner_keys})
             plants = {"finer": PlantSettings(model=model if args.plant == "same" else args.plant, **noise),
                       "same": replace(PlantSettings.same_as_planner(model), **noise)}
             compiled_step = None
             for plant_name in [plant for plant, m in runs if m == model]:
-                setup = prepare(task, planner, plants[plant_name])
-                if compiled_step is not None:  # one compiled planner step per task and model, shared by the plants
-                    setup = replace(setup, dynamics=compiled_step)
-                elif args.compile:  # compile outside the timed episodes: a one-step closed-loop warm-up
-                    run_episode(setup, task.sample_goal(0), "closed", steps=1)
-                    compiled_step = setup.dynamics
+                keys = [(plant_name, name, model, loop, g) for loop in args.loops for g in range(goals)]
+                setup = None
+                if log is None or any(log.get(key) is None for key in keys):
+                    setup = prepare(task, planner, plants[plant_name])
+                    if compiled_step is not None:  # one compiled planner step per task and model, shared by plants
+                        setup = replace(setup, dynamics=compiled_step)
+                    elif args.compile:  # compile outside the timed episodes: a one-step closed-loop warm-up
+                        run_episode(setup, task.sample_goal(0), "closed", steps=1)
+                        compiled_step = setup.dynamics
                 for loop in args.loops:
-                    results = []
+                    results, walls = [], []
                     for g in range(goals):
-                        tic = time.perf_counter()
-                        result = run_episode(setup, task.sample_goal(g), loop, steps=args.steps)
+                        key = (plant_name, name, model, loop, g)
+                        logged = log.get(key) if log is not None else None
+                        if logged is None:
+                            tic = time.perf_counter()
+                            result = run_episode(setup, task.sample_goal(g), loop, steps=args.steps)
+                            wall = time.perf_counter() - tic
+                            if log is not None:
+                                log.append(key, result, wall)
+                        else:
+                            result, wall = logged.result, logged.wall_s
+                            reused += 1
                         results.append(result)
+                        walls.append(wall)
                         done += 1
                         _log(f"[{done}/{total}] {plant_name} {name} {model} {loop} goal {g}: "
                              f"{result.initial_error_mm:.1f} -> {result.error_mm:.2f} mm ({result.status}, "
-                             f"{len(result.errors_mm) - 1} steps), {time.perf_counter() - tic:.1f} s")
-                    rows.append(_row(plant_name, name, model, loop, results))
+                             f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
+                    rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
     replanning = [replanning_rate(rate_solves, args.compile, dtype, args.sdf_solver_steps)
                   for dtype in args.rate_dtypes] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
@@ -316,7 +347,12 @@ def run(args: argparse.Namespace) -> int:
                 "noise": {"pose_mm": args.pose_noise_mm, "pose_deg": args.pose_noise_deg,
                           "deformation_mm": args.deformation_noise_mm},
                 "steps": {name: make_task(name, args.steps).steps for name in args.tasks},
-                "wall_s": time.perf_counter() - started, "pngs": pngs}
+                "wall_s": time.perf_counter() - started, "pngs": pngs,
+                "episodes": None if log is None else {
+                    "file": str(args.episodes), "reused": reused, "ran": done - reused,
+                    "other_settings": log.other_settings, "malformed": log.malformed,
+                    "commits": log.commits([(p, t, m, loop, g) for p, m in runs for t in args.tasks
+                                            for loop in args.loops for g in range(goals)])}}
     if args.json:
         print(json.dumps({"rows": rows, "replanning": replanning, "settings": settings}))
     else:
@@ -331,5 +367,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f}, backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first solve "
                   f"{r['first_solve_ms'] / 1e3:.1f} s{compiling})")
-        print(f"\n{total} episodes in {settings['wall_s']:.0f} s; figures: {', '.join(pngs)}")
+        print(f"\n{total} episodes in {settings['wall_s']:.0f} s"
+              + (f" ({reused} of them reused from {args.episodes}; the episodes' own wall times add up to "
+                 f"{sum(r['episodes_wall_s'] for r in rows):.0f} s)" if log is not None else "")
+              + f"; figures: {', '.join(pngs)}")
     return 0

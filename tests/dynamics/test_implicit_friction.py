@@ -1,5 +1,5 @@
-"""PF's implicit friction solve: the exact line search along a Newton direction, and Newton's convergence within
-its step cap (which a compiled step always takes in full) on every task scene."""
+"""PF's implicit friction solve: the exact line search along a Newton direction, Newton's convergence within its
+step cap on every task scene, and the compiled step's friction loop (one compiled Newton step, early stop)."""
 
 from __future__ import annotations
 
@@ -87,9 +87,9 @@ def planner_batches(task_name: str, batch: int = 8, steps: int = 2):
 
 @pytest.mark.parametrize("task_name", ["pushing", "rotation", "rolling", "in_hand"])
 def test_the_friction_solve_converges_within_its_newton_cap(task_name, monkeypatch):
-    """Every solve taken as a compiled step takes it (all ``FRICTION_NEWTON_STEPS``, no early stop) ends where ten
-    times as many steps end, to 1e-12 m (rad). The earlier search over fixed halvings needed up to 23 steps in the
-    in-hand scene and failed this by a few 1e-12 m."""
+    """Every solve, taken to its cap of ``FRICTION_NEWTON_STEPS`` without the early stop, ends where ten times as
+    many steps end, to 1e-12 m (rad). The earlier search over fixed halvings needed up to 23 steps in the in-hand
+    scene and failed this by a few 1e-12 m."""
     calls = planner_batches(task_name)
     assert calls
     monkeypatch.setattr(dynamics, "NEWTON_TOLERANCE", -1.0)  # no early stop: every step is taken
@@ -101,3 +101,34 @@ def test_the_friction_solve_converges_within_its_newton_cap(task_name, monkeypat
                 converged = dynamics._implicit_friction_motion(*args)
             assert float(converged.abs().max()) > 1e-5  # the object does move
             assert torch.allclose(capped, converged, rtol=0, atol=1e-12), (capped - converged).abs().max()
+
+
+def test_a_compiled_pf_step_runs_one_compiled_newton_step_per_iteration_and_stops_when_converged(monkeypatch):
+    """``CompiledStep`` keeps the Newton loop out of its graphs and calls a compiled ``_newton_move`` in it, as
+    often as the eager loop takes steps (the early stop works compiled too), with the eager step's result and
+    gradient (dynamo's ``eager`` backend: the graph capture and breaks, no code generation)."""
+    scene = msgspec.structs.replace(task_scene("pushing"), contact="pf")
+    model, state = compile_scene(scene)[:2]
+    batch = 4
+    state = dynamics.State(*(None if t is None else t.expand(batch, *t.shape[1:]).clone() for t in state))
+    u = torch.zeros(batch, model.n_bodies, 6, dtype=F64)
+    u[:, 0, 0] = torch.linspace(5e-4, 2e-3, batch, dtype=F64)
+    moves = {"eager": 0, "compiled": 0}
+    real_minimise = dynamics._minimise_friction_energy
+
+    def counting(move, system):
+        def counted(*args):
+            moves["compiled" if move is not dynamics._newton_move else "eager"] += 1
+            return move(*args)
+        return real_minimise(counted, system)
+
+    monkeypatch.setattr(dynamics, "_minimise_friction_energy", counting)
+    fast = dynamics.CompiledStep(model, backend="eager")
+    leaves = [u.clone().requires_grad_(True) for _ in range(2)]
+    eager, compiled = dynamics.step(model, state, leaves[0]), fast(state, leaves[1])
+    assert fast.compiled
+    assert 0 < moves["compiled"] == moves["eager"] < dynamics.FRICTION_NEWTON_STEPS * model.substeps
+    assert torch.allclose(compiled.object_pose, eager.object_pose, rtol=0, atol=1e-12)
+    assert float((compiled.object_pose[:, 0] - state.object_pose[:, 0]).detach().min()) > 0  # the cube is pushed
+    grads = [torch.autograd.grad(out.object_pose[:, :2].sum(), leaf)[0] for out, leaf in zip((eager, compiled), leaves)]
+    assert torch.allclose(grads[1], grads[0], rtol=1e-9, atol=1e-12)
