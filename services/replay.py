@@ -10,7 +10,10 @@ recorder stored in the file.
 
 When. Messages leave in the order of their recorded publish stamps (``stamp_ns``; the file is in receive order,
 which a ``REORDER_WINDOW_S`` buffer sorts), message i at ``start + (stamp_i - stamp_0) / rate``. A replay that
-falls behind sends at once and never skips. Before the first message it waits ``--connect-s`` for subscribers to
+falls behind by up to ``MAX_BEHIND_S`` sends at once to catch up; further behind (a stalled process), its schedule
+slips instead: that message goes out now and the later ones keep their recorded spacing from it, so subscribers
+never get a burst at many times the recorded rate and the replayed rates stay the recorded ones (the replay then
+ends later, by ``slipped_ms`` in its summary). It never skips a message. Before the first message it waits ``--connect-s`` for subscribers to
 connect (a ZeroMQ subscriber misses what is sent before its connection is up).
 
 What. Every field as recorded, arrays bit for bit and ``hw_stamp_ns`` included, except ``seq`` and ``stamp_ns``,
@@ -52,6 +55,7 @@ from hydrosoft.services.recording import (
 REORDER_WINDOW_S = 0.5
 #: Default wait between binding the endpoints and the first message, s.
 CONNECT_S = 1.0
+MAX_BEHIND_S = 0.05  # how far behind schedule a replay catches up by sending at once; beyond, the schedule slips
 #: Messages each replay publisher queues per subscriber (a replay is for tests: a slow reader should get them all).
 REPLAY_SNDHWM = 1000
 #: Kinds that travel on a service's status endpoint.
@@ -95,16 +99,40 @@ def recorded_config(reader: RecordingReader) -> StackConfig:
 
 @dataclass
 class ReplayStats:
-    """What a replay sent: messages per topic, how far behind schedule the latest send was (s), what it left out
-    (topic -> reason)."""
+    """What a replay sent: messages per topic, how far behind schedule the latest send was (s), how far the
+    schedule slipped in all (s), what it left out (topic -> reason)."""
 
     sent: Counter[str] = field(default_factory=Counter)
     max_late_s: float = 0.0
+    slipped_s: float = 0.0
     skipped: dict[str, str] = field(default_factory=dict)
 
     def summary(self) -> dict[str, object]:
         return {"messages": sum(self.sent.values()), "per_topic": dict(self.sent),
-                "max_late_ms": round(1e3 * self.max_late_s, 2), "skipped": self.skipped}
+                "max_late_ms": round(1e3 * self.max_late_s, 2), "slipped_ms": round(1e3 * self.slipped_s, 2),
+                "skipped": self.skipped}
+
+
+class Schedule:
+    """When each message is due (module docstring, "When"): ``wait_s`` of the first message anchors the schedule."""
+
+    def __init__(self, rate: float, stats: ReplayStats) -> None:
+        self.rate, self.stats = rate, stats
+        self.start_s: float | None = None
+        self.first_ns = 0
+
+    def wait_s(self, stamp_ns: int, now_s: float) -> float:
+        """Seconds to wait before sending the message recorded at ``stamp_ns`` (ns) at ``now_s`` (s, monotonic):
+        0 when it is due or late; a send more than ``MAX_BEHIND_S`` late slips the schedule to now."""
+        if self.start_s is None:
+            self.start_s, self.first_ns = now_s, stamp_ns
+        wait_s = self.start_s + (stamp_ns - self.first_ns) * 1e-9 / self.rate - now_s
+        if wait_s < -MAX_BEHIND_S:
+            self.start_s -= wait_s
+            self.stats.slipped_s -= wait_s
+        elif wait_s < 0:
+            self.stats.max_late_s = max(self.stats.max_late_s, -wait_s)
+        return max(wait_s, 0.0)
 
 
 def plan_publishers(channels: dict[str, Channel], config: StackConfig) -> tuple[dict[str, tuple[str, str]],
@@ -144,20 +172,15 @@ async def replay(reader: RecordingReader, config: StackConfig, rate: float = 1.0
                       for route in set(routes.values())}
         await asyncio.sleep(connect_s)
         loop = asyncio.get_running_loop()
-        start_s = first_ns = None
+        schedule = Schedule(rate, stats)
         for item in in_stamp_order(reader, int(REORDER_WINDOW_S * 1e9)):
             route = routes.get(raw_channel_name(item.topic, item.message.source))
             if route is None:
                 continue
             message = item.message
-            if first_ns is None:
-                start_s, first_ns = loop.time(), message.stamp_ns
-            due_s = start_s + (message.stamp_ns - first_ns) * 1e-9 / rate
-            wait_s = due_s - loop.time()
+            wait_s = schedule.wait_s(message.stamp_ns, loop.time())
             if wait_s > 0:
                 await asyncio.sleep(wait_s)
-            else:
-                stats.max_late_s = max(stats.max_late_s, -wait_s)
             await publishers[route].send(message, item.topic)
             stats.sent[item.topic] += 1
         await asyncio.sleep(connect_s / 2)  # let the last messages leave before the sockets close
@@ -200,7 +223,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(stats.summary()))
         return 0
     print(f"replayed {sum(stats.sent.values())} messages on {len(stats.sent)} topics in "
-          f"{time.monotonic() - tic_s:.1f} s (latest send {1e3 * stats.max_late_s:.1f} ms behind schedule)")
+          f"{time.monotonic() - tic_s:.1f} s (latest send {1e3 * stats.max_late_s:.1f} ms behind schedule, "
+          f"schedule slipped {1e3 * stats.slipped_s:.1f} ms)")
     if reader.truncated:
         print(f"the file ends early (a crashed recorder?): replayed up to its last complete chunk ({reader.error})")
     return 0

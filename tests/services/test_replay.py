@@ -25,7 +25,15 @@ from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Bus
 from hydrosoft.services.config import load_config
 from hydrosoft.services.recording import RecordedMessage, raw_channel_metadata, read_recording
-from hydrosoft.services.replay import ReplayError, endpoint_kind, in_stamp_order, plan_publishers
+from hydrosoft.services.replay import (
+    MAX_BEHIND_S,
+    ReplayError,
+    ReplayStats,
+    Schedule,
+    endpoint_kind,
+    in_stamp_order,
+    plan_publishers,
+)
 
 REPLAY_TIMEOUT_S = 60.0
 RATE_TOLERANCE = 0.05
@@ -39,6 +47,23 @@ def channel(topic: str, kind: type[msg.Message], source: str) -> Channel:
 
 def item(topic: str, stamp_ns: int) -> RecordedMessage:
     return RecordedMessage(topic, msg.Heartbeat(period_s=0.1, stamp_ns=stamp_ns), stamp_ns)
+
+
+def test_a_late_replay_catches_up_a_little_and_slips_past_that_without_a_burst():
+    """Messages every 10 ms at rate 2 (due every 5 ms); the replay stalls 0.5 s before the fourth message."""
+    stats = ReplayStats()
+    schedule = Schedule(2.0, stats)
+    stamps = [k * 10_000_000 for k in range(8)]
+    assert schedule.wait_s(stamps[0], 100.0) == 0.0  # anchors the schedule
+    assert schedule.wait_s(stamps[1], 100.0) == pytest.approx(0.005)
+    assert schedule.wait_s(stamps[2], 100.01 + MAX_BEHIND_S / 2) == 0.0  # a little late: sent at once, caught up
+    assert stats.max_late_s == pytest.approx(MAX_BEHIND_S / 2) and stats.slipped_s == 0
+    assert schedule.wait_s(stamps[3], 100.5) == 0.0  # stalled: slips to now
+    assert stats.slipped_s == pytest.approx(0.5 - 0.015)
+    now = 100.5
+    for stamp in stamps[4:]:  # the rest keep the recorded spacing from the late message: no burst
+        assert schedule.wait_s(stamp, now) == pytest.approx(0.005)
+        now += 0.005
 
 
 def test_messages_go_out_in_stamp_order_and_each_kind_to_its_endpoint():
