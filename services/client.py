@@ -142,8 +142,10 @@ class StackClient:
                 and reply.status.pid != self.pursuit.planner_pid)
 
     async def resume_goal(self) -> bool:
-        """Send the pursued goal again (absolute target, the rest of its timeout) and start it; False when its
-        time is up (the pursuit is then dropped)."""
+        """Send the pursued goal again (absolute target, the rest of its timeout) and start it. False when its
+        time is up (the pursuit is then dropped) or when the planner has no fresh input yet (``NO_FRESH_INPUT``:
+        restarted a moment ago, before the first pose reached it; the pursuit is kept and ``wait`` tries again at
+        its next poll)."""
         pursuit = self.pursuit
         left_s = pursuit.goal.timeout_s - (time.monotonic() - pursuit.started_s)
         if left_s <= 0:
@@ -151,7 +153,12 @@ class StackClient:
             return False
         goal = msgspec.structs.replace(pursuit.goal, timeout_s=left_s)
         await self._command(msg.SetGoal(goal=goal))
-        await self._command(msg.Start())
+        try:
+            await self._command(msg.Start())
+        except ClientError as error:
+            if str(error).startswith(msg.NO_FRESH_INPUT):
+                return False
+            raise
         reply = await self.status()
         self.pursuit = Pursuit(reply.status.pid, goal, time.monotonic())
         self.resumes += 1

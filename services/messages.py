@@ -476,6 +476,11 @@ class Reply(Message, frozen=True, kw_only=True):
     error: str = ""
 
 
+NO_FRESH_INPUT = "no fresh input to start from"
+"""How a planner's refusal of Start begins when its inputs are stale or not received yet (a restarted planner's
+first moments): a client may try again shortly."""
+
+
 class CommandReply(Reply, frozen=True, kw_only=True):
     """The reply to SetGoal, Start and Stop, and to any request the server could not read."""
 

@@ -282,7 +282,7 @@ class Planner:
         try:
             start_pose, arm_poses, _ = self.fresh_inputs()
         except Stale as err:
-            return msg.CommandReply(ok=False, error=f"no fresh input to start from ({err})")
+            return msg.CommandReply(ok=False, error=f"{msg.NO_FRESH_INPUT} ({err})")
         frame = self.core.frame
         target = frame.to_task(resolve_target(self.goal, frame.to_base(start_pose)))
         episode = Episode(self.goal, target, self.core.solver(target, start_pose, arm_poses), time.monotonic())
