@@ -22,13 +22,8 @@ def quick_run(log_path, tmp_path, *extra: str) -> argparse.Namespace:
                  str(log_path), *extra)
 
 
-def test_a_stopped_run_resumes_with_the_logged_episodes_and_runs_only_the_rest(tmp_path, capsys, monkeypatch):
-    log_path = tmp_path / "episodes.jsonl"
-    assert control.run(quick_run(log_path, tmp_path, "--loops", "closed")) == 0
-    first = json.loads(capsys.readouterr().out)
-    lines = log_path.read_text().splitlines()
-    assert len(lines) == 2 and all(json.loads(line)["loop"] == "closed" for line in lines)
-
+def count_episodes(monkeypatch) -> list[str]:
+    """The loop of every episode run from now on, in order (``run_episode`` wrapped)."""
     ran = []
     real_episode = evaluation.run_episode
 
@@ -37,6 +32,17 @@ def test_a_stopped_run_resumes_with_the_logged_episodes_and_runs_only_the_rest(t
         return real_episode(setup, goal, loop, steps=steps)
 
     monkeypatch.setattr(evaluation, "run_episode", counted)
+    return ran
+
+
+def test_a_stopped_run_resumes_with_the_logged_episodes_and_runs_only_the_rest(tmp_path, capsys, monkeypatch):
+    log_path = tmp_path / "episodes.jsonl"
+    assert control.run(quick_run(log_path, tmp_path, "--loops", "closed")) == 0
+    first = json.loads(capsys.readouterr().out)
+    lines = log_path.read_text().splitlines()
+    assert len(lines) == 2 and all(json.loads(line)["loop"] == "closed" for line in lines)
+
+    ran = count_episodes(monkeypatch)
     assert control.run(quick_run(log_path, tmp_path)) == 0  # open and closed: only the open ones run
     out, err = capsys.readouterr()
     second = json.loads(out)
@@ -58,14 +64,7 @@ def test_episodes_of_other_settings_and_broken_lines_are_counted_not_used(tmp_pa
     log = EpisodeLog(log_path, {"anything": "else"})
     assert (len(log.episodes), log.other_settings, log.malformed) == (0, 1, 1)
 
-    ran = []
-    real_episode = evaluation.run_episode
-
-    def counted(setup, goal, loop, steps=None):
-        ran.append(loop)
-        return real_episode(setup, goal, loop, steps=steps)
-
-    monkeypatch.setattr(evaluation, "run_episode", counted)
+    ran = count_episodes(monkeypatch)
     assert control.run(quick_run(log_path, tmp_path, "--loops", "closed", "--goals", "1",
                                  "--pose-noise-mm", "0.5")) == 0  # other settings: runs again
     document = json.loads(capsys.readouterr().out)
