@@ -25,7 +25,7 @@ import pytest
 from hydrosoft.drivers.base import ArmState
 from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT, URArmConfig
 from hydrosoft.services import messages as msg
-from hydrosoft.services.arm_commander import NO_TARGET, ServoLogic
+from hydrosoft.services.arm_commander import MAX_STEP_PERIODS, NO_TARGET, ServoLogic
 from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.config import LimitsConfig, load_config
 from loopback import free_ur_host
@@ -184,10 +184,13 @@ SCHEDULING_SLACK_S = 0.15
 STOP_TIME_S = LIMITS.max_speed_m_s / URArmConfig(host="x").stop_decel_m_s2
 SERVO_PERIOD_S = 1.0 / LIMITS.servo_rate_hz
 #: Speeds are the simulator's own TCP twist (the test's read stamps would jitter with its scheduling). The simulated
-#: servoL tracks each command with a first-order lag (tau = 0.1 s at the driver's lookahead and gain): right after
-#: each command its speed peaks at (period / tau) / (1 - exp(-period / tau)) = 1.04 x the commanded path's speed;
-#: allow that ripple and a little delivery jitter.
-SERVO_RIPPLE = 0.06
+#: servoL tracks each command with a first-order lag (tau = 0.1 s at the driver's lookahead and gain): right after a
+#: command that moves the path on by T seconds at its speed, the speed peaks at (T / tau) / (1 - exp(-T / tau)) times
+#: the path's speed: 1.04 for one servo period, 1.08 for a late tick's step of MAX_STEP_PERIODS (2) periods, the
+#: longest the commander takes; allow that ripple and a little delivery jitter.
+SERVO_LAG_S = 0.1
+_LONGEST_STEP_S = MAX_STEP_PERIODS * SERVO_PERIOD_S
+SERVO_RIPPLE = (_LONGEST_STEP_S / SERVO_LAG_S) / (1 - np.exp(-_LONGEST_STEP_S / SERVO_LAG_S)) - 1 + 0.01
 
 
 def free_loopback_host() -> str:
