@@ -805,6 +805,8 @@ class CompiledStep:
     stay small whatever the sub-step count is (compiling the whole step put every sub-step into each graph:
     minutes to compile); the sub-step length is a tensor input, so a step that needs more sub-steps reuses the
     compiled graph.
+    With implicit friction (PF) the sub-step is two graphs with the Newton loop between them in Python, calling a
+    compiled Newton step (``_bound_substep``): the loop stops when it converges, as the eager one does.
 
     ``CompiledStep(model, **options)(state, u)`` returns what ``step(model, state, u)`` returns, within float
     rounding (the compiled kernels reassociate sums: about 1e-7 relative in float32, 1e-15 in float64). The
