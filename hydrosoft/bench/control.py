@@ -36,7 +36,9 @@ cores: pushing 11 min, rotation 11 min, rolling 20 min, in-hand 16 min. Run task
 to FILE as one JSON line, and a later run with the same FILE and settings reuses those episodes and runs only the
 rest, so a table of many hours can be run in pieces (stopped with Ctrl-C, on several machines, across days).
 Each row then also reports ``episodes_wall_s``, its episodes' own wall times, and ``settings.episodes`` says how
-many were reused and at which commits they ran.
+many were reused and at which commits they ran. ``--goal-indices 5,6,7`` runs only those goals (in that order),
+so one cell's goals can be split over processes (each with its own FILE, concatenated afterwards); its rows then
+cover only those goals, and a last run over all goals with the concatenated FILE prints the whole table.
 
 Torch runs single-threaded by default (``--threads``): on 2 shared cores the OpenMP intra-op threads stall
 behind other processes (a B = 64 step took 250 ms with 2 threads and 22 ms with 1).
@@ -112,6 +114,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=Path, default=None, metavar="FILE",
                         help="append each finished episode to FILE (JSON lines) and reuse the episodes already in "
                              "it that ran with the same settings: a long run can stop and resume")
+    parser.add_argument("--goal-indices", type=_csv, default=None, metavar="G1,G2",
+                        help="run only these goal indices, in this order (each below --goals): split one cell's "
+                             "goals over processes, each with its own --episodes file")
     parser.add_argument("--sdf-solver-steps", type=int, default=None, metavar="N",
                         help="the planner's bubble ellipsoid in N fixed solver steps (PlannerSettings."
                              "sdf_solver_steps; 2-3 are exact to rounding near the membrane) instead of solving "
@@ -280,6 +285,15 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     preset = QUICK if args.quick else FULL
     goals = args.goals if args.goals is not None else preset["goals"]
+    try:
+        indices = list(range(goals)) if args.goal_indices is None else [int(g) for g in args.goal_indices]
+    except ValueError:
+        indices = []
+    if args.goal_indices is not None and (not indices or any(not 0 <= g < goals for g in indices)
+                                          or len(set(indices)) < len(indices)):
+        _log(f"bench control: --goal-indices must be distinct integers from 0 to {goals - 1} (--goals {goals}), "
+             f"got {','.join(args.goal_indices or [])!r}")
+        return 2
     rate_solves = args.rate_solves if args.rate_solves is not None else preset["rate_solves"]
     started = time.perf_counter()
     rows = []
@@ -296,7 +310,7 @@ def run(args: argparse.Namespace) -> int:
         _log(f"bench control: {len(log.episodes)} episodes with these settings in {args.episodes}"
              + (f" ({log.other_settings} lines of other settings and {log.malformed} malformed lines not used)"
                 if log.other_settings or log.malformed else ""))
-    total = len(runs) * len(args.tasks) * len(args.loops) * goals
+    total = len(runs) * len(args.tasks) * len(args.loops) * len(indices)
     done = reused = 0
     for name in args.tasks:
         task = make_task(name, args.steps)
@@ -307,7 +321,7 @@ def run(args: argparse.Namespace) -> int:
                       "same": replace(PlantSettings.same_as_planner(model), **noise)}
             compiled_step = None
             for plant_name in [plant for plant, m in runs if m == model]:
-                keys = [(plant_name, name, model, loop, g) for loop in args.loops for g in range(goals)]
+                keys = [(plant_name, name, model, loop, g) for loop in args.loops for g in indices]
                 setup = None
                 if log is None or any(log.get(key) is None for key in keys):
                     setup = prepare(task, planner, plants[plant_name])
@@ -318,7 +332,7 @@ def run(args: argparse.Namespace) -> int:
                         compiled_step = setup.dynamics
                 for loop in args.loops:
                     results, walls = [], []
-                    for g in range(goals):
+                    for g in indices:
                         key = (plant_name, name, model, loop, g)
                         logged = log.get(key) if log is not None else None
                         if logged is None:
@@ -340,8 +354,8 @@ def run(args: argparse.Namespace) -> int:
     replanning = [replanning_rate(rate_solves, args.compile, dtype, args.sdf_solver_steps)
                   for dtype in args.rate_dtypes] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
-    settings = {**preset, "goals": goals, "quick": args.quick, "plant": args.plant, "plants": args.plants,
-                "same_models": same_models,
+    settings = {**preset, "goals": goals, "goal_indices": indices, "quick": args.quick, "plant": args.plant,
+                "plants": args.plants, "same_models": same_models,
                 "threads": args.threads,
                 "compile": args.compile, "sdf_solver_steps": args.sdf_solver_steps,
                 "noise": {"pose_mm": args.pose_noise_mm, "pose_deg": args.pose_noise_deg,
@@ -352,7 +366,7 @@ def run(args: argparse.Namespace) -> int:
                     "file": str(args.episodes), "reused": reused, "ran": done - reused,
                     "other_settings": log.other_settings, "malformed": log.malformed,
                     "commits": log.commits([(p, t, m, loop, g) for p, m in runs for t in args.tasks
-                                            for loop in args.loops for g in range(goals)])}}
+                                            for loop in args.loops for g in indices])}}
     if args.json:
         print(json.dumps({"rows": rows, "replanning": replanning, "settings": settings}))
     else:

@@ -71,3 +71,28 @@ def test_episodes_of_other_settings_and_broken_lines_are_counted_not_used(tmp_pa
     assert ran == ["closed"]
     assert document["settings"]["episodes"]["other_settings"] == 1
     assert document["settings"]["episodes"]["malformed"] == 1
+
+
+def test_goals_split_over_runs_add_up_to_the_whole_run(tmp_path, capsys, monkeypatch):
+    first, second = tmp_path / "first.jsonl", tmp_path / "second.jsonl"
+    ran = count_episodes(monkeypatch)
+    assert control.run(quick_run(first, tmp_path, "--loops", "closed", "--goal-indices", "1")) == 0
+    part = json.loads(capsys.readouterr().out)
+    assert ran == ["closed"] and part["rows"][0]["goals"] == 1 and part["settings"]["goal_indices"] == [1]
+    assert [json.loads(line)["goal"] for line in first.read_text().splitlines()] == [1]
+    assert control.run(quick_run(second, tmp_path, "--loops", "closed", "--goal-indices", "0")) == 0
+    capsys.readouterr()
+
+    whole = tmp_path / "whole.jsonl"
+    whole.write_text(first.read_text() + second.read_text())
+    ran.clear()
+    assert control.run(quick_run(whole, tmp_path, "--loops", "closed")) == 0
+    document = json.loads(capsys.readouterr().out)
+    assert ran == []  # both goals come from the concatenated logs
+    assert document["rows"][0]["goals"] == 2 and document["rows"][0]["errors_mm"][1] == part["rows"][0]["errors_mm"][0]
+
+
+def test_goal_indices_outside_the_goals_are_refused(tmp_path, capsys):
+    for bad in ("2", "0,0", "x"):
+        assert control.run(quick_run(tmp_path / "log.jsonl", tmp_path, "--goal-indices", bad)) == 2
+        assert "--goal-indices" in capsys.readouterr().err
