@@ -66,6 +66,20 @@ def cpu_time_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def thread_cpu_times_s(pid: int) -> dict[int, tuple[str, float]]:
+    """Per thread of process ``pid``: its id -> (its name, user plus system CPU time so far, s) (Linux
+    ``/proc/PID/task``). Threads that end while they are read are left out."""
+    threads = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        threads[int(task.name)] = (name, (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"))
+    return threads
+
+
 def resident_mb(pid: int) -> float:
     """Resident memory of process ``pid`` now, MB (Linux ``/proc/PID/status``, ``VmRSS``)."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():

@@ -3,7 +3,9 @@
 The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, made private: its own run_dir and
 127.0.0.N), then:
 
-- **idle** (``--idle-seconds``, no goal): each service's CPU use (% of one core, from ``/proc``) and the sum;
+- **idle** (``--idle-seconds``, no goal): each service's CPU use (% of one core, from ``/proc``) and the sum, and
+  its split over threads (``thread_split``): the asyncio loop's main thread, ZeroMQ's I/O threads and the others
+  (worker threads, and native ones such as ur_rtde's receive threads in the arm commander);
 - **soak** (``--minutes``): goals back to back, there and back again (pushing and rolling: +-3 cm along x;
   rotation: +-20 deg), each waited for (``GOAL_TIMEOUT_S``) and its outcome, true error and re-approaches of a
   lost object kept. Meanwhile every
@@ -48,6 +50,7 @@ from hydrosoft.services.benchmarks.launched_stack import (
     private_config,
     resident_mb,
     start_goal,
+    thread_cpu_times_s,
 )
 from hydrosoft.services.bus import Bus
 from hydrosoft.services.client import true_error_mm
@@ -121,6 +124,35 @@ def growth(first: dict[str, object], last: dict[str, object]) -> dict[str, float
     return out
 
 
+def thread_split(pid: int, before: dict[int, tuple[str, float]], after: dict[int, tuple[str, float]],
+                 seconds: float) -> dict[str, object]:
+    """A process's CPU use between two ``thread_cpu_times_s`` readings ``seconds`` apart, split by thread (% of one
+    core, 0.1 % steps): ``main`` (the thread whose id is ``pid``), ``zmq`` (ZeroMQ's ``ZMQbg/...`` threads, summed)
+    and ``others`` (every other thread that used CPU, busiest first; a thread that started between the readings
+    counts from zero)."""
+    split: dict[str, object] = {"main": 0.0, "zmq": 0.0, "others": []}
+    for tid, (name, end_s) in after.items():
+        percent = 100 * (end_s - before.get(tid, (name, 0.0))[1]) / seconds
+        if tid == pid:
+            split["main"] = round(percent, 1)
+        elif name.startswith("ZMQbg"):
+            split["zmq"] = round(split["zmq"] + percent, 1)
+        elif round(percent, 1) > 0:
+            split["others"].append(round(percent, 1))
+    split["others"].sort(reverse=True)
+    return split
+
+
+def _thread_times(pids: dict[str, int]) -> dict[str, dict[int, tuple[str, float]]]:
+    times = {}
+    for name, pid in pids.items():
+        try:
+            times[name] = thread_cpu_times_s(pid)
+        except OSError:  # the service died (the launcher restarts it): no split for it
+            continue
+    return times
+
+
 async def _sample(pids: dict[str, int], samples: Samples, t0_s: float, until_s: float) -> None:
     """Sample each service's memory and CPU time every ``SAMPLE_PERIOD_S`` until ``until_s`` (monotonic; inf: until
     cancelled)."""
@@ -174,8 +206,12 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
     """The idle phase, then the soak, measured (module docstring)."""
     idle = Samples()
     t0_s = time.monotonic()
+    threads_before = _thread_times(pids)
     await _sample(pids, idle, t0_s, t0_s + idle_s)
+    threads_after, idle_end_s = _thread_times(pids), time.monotonic()
     idle_summary = window_summary(idle, 0.0, idle_s)
+    threads = {name: thread_split(pids[name], threads_before[name], threads_after[name], idle_end_s - t0_s)
+               for name in sorted(threads_before.keys() & threads_after.keys())}
     samples = Samples()
     t0_s = time.monotonic()
     until_s = t0_s + soak_s
@@ -190,7 +226,7 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
     end_s = max(t for rows in samples.usage.values() for t, _, _ in rows)
     first = window_summary(samples, 0.0, window_s)
     last = window_summary(samples, end_s - window_s, end_s)
-    return {"idle": {"seconds": idle_s, "services": idle_summary["services"],
+    return {"idle": {"seconds": idle_s, "services": idle_summary["services"], "threads": threads,
                      "cpu_percent_total": round(sum(s["cpu_percent"] for s in idle_summary["services"].values()), 1)},
             "soak_seconds": round(end_s, 1), "goals": goals, "first": first, "last": last,
             "growth": growth(first, last)}
@@ -234,6 +270,9 @@ def format_table(result: dict[str, object]) -> str:
     first, last, grown = result["first"], result["last"], result["growth"]
     lines = [f"idle: {result['idle']['cpu_percent_total']} % of one core in all ("
              + ", ".join(f"{n} {s['cpu_percent']}" for n, s in result["idle"]["services"].items()) + ")"]
+    for name, split in result["idle"].get("threads", {}).items():
+        lines.append(f"  idle {name}: main thread {split['main']}, zmq {split['zmq']}, other threads "
+                     + (" + ".join(str(p) for p in split["others"]) or "none"))
     outcomes = [g["outcome"] for g in result["goals"]]
     reapproaches = sum(g.get("reapproaches", 0) for g in result["goals"])
     lines.append(f"soak: {result['soak_seconds']} s, {len(outcomes)} goals, {outcomes.count('reached')} reached, "

@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 
 from hydrosoft.services import messages as msg
-from hydrosoft.services.benchmarks.launched_stack import resident_mb
+import threading
+import time
+
+from hydrosoft.services.benchmarks.launched_stack import resident_mb, thread_cpu_times_s
 from hydrosoft.services.benchmarks.soak import (
     Samples,
     add_arguments,
@@ -19,6 +22,7 @@ from hydrosoft.services.benchmarks.soak import (
     growth,
     latency_split,
     run,
+    thread_split,
     window_summary,
 )
 
@@ -55,15 +59,40 @@ def test_windows_compare_memory_cpu_and_latency_and_the_growth_names_each():
     assert last["services"]["planner"]["rss_mb"] == 157.0 and last["latency"]["solve"]["p50_ms"] == 120.0
     grown = growth(first, last)
     assert grown["rss.planner"] == round(157 / 103 - 1, 3) and grown["latency.solve"] == 0.2
-    table = format_table({"idle": {"cpu_percent_total": 12.5, "services": {"planner": {"cpu_percent": 12.5}}},
+    table = format_table({"idle": {"cpu_percent_total": 12.5, "services": {"planner": {"cpu_percent": 12.5}},
+                                   "threads": {"planner": {"main": 2.0, "zmq": 0.5, "others": [6.0, 4.0]}}},
                           "soak_seconds": 600.0, "goals": [{"outcome": "reached", "reapproaches": 1},
                                                            {"outcome": "timeout", "reapproaches": 2}],
                           "first": first, "last": last, "growth": grown,
                           "errors": {"sim_world": {"physics_behind": 7, "tag_camera": 1}}})
     assert "idle: 12.5 % of one core in all (planner 12.5)" in table
+    assert "idle planner: main thread 2.0, zmq 0.5, other threads 6.0 + 4.0" in table
     assert "2 goals, 1 reached, 3 re-approaches of a lost cube" in table
     assert "errors counted: sim_world physics_behind 7, tag_camera 1" in table
     assert "latency solve" in table and "0.2" in table
+
+
+def test_the_thread_split_names_the_main_thread_zmq_and_the_busiest_others():
+    before = {10: ("python3", 1.0), 11: ("ZMQbg/IO/0", 0.5), 12: ("python3", 2.0), 13: ("ZMQbg/Reaper", 0.0)}
+    after = {10: ("python3", 1.5), 11: ("ZMQbg/IO/0", 0.6), 12: ("python3", 2.2), 13: ("ZMQbg/Reaper", 0.1),
+             14: ("python3", 1.0)}  # 14 started in between
+    assert thread_split(10, before, after, 10.0) == {"main": 5.0, "zmq": 2.0, "others": [10.0, 2.0]}
+
+
+def test_a_busy_thread_of_this_process_shows_among_the_others():
+    """A thread spinning while the main thread sleeps: read while it still runs (a thread that ended is gone)."""
+    pid, done = os.getpid(), threading.Event()
+    worker = threading.Thread(target=lambda: [None for _ in iter(done.is_set, True)])
+    before, tic = thread_cpu_times_s(pid), time.monotonic()
+    worker.start()
+    try:
+        time.sleep(1.0)
+        after = thread_cpu_times_s(pid)
+    finally:
+        done.set()
+        worker.join()
+    split = thread_split(pid, before, after, time.monotonic() - tic)
+    assert split["others"] and split["others"][0] > 20 > split["main"]
 
 
 def test_resident_memory_of_this_process():
