@@ -2,8 +2,11 @@
 
 Starts the simulator as a subprocess on a free 127.0.0.N (ur_rtde must not share its process), then measures:
 the event-loop freeze while connecting (ur_rtde's constructors hold the GIL), ``servo_to`` latency, servo tracking
-error, ``Stale`` detection latency after a stream stall, reconnection time after the controller drops for 1 s, and
-the simulator's CPU use while serving both clients. Prints one line per figure; about 10 s in all.
+error, ``Stale`` detection latency after a stream stall, reconnection time after the controller drops for 1 s, the
+simulator's CPU use while serving both clients, and this process's own CPU use while the arm is connected and no
+call is made (ur_rtde's receive threads, which poll their sockets every 100 us, and the driver's watchdog kicks: the
+driver's floor in an idle stack).
+Prints one line per figure; about 12 s in all.
 """
 
 from __future__ import annotations
@@ -109,6 +112,14 @@ async def _measure(host: str, sim_pid: int) -> None:
     await asyncio.sleep(2.0)
     cpu_share = (_cpu_s(sim_pid) - cpu0) / (time.perf_counter() - wall0)
     print(f"simulator CPU with both clients at 500 Hz: {cpu_share * 100:.0f} % of one core")
+
+    lag.cancel()  # of ours only the driver's supervisor runs now (watchdog kicks); the rest is ur_rtde's threads
+    cpu0, wall0 = _cpu_s(os.getpid()), time.perf_counter()
+    await asyncio.sleep(2.0)
+    idle_share = (_cpu_s(os.getpid()) - cpu0) / (time.perf_counter() - wall0)
+    print(f"client CPU while connected and idle: {idle_share * 100:.1f} % of one core (ur_rtde's receive and control "
+          "threads, and the driver's watchdog kicks)")
+    lag = _LoopLag()
 
     _request(host, op="stall", duration_s=0.5)
     t0 = time.perf_counter()
