@@ -16,7 +16,8 @@ that can touch a body in pushing and rotation), B = 64 samples, 8 elites, horizo
 4 CEM rounds for the open-loop solve, 10 goals. ``--quick`` (what CI runs, under 5 minutes on 2 cores): spacing
 12.5 mm (96 points), B = 16, 4 elites, K = 6, G = 1, 3 open-loop rounds, 2 goals, replanning rate from 3 solves.
 The replanning rate is always measured with the full planner (B = 64, K = 10, G = 2, 132 active points, 2
-sub-steps) on closed-loop planar pushing, once per ``--rate-dtypes`` entry in the same run: the first solve is
+sub-steps) on closed-loop planar pushing, once per ``--rate-dtypes`` entry and ``--rate-sdf-solver-steps`` entry
+(the bubble's closest-point solve converged, or in a fixed number of steps) in the same run: the first solve is
 reported apart (``first_solve_ms``: a warm-up, and with ``--compile`` the compilation unless an episode planner
 of the same shapes compiled the step before), then the mean of the timed solves (``solve_ms``, ``rate_hz``) and
 its rollout / backward / CEM split.
@@ -111,6 +112,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-dtypes", type=_csv, default=["float64", "float32"], metavar="D1,D2",
                         help="planner float types whose replanning rate is measured, in one run so that their "
                              "ratio holds (default float64,float32; the episodes plan in float64)")
+    parser.add_argument("--rate-sdf-solver-steps", type=_csv, default=None, metavar="S1,S2",
+                        help="the planner's bubble ellipsoid solve for the replanning rate, one measurement each in "
+                             "the same run: 'converged' or a fixed step count (default: --sdf-solver-steps)")
     parser.add_argument("--episodes", type=Path, default=None, metavar="FILE",
                         help="append each finished episode to FILE (JSON lines) and reuse the episodes already in "
                              "it that ran with the same settings: a long run can stop and resume")
@@ -282,6 +286,13 @@ def run(args: argparse.Namespace) -> int:
     if bad or args.plant not in (*MODEL_TITLES, "same"):
         _log(f"bench control: unknown task, model, loop, rate dtype or plant: {', '.join(bad) or args.plant}")
         return 2
+    try:
+        rate_sdf = ([args.sdf_solver_steps] if args.rate_sdf_solver_steps is None else
+                    [None if text == "converged" else int(text) for text in args.rate_sdf_solver_steps])
+    except ValueError:
+        _log(f"bench control: --rate-sdf-solver-steps takes 'converged' or step counts, got "
+             f"{','.join(args.rate_sdf_solver_steps)!r}")
+        return 2
     torch.set_num_threads(args.threads)
     preset = QUICK if args.quick else FULL
     goals = args.goals if args.goals is not None else preset["goals"]
@@ -351,8 +362,8 @@ def run(args: argparse.Namespace) -> int:
                              f"{result.initial_error_mm:.1f} -> {result.error_mm:.2f} mm ({result.status}, "
                              f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
                     rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
-    replanning = [replanning_rate(rate_solves, args.compile, dtype, args.sdf_solver_steps)
-                  for dtype in args.rate_dtypes] if rate_solves > 0 else None
+    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf)
+                  for sdf in rate_sdf for dtype in args.rate_dtypes] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "goal_indices": indices, "quick": args.quick, "plant": args.plant,
                 "plants": args.plants, "same_models": same_models,

@@ -56,6 +56,18 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
     assert "[32/32] same in_hand pff closed goal 1" in err
 
 
+def test_the_rate_is_measured_per_bubble_solve_setting_in_one_run(tmp_path, capsys):
+    args = parse("--tasks", "rotation", "--models", "nh", "--plants", "same", "--loops", "closed", "--quick",
+                 "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
+                 "--rate-sdf-solver-steps", "converged,2", "--json", "--out", str(tmp_path))
+    assert control.run(args) == 0
+    rates = json.loads(capsys.readouterr().out)["replanning"]
+    assert [(r["dtype"], r["sdf_solver_steps"]) for r in rates] == [("float32", None), ("float32", 2)]
+    assert all(r["rate_hz"] > 0 for r in rates)
+    assert control.run(parse("--rate-sdf-solver-steps", "two", "--out", str(tmp_path))) == 2
+    assert "--rate-sdf-solver-steps" in capsys.readouterr().err
+
+
 def test_table_is_laid_out_like_table_iii(tmp_path, capsys):
     args = parse("--tasks", "rotation", "--models", "nh", "--quick", "--steps", "1", "--rate-solves", "0",
                  "--out", str(tmp_path))
