@@ -216,15 +216,16 @@ def _plant_table(rows: list[dict], models: list[str]) -> str:
     """One plant's rows in Table III's layout."""
     index = {(r["task"], r["model"], r["loop"]): r for r in rows}
     tasks = [t for t in TASK_TITLES if any(r["task"] == t for r in rows)]
-    width = 27
+    width = 31
     head1 = f"{'Task':<18}" + "".join(f"| {MODEL_TITLES.get(m, m):^{width - 2}} " for m in models)
-    head2 = f"{'':<18}" + "".join(f"| {'OL Error [mm]':^12} {'CL Error [mm]':^12} " for _ in models)
-    head3 = f"{'':<18}" + "".join(f"| {'Mean':>6}{'Std':>6} {'Mean':>6}{'Std':>6} " for _ in models)
+    head2 = f"{'':<18}" + "".join(f"| {'OL Error [mm]':^14} {'CL Error [mm]':^14} " for _ in models)
+    head3 = f"{'':<18}" + "".join(f"| {'Mean':>7}{'Std':>7} {'Mean':>7}{'Std':>7} " for _ in models)
     lines = [head1, head2, head3, "-" * len(head3)]
 
     def cell(task: str, model: str, loop: str, key: str) -> str:
+        """One figure, 3 significant digits, in 7 characters: the widest (0.0123) keeps a space before it."""
         row = index.get((task, model, loop))
-        return f"{row[key]:>6.3g}" if row else f"{'-':>6}"
+        return f"{row[key]:>7.3g}" if row else f"{'-':>7}"
 
     for task in tasks:
         line = f"{TASK_TITLES[task]:<18}"

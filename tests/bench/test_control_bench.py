@@ -79,6 +79,15 @@ def test_table_is_laid_out_like_table_iii(tmp_path, capsys):
     assert "replanning rate" not in out
 
 
+def test_table_cells_of_four_digits_stay_apart():
+    row = {"plant": "finer", "task": "rotation", "model": "pf", "solve_ms": 1.0, "rollout_ms": 1.0,
+           "backward_ms": 0.0, "cem_ms": 0.0, "success_rate": 1.0, "statuses": {"reached": 1}}
+    rows = [{**row, "loop": "open", "error_mm_mean": 6.21, "error_mm_std": 1.59},
+            {**row, "loop": "closed", "error_mm_mean": 0.109, "error_mm_std": 0.0582}]
+    line = next(line for line in control._table(rows, ["pf"]).splitlines() if line.startswith("Planar Rotation"))
+    assert line.split("|")[1].split() == ["6.21", "1.59", "0.109", "0.0582"]
+
+
 def test_unknown_names_are_refused(tmp_path, capsys):
     assert control.run(parse("--tasks", "juggling", "--out", str(tmp_path))) == 2
     assert control.run(parse("--models", "rigid", "--out", str(tmp_path))) == 2
