@@ -60,10 +60,15 @@ def free_ur_host(offset: int) -> str:
     raise RuntimeError("no free 127.0.0.N for the simulated UR controller")
 
 
+def _stat_cpu_s(stat: Path) -> float:
+    """User plus system CPU time (s) in a Linux ``stat`` file of a process or a thread."""
+    fields = stat.read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def cpu_time_s(pid: int) -> float:
     """User plus system CPU time of process ``pid`` so far, s (Linux ``/proc/PID/stat``)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return _stat_cpu_s(Path(f"/proc/{pid}/stat"))
 
 
 def thread_cpu_times_s(pid: int) -> dict[int, tuple[str, float]]:
@@ -72,11 +77,9 @@ def thread_cpu_times_s(pid: int) -> dict[int, tuple[str, float]]:
     threads = {}
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
-            name = (task / "comm").read_text().strip()
-            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            threads[int(task.name)] = ((task / "comm").read_text().strip(), _stat_cpu_s(task / "stat"))
         except OSError:
             continue
-        threads[int(task.name)] = (name, (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"))
     return threads
 
 
