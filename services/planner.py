@@ -33,7 +33,6 @@ import asyncio
 import functools
 import math
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 
@@ -541,4 +540,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    service_main.exit_process(main())
