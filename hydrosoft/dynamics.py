@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 import types
 import warnings
 from dataclasses import dataclass, replace
@@ -798,6 +799,34 @@ def _private_copy(fn):
     return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
 
 
+class _RaisePastRecompileLimit:
+    """A context in which dynamo raises past its recompile limit instead of silently running eager, entered by every
+    running ``CompiledStep`` call. The setting is process-wide and solver workers run steps on several threads at
+    once, so the contexts are counted under a lock: the first to enter sets it, the last to leave restores it.
+    (Set by hand: ``torch._dynamo.config.patch`` costs ~16 us per call.)"""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._running = 0
+        self._previous = False
+
+    def __enter__(self) -> None:
+        config = torch._dynamo.config
+        with self._lock:
+            if self._running == 0:
+                self._previous, config.fail_on_recompile_limit_hit = config.fail_on_recompile_limit_hit, True
+            self._running += 1
+
+    def __exit__(self, *exc_info) -> None:
+        with self._lock:
+            self._running -= 1
+            if self._running == 0:
+                torch._dynamo.config.fail_on_recompile_limit_hit = self._previous
+
+
+_RAISE_PAST_RECOMPILE_LIMIT = _RaisePastRecompileLimit()
+
+
 class CompiledStep:
     """``step(model, state, u)`` with its sub-step compiled by ``torch.compile`` (inductor), and an eager fallback.
 
@@ -823,6 +852,9 @@ class CompiledStep:
     A step from the very state this instance returned last (a rollout) takes its start stability check from
     that step's end check instead of repeating it: one ``substeps_needed`` per step instead of two, the same
     sub-step counts. Nothing in the library requires it.
+    An instance may be called from several threads at once (``CemGdConfig.workers``). The first step from each
+    new input signature runs alone, so that it compiles once: two threads compiling the same signature at once each
+    added its graphs to dynamo's cache and passed its recompile limit (seen: the solver fell back to eager).
     """
 
     def __init__(self, model: Model, **options) -> None:
@@ -834,9 +866,13 @@ class CompiledStep:
         if getattr(model.contact, "implicit_friction", False):
             friction_move = torch.compile(_private_copy(_newton_move), **options)
         self._compiled = torch.compile(_private_copy(_bound_substep(model, friction_move)), **options)
-        # (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's next step
-        # starts from that state, so its start check is already known (one stability check per step, not two)
-        self._end_check: tuple[Tensor, int] | None = None
+        # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
+        # next step starts from that state, so its start check is already known (one stability check per step)
+        self._end_check = threading.local()
+        # input signatures (_signature) a step has run from: their graphs are compiled, and further steps from them
+        # may run on several threads at once; a step from any other runs under _first_steps, one at a time
+        self._warm: set[tuple] = set()
+        self._first_steps = threading.Lock()
 
     @property
     def compiled(self) -> bool:
@@ -846,23 +882,37 @@ class CompiledStep:
     def __call__(self, state: State, u: Tensor) -> State:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
         if self.fallback_reason is None:
-            config = torch._dynamo.config  # set and restored by hand: config.patch costs ~16 us per call
-            previous, config.fail_on_recompile_limit_hit = config.fail_on_recompile_limit_hit, True
             try:
-                known = self._end_check
-                start = known[1] if known is not None and state.phi is not None and state.phi is known[0] else None
-                out, needed = _checked_step(self.model, state, u, self._compiled, start)
-                self._end_check = None if needed is None else (out.phi, needed)
-                return out
+                key = _signature(state, u)
+                if key in self._warm:
+                    return self._compiled_step(state, u)
+                with self._first_steps:
+                    out = self._compiled_step(state, u)
+                    self._warm.add(key)
+                    return out
             except UnstableStepError:
                 raise
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager step
                 self.fallback_reason = f"{type(err).__name__}: {err}"
                 warnings.warn(f"torch.compile of the step failed, running eager: {self.fallback_reason}",
                               RuntimeWarning, stacklevel=2)
-            finally:
-                config.fail_on_recompile_limit_hit = previous
         return step(self.model, state, u)
+
+    def _compiled_step(self, state: State, u: Tensor) -> State:
+        with _RAISE_PAST_RECOMPILE_LIMIT:
+            known = getattr(self._end_check, "last", None)
+            same = known is not None and state.phi is not None and state.phi is known[0]
+            out, needed = _checked_step(self.model, state, u, self._compiled, known[1] if same else None)
+        self._end_check.last = None if needed is None else (out.phi, needed)
+        return out
+
+
+def _signature(state: State, u: Tensor) -> tuple:
+    """What tells the compiled graphs of a step apart: grad mode, and each input's dtype, device, shape, strides and
+    whether it requires grad (``state.phi`` absent or not)."""
+    tensors = (*state, u)
+    return (torch.is_grad_enabled(),
+            *(None if t is None else (t.dtype, t.device, t.shape, t.stride(), t.requires_grad) for t in tensors))
 
 
 def rollout(model: Model, state: State, controls: Tensor) -> list[State]:

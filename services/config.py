@@ -198,7 +198,10 @@ class PlannerConfig(Strict):
     period (must be under half the commander's heartbeat_timeout_s). target_lead_s: how long each target stays
     valid (its deadline). threads: torch intra-op threads of the solve (1 by default: with the other services on
     a small machine, two threads that wait for each other at every kernel's barrier were several times slower
-    than one under load; raise it on a machine with cores to spare). max_reapproaches: how often one goal may bring
+    than one under load; raise it on a machine with cores to spare). workers: solver threads that each roll out a
+    share of the samples (``CemGdConfig.workers``; 1 by default), at most ``samples``: on a machine with a core per
+    worker to spare, two workers with one torch thread each beat one solve on two threads (``hydrosoft-stack bench
+    control --rate-workers 1,2 --threads 1`` measures it). max_reapproaches: how often one goal may bring
     the bubble back onto an object it lost (``services/reapproach.py``; one-arm scenes) before it fails; 0: a lost
     object fails the goal at once."""
 
@@ -217,6 +220,7 @@ class PlannerConfig(Strict):
     heartbeat_period_s: float = 0.1
     target_lead_s: float = 0.5
     threads: int = 1
+    workers: int = 1
     max_reapproaches: int = 3
 
     def __post_init__(self) -> None:
@@ -226,7 +230,10 @@ class PlannerConfig(Strict):
                  "planner.sdf_solver_steps", f"must be 0..{SDF_SOLVER_STEPS_MAX} (or left out: solve to "
                  f"convergence), got {self.sdf_solver_steps}")
         _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s",
-                  "threads")
+                  "threads", "workers")
+        _require(self.workers <= self.samples, "planner.workers",
+                 f"must be at most planner.samples ({self.samples}): each worker rolls out a share of them, got "
+                 f"{self.workers}")
         for key, value in self.max_age_s.items():
             _require(value > 0, f"planner.max_age_s.{key}", f"must be > 0 s, got {value}")
 

@@ -117,7 +117,8 @@ class PlannerCore:
         task = make_task(config.scene.task)
         settings = PlannerSettings(model=pc.model, spacing=pc.spacing, samples=pc.samples, elites=pc.elites,
                                    horizon=pc.horizon, grad_steps=pc.grad_steps, dtype=getattr(torch, pc.dtype),
-                                   seed=pc.seed, sdf_solver_steps=pc.sdf_solver_steps, compile=pc.compile)
+                                   seed=pc.seed, sdf_solver_steps=pc.sdf_solver_steps, compile=pc.compile,
+                                   workers=pc.workers)
         model, state, _ = compile_scene(planner_scene(task, pc), dtype=settings.dtype)
         arms = {}
         for arm in config.arms:

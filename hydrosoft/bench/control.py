@@ -15,9 +15,10 @@ Settings. Full (default): planner surface spacing 8.4 mm (216 points on the 5 cm
 that can touch a body in pushing and rotation), B = 64 samples, 8 elites, horizon K = 10, G = 2 gradient steps,
 4 CEM rounds for the open-loop solve, 10 goals. ``--quick`` (what CI runs, under 5 minutes on 2 cores): spacing
 12.5 mm (96 points), B = 16, 4 elites, K = 6, G = 1, 3 open-loop rounds, 2 goals, replanning rate from 3 solves.
-The replanning rate is always measured with the full planner (B = 64, K = 10, G = 2, 132 active points, 2
-sub-steps) on closed-loop planar pushing, once per ``--rate-dtypes`` entry and ``--rate-sdf-solver-steps`` entry
-(the bubble's closest-point solve converged, or in a fixed number of steps) in the same run: the first solve is
+The replanning rate is always measured with the full planner (B = 64, K = 10, G = 2, 132 active points, 3
+sub-steps) on closed-loop planar pushing, once per ``--rate-dtypes`` entry, ``--rate-sdf-solver-steps`` entry
+(the bubble's closest-point solve converged, or in a fixed number of steps) and ``--rate-workers`` entry (the
+solver's threads, each rolling out a share of the samples) in the same run: the first solve is
 reported apart (``first_solve_ms``: a warm-up, and with ``--compile`` the compilation unless an episode planner
 of the same shapes compiled the step before), then the mean of the timed solves (``solve_ms``, ``rate_hz``) and
 its rollout / backward / CEM split.
@@ -56,6 +57,7 @@ import json
 import math
 import statistics
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -115,6 +117,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-sdf-solver-steps", type=_csv, default=None, metavar="S1,S2",
                         help="the planner's bubble ellipsoid solve for the replanning rate, one measurement each in "
                              "the same run: 'converged' or a fixed step count (default: --sdf-solver-steps)")
+    parser.add_argument("--rate-workers", type=_csv, default=["1"], metavar="W1,W2",
+                        help="solver worker threads for the replanning rate (each rolls out a share of the 64 "
+                             "samples; PlannerSettings.workers), one measurement each in the same run (default 1); "
+                             "give each worker one torch thread: --threads 1")
     parser.add_argument("--episodes", type=Path, default=None, metavar="FILE",
                         help="append each finished episode to FILE (JSON lines) and reuse the episodes already in "
                              "it that ran with the same settings: a long run can stop and resume")
@@ -157,12 +163,16 @@ def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
 
 
 def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
-                    sdf_solver_steps: int | None = None) -> dict:
+                    sdf_solver_steps: int | None = None, workers: int = 1) -> dict:
     """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
     first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the
     mean of ``solves`` timed solves (``solve_ms``, ms) split into rollout / backward / CEM, and the replanning
-    rate (Hz) it allows. ``sdf_solver_steps``: the planner's bubble ellipsoid solve (``PlannerSettings``)."""
+    rate (Hz) it allows, and how much of a solve the forward calls of the step (``step_forward_ms``: compiled
+    sub-steps and the stability checks) and of the stage and terminal costs (``cost_forward_ms``) take, summed over
+    the workers' threads; the backward passes through both are in ``backward_ms``. ``sdf_solver_steps``: the
+    planner's bubble ellipsoid solve; ``workers``: the solver's threads, each rolling out a share of the samples
+    (both ``PlannerSettings``)."""
     import msgspec
     import torch
 
@@ -174,17 +184,21 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
 
     task = make_task("pushing")
     settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
-                               compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps)
+                               compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps,
+                               workers=workers)
     setup = prepare(task, settings)
     model = setup.planner_model
     surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
     pairs = sum(pair_counts(model))
     low, high = task.bounds(model.body_names, model.dtype)
     stage, terminal = task.costs(model, task.sample_goal(0))
-    solver = CemGd(setup.dynamics, stage, terminal, low, high,
+    step_calls, stage_calls, terminal_calls = Stopwatch(setup.dynamics), Stopwatch(stage), Stopwatch(terminal)
+    solver = CemGd(step_calls, stage_calls, terminal_calls, low, high,
                    config=settings.config(settings.horizon, 1), dtype=model.dtype)
     first_s, times = 0.0, []
     for k in range(solves + 1):
+        for watch in (step_calls, stage_calls, terminal_calls):
+            watch.seconds = 0.0
         tic = time.perf_counter()
         result = solver.solve(observed_state(setup))
         wall = time.perf_counter() - tic
@@ -193,8 +207,9 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         if k == 0:
             first_s = wall
         else:
-            times.append({**result.timings, "solve_s": wall})
-        _log(f"[rate] {dtype} solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
+            times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
+                          "cost_s": stage_calls.seconds + terminal_calls.seconds})
+        _log(f"[rate] {dtype}, {workers} worker(s), solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
     compiled = getattr(setup.dynamics, "compiled", False)
     return {
@@ -203,7 +218,25 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         "sdf_solver_steps": sdf_solver_steps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
+        "workers": workers, "step_forward_ms": 1e3 * mean["step_s"], "cost_forward_ms": 1e3 * mean["cost_s"],
     }
+
+
+class Stopwatch:
+    """A callable that calls ``fn`` and adds the wall seconds of its calls to ``seconds`` (from any thread; summed
+    over the threads that call it at once)."""
+
+    def __init__(self, fn) -> None:
+        self.fn, self.seconds, self._lock = fn, 0.0, threading.Lock()
+
+    def __call__(self, *args):
+        tic = time.perf_counter()
+        try:
+            return self.fn(*args)
+        finally:
+            elapsed = time.perf_counter() - tic
+            with self._lock:
+                self.seconds += elapsed
 
 
 def _table(rows: list[dict], models: list[str]) -> str:
@@ -294,6 +327,9 @@ def run(args: argparse.Namespace) -> int:
         _log(f"bench control: --rate-sdf-solver-steps takes 'converged' or step counts, got "
              f"{','.join(args.rate_sdf_solver_steps)!r}")
         return 2
+    if not all(text.isdigit() and int(text) >= 1 for text in args.rate_workers):
+        _log(f"bench control: --rate-workers takes positive counts, got {','.join(args.rate_workers)!r}")
+        return 2
     torch.set_num_threads(args.threads)
     preset = QUICK if args.quick else FULL
     goals = args.goals if args.goals is not None else preset["goals"]
@@ -363,8 +399,9 @@ def run(args: argparse.Namespace) -> int:
                              f"{result.initial_error_mm:.1f} -> {result.error_mm:.2f} mm ({result.status}, "
                              f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
                     rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
-    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf)
-                  for sdf in rate_sdf for dtype in args.rate_dtypes] if rate_solves > 0 else None
+    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers))
+                  for workers in args.rate_workers for sdf in rate_sdf for dtype in args.rate_dtypes
+                  ] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "goal_indices": indices, "quick": args.quick, "plant": args.plant,
                 "plants": args.plants, "same_models": same_models,
@@ -390,8 +427,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
                   f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
                   f"point-body pairs), {r['substeps']} sub-steps, bubble SDF {sdf}, {r['threads']} thread(s), "
+                  f"{r['workers']} solver worker(s), "
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
-                  f"{r['rollout_ms']:.0f}, backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first solve "
+                  f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
+                  f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first "
+                  f"solve "
                   f"{r['first_solve_ms'] / 1e3:.1f} s{compiling})")
         print(f"\n{total} episodes in {settings['wall_s']:.0f} s"
               + (f" ({reused} of them reused from {args.episodes}; the episodes' own wall times add up to "

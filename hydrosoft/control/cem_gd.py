@@ -16,17 +16,27 @@ The problem is given as plain differentiable functions:
 
 Step sizes and spreads are fractions of the action half-range ``(high - low) / 2``, so one configuration
 suits actions that mix metres and radians. An axis with ``low == high`` is held at that value.
+
+Workers. With ``workers = W > 1`` the ``B`` samples are split into ``W`` contiguous shares, and each share's
+gradient steps and final rollout run on a thread of its own, all at once (each sample's descent is its own, so
+the shares meet only at the refit); sampling and the refit stay on the calling thread. The rows do not interact,
+so every sample's cost and gradient are what one rollout over all ``B`` gives, and so is the plan, to float
+rounding. It pays where the step's kernels are too small to keep a second core busy by themselves (torch's
+intra-op threads then mostly wait at each kernel's barrier): give each worker one intra-op thread
+(``torch.set_num_threads(1)``). ``dynamics``, ``stage_cost`` and ``terminal_cost`` are then called from several
+threads at once, so they must not keep per-call state that one share would overwrite for another.
 """
 from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
 import torch
 from torch import Tensor
-from torch.utils._pytree import tree_map
+from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 
 State = Any
 """A tensor or a pytree (tuple, NamedTuple, dict) of tensors, each with a leading batch axis."""
@@ -48,10 +58,13 @@ class CemGdConfig:
     adam_betas: tuple[float, float] = (0.9, 0.999)
     adam_eps: float = 1e-8  # in cost units, like the normalized gradient
     seed: int = 0  # seed of the solver's private generator
+    workers: int = 1  # W <= B, threads that each roll out a share of the samples (module docstring)
 
     def __post_init__(self) -> None:
         if not 1 <= self.elites <= self.samples:
             raise ValueError(f"need 1 <= elites <= samples, got elites={self.elites}, samples={self.samples}")
+        if not 1 <= self.workers <= self.samples:
+            raise ValueError(f"need 1 <= workers <= samples, got workers={self.workers}, samples={self.samples}")
         if self.horizon < 1 or self.grad_steps < 0 or self.cem_iterations < 1:
             raise ValueError("need horizon >= 1, grad_steps >= 0 and cem_iterations >= 1")
         if self.lr < 0 or self.grad_clip <= 0 or self.init_std < 0 or self.min_std < 0:
@@ -65,7 +78,7 @@ class PlanResult(NamedTuple):
     plan: Tensor  # (K, *action_shape), the best sequence
     cost: float  # its cost J; inf when no sample had a finite cost
     status: str  # "ok" or "no_finite_sample" (then action and plan are the rest action)
-    timings: dict[str, float]  # wall seconds: rollout_s (forward), backward_s (gradients + Adam), cem_s
+    timings: dict[str, float]  # wall s: rollout_s (forward), backward_s (gradients + Adam), cem_s; the slowest share's
 
 
 class CemGd:
@@ -105,6 +118,7 @@ class CemGd:
         self._half = (self.high - self.low) / 2
         self._rest = torch.zeros_like(self.low).clamp(self.low, self.high)
         self._generator = torch.Generator(device=self.device)
+        self._pool = ThreadPoolExecutor(config.workers, "cem-gd") if config.workers > 1 else None
         self.reset()
 
     def reset(self) -> None:
@@ -130,12 +144,11 @@ class CemGd:
             tic = self._clock()
             u = self._sample()
             timings["cem_s"] += self._clock() - tic
-            u = self._descend(x0, u, timings)
-
-            tic = self._clock()
-            with torch.no_grad():
-                cost = self._rollout(x0, u)
-            timings["rollout_s"] += self._clock() - tic
+            shares = self._map(self._improve, self._shares(x0, u))
+            u, cost = torch.cat([share[0] for share in shares]), torch.cat([share[1] for share in shares])
+            slowest = max((share[2] for share in shares), key=lambda t: t["rollout_s"] + t["backward_s"])
+            timings["rollout_s"] += slowest["rollout_s"]
+            timings["backward_s"] += slowest["backward_s"]
 
             tic = self._clock()
             cost = torch.where(torch.isfinite(cost), cost, math.inf)
@@ -187,6 +200,33 @@ class CemGd:
         if cost.shape != (u.shape[0],):
             raise ValueError(f"costs must have shape (B,) = ({u.shape[0]},), got {tuple(cost.shape)}")
         return cost
+
+    def _improve(self, x0: State, u: Tensor) -> tuple[Tensor, Tensor, dict[str, float]]:
+        """One share's part of a CEM round: its ``G`` Adam steps from ``u (b, K, *A)`` and the cost of the result;
+        ``(u, J (b,), timings)``. Every sample's descent is its own, so shares need not meet until the refit."""
+        timings = {"rollout_s": 0.0, "backward_s": 0.0}
+        u = self._descend(x0, u, timings)
+        tic = self._clock()
+        with torch.no_grad():  # grad mode is per thread: set here, on the worker
+            cost = self._rollout(x0, u)
+        timings["rollout_s"] += self._clock() - tic
+        return u, cost, timings
+
+    def _shares(self, x: State, u: Tensor) -> list[tuple[State, Tensor]]:
+        """The batch ``(x, u)`` as ``workers`` contiguous shares (one share, unsplit, with one worker)."""
+        workers = self.config.workers
+        if workers == 1:
+            return [(x, u)]
+        leaves, spec = tree_flatten(x)
+        cut = [leaf.tensor_split(workers) if isinstance(leaf, Tensor) else [leaf] * workers for leaf in leaves]
+        return [(tree_unflatten([pieces[i] for pieces in cut], spec), piece)
+                for i, piece in enumerate(u.tensor_split(workers))]
+
+    def _map(self, fn: Callable[..., Any], items: list[tuple]) -> list:
+        """``fn(*item)`` for each item, on the worker threads when there are several; the results in order."""
+        if self._pool is None:
+            return [fn(*item) for item in items]
+        return list(self._pool.map(lambda item: fn(*item), items))
 
     def _descend(self, x0: State, u: Tensor, timings: dict[str, float]) -> Tensor:
         """``G`` Adam steps on each sample's own cost, in half-range-normalized coordinates, kept in bounds.

@@ -10,6 +10,7 @@ planner optimizes what the evaluation measures.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 from typing import Callable
 
@@ -165,7 +166,8 @@ class Task:
         body_poses (M, 7))``: the state a goal started from, so that slip stays bounded over a whole episode of
         replans (each plan of a closed loop would otherwise allow ``drift_limit`` more, and the bubble walked off
         the cube). Without it, the anchor is each plan's first state: the first state the stage cost sees at
-        ``k = 0`` (the solver always evaluates ``k = 0`` first in a rollout).
+        ``k = 0`` (the solver always evaluates ``k = 0`` first in a rollout), kept per thread, so that solver
+        workers rolling out shares of the rows at once each keep their own.
         """
         w = self.weights
         goal = goal.to(model.dtype)
@@ -173,20 +175,24 @@ class Task:
         scale = self.bounds(model.body_names, model.dtype)[1].clamp_min(torch.finfo(model.dtype).eps)
         actuated = (scale > 10 * torch.finfo(model.dtype).eps).any(-1)
         rolling = 1.0 / self.travel_ratio - 1.0
-        start: dict[str, Tensor] = {}
+        # the anchor (object position, body offsets): fixed, or each plan's first state, kept per thread (solver
+        # workers roll out their shares of the rows on threads of their own, each from k = 0)
+        fixed: tuple[Tensor, Tensor] | None = None
         if anchor is not None:
-            start["object"] = anchor[0].to(model.dtype)[:3]
-            start["offset"] = anchor[1].to(model.dtype)[actuated, :3] - start["object"]
+            origin = anchor[0].to(model.dtype)[:3]
+            fixed = (origin, anchor[1].to(model.dtype)[actuated, :3] - origin)
+        first = threading.local()
 
         def slip(state: State) -> Tensor:
-            moved = state.object_pose[:, None, :3] - start["object"]
+            origin, offset0 = fixed if fixed is not None else first.anchor
+            moved = state.object_pose[:, None, :3] - origin
             offset = state.body_poses[:, actuated, :3] - state.object_pose[:, None, :3]
-            return safe_norm(offset - start["offset"] - rolling * moved)
+            return safe_norm(offset - offset0 - rolling * moved)
 
         def stage_cost(state: State, u: Tensor, k: int) -> Tensor:
-            if k == 0 and anchor is None:
-                start["object"] = state.object_pose[:, None, :3].detach()
-                start["offset"] = (state.body_poses[:, actuated, :3] - start["object"]).detach()
+            if k == 0 and fixed is None:
+                origin = state.object_pose[:, None, :3].detach()
+                first.anchor = (origin, (state.body_poses[:, actuated, :3] - origin).detach())
             track = mean_squared_point_distance(points, state.object_pose, goal) / w.scale**2
             effort = ((u / scale) * actuated.view(-1, 1)).square().flatten(1).sum(-1)
             return w.stage * track + w.effort * effort + hinge_cost(slip(state), w.drift_limit, w.drift,

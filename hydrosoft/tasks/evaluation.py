@@ -62,6 +62,7 @@ class PlannerSettings:
     open_loop_iterations: CEM rounds of the single open-loop solve. substep_factor: sub-steps per compiled sub-step
     (a finer integration step ``dt / (substeps * factor)`` within each control step). lr, init_std, min_std: fractions of the
     action half-range (``CemGdConfig``). dtype: the planner's float type. seed: the solver's seed.
+    workers: solver threads that each roll out a share of the B samples (``CemGdConfig.workers``; 1: none).
     sdf_solver_steps: None, or a fixed number of solver steps for the planner's iteratively solved body SDFs
     (the ellipsoid's ``solver_steps``: 2 is exact to rounding within 1 cm of the membrane and fuses into one
     kernel when compiled); the plant always solves to convergence.
@@ -89,13 +90,14 @@ class PlannerSettings:
     seed: int = 0
     sdf_solver_steps: int | None = None
     compile: bool = False
+    workers: int = 1
 
     def config(self, horizon: int, iterations: int) -> CemGdConfig:
         """The solver configuration for a plan of ``horizon`` steps and ``iterations`` CEM rounds."""
         return CemGdConfig(
             samples=self.samples, elites=min(self.elites, self.samples), horizon=horizon,
             grad_steps=self.grad_steps, cem_iterations=iterations, lr=self.lr, init_std=self.init_std,
-            min_std=self.min_std, seed=self.seed,
+            min_std=self.min_std, seed=self.seed, workers=self.workers,
         )
 
 

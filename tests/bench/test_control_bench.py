@@ -68,6 +68,20 @@ def test_the_rate_is_measured_per_bubble_solve_setting_in_one_run(tmp_path, caps
     assert "--rate-sdf-solver-steps" in capsys.readouterr().err
 
 
+def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost_calls_timed(tmp_path, capsys):
+    assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
+                             "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
+                             "--rate-workers", "1,2", "--json", "--out", str(tmp_path))) == 0
+    rates = json.loads(capsys.readouterr().out)["replanning"]
+    assert [r["workers"] for r in rates] == [1, 2]
+    for r in rates:
+        assert 0 < r["step_forward_ms"] and 0 < r["cost_forward_ms"] and r["rate_hz"] > 0
+    # one worker: the step's and the costs' forward calls lie within the rollouts (the rest is the CEM's own work)
+    assert rates[0]["step_forward_ms"] + rates[0]["cost_forward_ms"] <= rates[0]["rollout_ms"]
+    assert control.run(parse("--rate-workers", "0", "--out", str(tmp_path))) == 2
+    assert "--rate-workers" in capsys.readouterr().err
+
+
 def test_table_is_laid_out_like_table_iii(tmp_path, capsys):
     args = parse("--tasks", "rotation", "--models", "nh", "--quick", "--steps", "1", "--rate-solves", "0",
                  "--out", str(tmp_path))
@@ -107,5 +121,5 @@ def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp
     finally:
         torch._dynamo.reset()
     out = capsys.readouterr().out
-    assert "float32" in out and "sub-steps, bubble SDF in 3 solver steps, 1 thread(s), compiled:" in out
+    assert "float32" in out and "sub-steps, bubble SDF in 3 solver steps, 1 thread(s), 1 solver worker(s), compiled:" in out
     assert "compiling the step" in out

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import threading
 from typing import NamedTuple
 
 import pytest
@@ -196,13 +197,14 @@ def test_every_sample_and_the_action_stay_within_bounds(low, width, start, dtype
     assert torch.equal(result.action[fixed], low_t[fixed])
 
 
-def test_samples_with_nan_dynamics_are_never_chosen():
+@pytest.mark.parametrize("workers", [1, 2])
+def test_samples_with_nan_dynamics_are_never_chosen(workers):
     def nan_when_pushing_x(state, u):  # the goal lies towards +x, but any u_x > 0.05 gives NaN
         nxt = integrator(state, u)
         bad = (u[:, 0, 0] > 0.05).unsqueeze(-1)
         return State(torch.where(bad, math.nan, nxt.pos), nxt.steps)
 
-    solver = make_solver(CemGdConfig(grad_steps=2), dynamics=nan_when_pushing_x)
+    solver = make_solver(CemGdConfig(grad_steps=2, workers=workers), dynamics=nan_when_pushing_x)
     for _ in range(2):
         result = solver.solve(x0())
         assert result.status == "ok" and math.isfinite(result.cost)
@@ -286,3 +288,41 @@ def test_refitted_std_is_floored_to_keep_exploring():
     solver.solve(x0())
     torch.testing.assert_close(solver.std[:-1], torch.full((3, 1, 3), 0.2 * BOUND, dtype=F64))
     torch.testing.assert_close(solver.std[-1], torch.full((1, 3), 0.5 * BOUND, dtype=F64))
+
+
+class ThreadRecorder:
+    """Dynamics wrapper recording which threads ran it and the batch sizes they were given."""
+
+    def __init__(self, dynamics):
+        self.dynamics = dynamics
+        self.threads: set[int] = set()
+        self.batches: set[int] = set()
+
+    def __call__(self, state, u):
+        self.threads.add(threading.get_ident())
+        self.batches.add(u.shape[0])
+        return self.dynamics(state, u)
+
+
+@pytest.mark.parametrize("workers", [2, 3])
+def test_workers_split_the_batch_over_threads_and_plan_the_same(workers):
+    """64 samples over 2 workers (32 each) or 3 (22, 21, 21): every share on a worker thread, and three
+    receding-horizon solves give the plans, costs and warm starts of the single-thread solver."""
+    recorder = ThreadRecorder(integrator)
+    alone, shared = make_solver(CemGdConfig(seed=3)), make_solver(CemGdConfig(seed=3, workers=workers), recorder)
+    state = x0()
+    for _ in range(3):
+        expected, result = alone.solve(state), shared.solve(state)
+        torch.testing.assert_close(result.plan, expected.plan, rtol=0, atol=1e-12)
+        assert result.cost == pytest.approx(expected.cost, rel=1e-12)
+        torch.testing.assert_close(shared.mean, alone.mean, rtol=0, atol=1e-12)
+        state = integrator(state, result.action.unsqueeze(0))
+    assert threading.get_ident() not in recorder.threads and 1 <= len(recorder.threads) <= workers
+    assert recorder.batches == {len(share) for share in torch.arange(64).tensor_split(workers)}
+
+
+def test_workers_are_validated():
+    with pytest.raises(ValueError, match="workers"):
+        CemGdConfig(samples=4, elites=2, workers=5)
+    with pytest.raises(ValueError, match="workers"):
+        CemGdConfig(workers=0)

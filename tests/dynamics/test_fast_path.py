@@ -213,3 +213,47 @@ def test_a_compiled_rollout_checks_stability_once_per_step_with_the_same_result(
     torch.testing.assert_close(compiled.forces, eager.forces, rtol=0, atol=1e-14)
     torch.testing.assert_close(compiled.object_pose, eager.object_pose, rtol=0, atol=1e-14)
     assert torch.isfinite(compiled_again.forces).all()
+
+
+def test_threads_stepping_at_once_compile_each_signature_once(fresh_dynamo):
+    """Solver workers call one CompiledStep from several threads at once. Four threads taking the first steps of a
+    rollout together, with gradients and without, compile the graphs that one thread alone compiles, stay compiled
+    and return the eager step's states. (Without the first-step lock each thread added its own copy of every graph
+    to dynamo's cache, and the instance passed its recompile limit.)"""
+    import threading
+
+    model, state, u = pushing(batch=2)
+    counters = torch._dynamo.utils.counters
+    alone = CompiledStep(model, backend="eager")
+    before = counters["stats"]["unique_graphs"]
+    for grad in (False, True):
+        with torch.set_grad_enabled(grad):
+            alone(alone(state, u), u)
+    graphs_alone = counters["stats"]["unique_graphs"] - before
+
+    fast = CompiledStep(replace(model, dt=model.dt * 1.01), backend="eager")
+    expected = step(fast.model, step(fast.model, state, u), u)
+    start, results, errors = threading.Barrier(4), [], []
+
+    def rollout(grad: bool) -> None:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                with torch.set_grad_enabled(grad):
+                    start.wait(timeout=60)
+                    results.append(fast(fast(state, u), u))
+        except BaseException as error:  # noqa: BLE001 - reported by the test
+            errors.append(error)
+
+    before = counters["stats"]["unique_graphs"]
+    threads = [threading.Thread(target=rollout, args=(k % 2 == 1,)) for k in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=300)
+    assert not errors and len(results) == 4, errors
+    assert fast.compiled, fast.fallback_reason
+    assert counters["stats"]["unique_graphs"] - before == graphs_alone
+    for out in results:
+        torch.testing.assert_close(out.forces.detach(), expected.forces, rtol=0, atol=1e-14)
+        torch.testing.assert_close(out.object_pose.detach(), expected.object_pose, rtol=0, atol=1e-14)

@@ -37,6 +37,8 @@ def test_the_shipped_configs_load(name):
     (ONE_ARM + "[scene]\ntask_frame = [0.5, 0, 0, 0.995, 0.0998, 0, 0]\n", "scene.task_frame"),  # 11.5 deg tilt
     ('arms = [{ name = "a" }, { name = "a" }]\n', "arms"),
     (ONE_ARM + "[planner]\nsdf_solver_steps = 33\n", "planner.sdf_solver_steps"),
+    (ONE_ARM + "[planner]\nworkers = 0\n", "planner.workers"),
+    (ONE_ARM + "[planner]\nsamples = 16\nworkers = 17\n", "planner.workers"),  # more workers than samples
 ])
 def test_a_bad_key_is_named(text, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):

@@ -170,3 +170,25 @@ def test_pruning_keeps_every_point_that_touches_a_fixed_body_at_any_goal(name):
             missing = [p for p in full.points[touching].round(decimals=9).tolist() if tuple(p) not in kept]
             assert not missing, f"{name} goal {seed}: {len(missing)} pruned points touch {full.body_names[m]}"
     assert torch.equal(start, state.object_pose[0])
+
+
+def test_solver_workers_plan_what_one_thread_plans_with_the_task_costs():
+    """The costs anchor the drift at each plan's first state, per thread: three solver workers (shares of 6, 5 and 5
+    samples, each anchoring its own) plan what one thread plans, over three receding-horizon solves of pushing."""
+    from functools import partial
+
+    from hydrosoft.control import CemGd, CemGdConfig
+    from hydrosoft.dynamics import step
+
+    task = make_task("pushing")
+    model, state, _ = compile_scene(task.scene)
+    stage, terminal = task.costs(model, task.sample_goal(0))
+    low, high = task.bounds(model.body_names)
+    solvers = [CemGd(partial(step, model), stage, terminal, low, high,
+                     CemGdConfig(samples=16, elites=4, horizon=4, grad_steps=1, workers=workers))
+               for workers in (1, 3)]
+    for _ in range(3):
+        alone, shared = (solver.solve(state) for solver in solvers)
+        torch.testing.assert_close(shared.plan, alone.plan, rtol=0, atol=1e-12)
+        assert shared.cost == pytest.approx(alone.cost, rel=1e-9)
+        state = step(model, state, alone.action.unsqueeze(0))
