@@ -852,13 +852,20 @@ class CompiledStep:
     A step from the very state this instance returned last (a rollout) takes its start stability check from
     that step's end check instead of repeating it: one ``substeps_needed`` per step instead of two, the same
     sub-step counts. Nothing in the library requires it.
+    ``activation_memory_budget`` (AOT autograd's, read when a graph with gradients compiles): 0 (the default) has
+    the backward graphs recompute the forward's intermediates instead of saving them, 1 saves what torch saves by
+    default. Each saved intermediate is handed from the forward to the backward as a tensor object on every call,
+    and this step's are many and small: with 0 the full pushing planner's solve took 0.89 of the time with 1, for
+    the same compile time (float32, one thread; ``hydrosoft-stack bench control --compile
+    --rate-activation-budgets 1,0`` measures it).
     An instance may be called from several threads at once (``CemGdConfig.workers``). The first step from each
     new input signature runs alone, so that it compiles once: two threads compiling the same signature at once each
     added its graphs to dynamo's cache and passed its recompile limit (seen: the solver fell back to eager).
     """
 
-    def __init__(self, model: Model, **options) -> None:
+    def __init__(self, model: Model, activation_memory_budget: float = 0.0, **options) -> None:
         self.model = model
+        self.activation_memory_budget = activation_memory_budget
         self.fallback_reason: str | None = None
         if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
             options["options"] = {"cpp_wrapper": True}
@@ -886,7 +893,8 @@ class CompiledStep:
                 key = _signature(state, u)
                 if key in self._warm:
                     return self._compiled_step(state, u)
-                with self._first_steps:
+                budget = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget)
+                with self._first_steps, budget:
                     out = self._compiled_step(state, u)
                     self._warm.add(key)
                     return out

@@ -121,6 +121,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="solver worker threads for the replanning rate (each rolls out a share of the 64 "
                              "samples; PlannerSettings.workers), one measurement each in the same run (default 1); "
                              "give each worker one torch thread: --threads 1")
+    parser.add_argument("--rate-activation-budgets", type=_csv, default=["0"], metavar="B1,B2",
+                        help="with --compile: the compiled step's activation_memory_budget for the replanning rate "
+                             "(0: the backward recomputes the forward's intermediates, the default; 1: torch's "
+                             "default saving), one measurement each in the same run")
     parser.add_argument("--episodes", type=Path, default=None, metavar="FILE",
                         help="append each finished episode to FILE (JSON lines) and reuse the episodes already in "
                              "it that ran with the same settings: a long run can stop and resume")
@@ -163,7 +167,8 @@ def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
 
 
 def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
-                    sdf_solver_steps: int | None = None, workers: int = 1) -> dict:
+                    sdf_solver_steps: int | None = None, workers: int = 1,
+                    activation_budget: float = 0.0) -> dict:
     """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
     first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the
@@ -172,7 +177,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     sub-steps and the stability checks) and of the stage and terminal costs (``cost_forward_ms``) take, summed over
     the workers' threads; the backward passes through both are in ``backward_ms``. ``sdf_solver_steps``: the
     planner's bubble ellipsoid solve; ``workers``: the solver's threads, each rolling out a share of the samples
-    (both ``PlannerSettings``)."""
+    (both ``PlannerSettings``); ``activation_budget``: the compiled step's ``activation_memory_budget``."""
     import msgspec
     import torch
 
@@ -186,7 +191,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
                                compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps,
                                workers=workers)
-    setup = prepare(task, settings)
+    setup = prepare(task, settings, compile_options={"activation_memory_budget": activation_budget})
     model = setup.planner_model
     surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
     pairs = sum(pair_counts(model))
@@ -218,7 +223,8 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         "sdf_solver_steps": sdf_solver_steps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
-        "workers": workers, "step_forward_ms": 1e3 * mean["step_s"], "cost_forward_ms": 1e3 * mean["cost_s"],
+        "workers": workers, "activation_budget": activation_budget if compile else None,
+        "step_forward_ms": 1e3 * mean["step_s"], "cost_forward_ms": 1e3 * mean["cost_s"],
     }
 
 
@@ -330,6 +336,14 @@ def run(args: argparse.Namespace) -> int:
     if not all(text.isdigit() and int(text) >= 1 for text in args.rate_workers):
         _log(f"bench control: --rate-workers takes positive counts, got {','.join(args.rate_workers)!r}")
         return 2
+    try:
+        budgets = [float(text) for text in args.rate_activation_budgets]
+    except ValueError:
+        budgets = [-1.0]
+    if not all(0.0 <= budget <= 1.0 for budget in budgets):
+        _log(f"bench control: --rate-activation-budgets takes numbers from 0 to 1, got "
+             f"{','.join(args.rate_activation_budgets)!r}")
+        return 2
     torch.set_num_threads(args.threads)
     preset = QUICK if args.quick else FULL
     goals = args.goals if args.goals is not None else preset["goals"]
@@ -399,9 +413,9 @@ def run(args: argparse.Namespace) -> int:
                              f"{result.initial_error_mm:.1f} -> {result.error_mm:.2f} mm ({result.status}, "
                              f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
                     rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
-    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers))
-                  for workers in args.rate_workers for sdf in rate_sdf for dtype in args.rate_dtypes
-                  ] if rate_solves > 0 else None
+    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers), budget)
+                  for budget in (budgets if args.compile else budgets[:1]) for workers in args.rate_workers
+                  for sdf in rate_sdf for dtype in args.rate_dtypes] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "goal_indices": indices, "quick": args.quick, "plant": args.plant,
                 "plants": args.plants, "same_models": same_models,
@@ -424,15 +438,15 @@ def run(args: argparse.Namespace) -> int:
             mode = "compiled" if r["compiled"] else "eager"
             compiling = ", compiling the step unless a planner of the same shapes did before" if r["compiled"] else ""
             sdf = "converged" if r["sdf_solver_steps"] is None else f"in {r['sdf_solver_steps']} solver steps"
+            budget = "" if r["activation_budget"] is None else f"activation budget {r['activation_budget']:g}, "
             print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
                   f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
                   f"point-body pairs), {r['substeps']} sub-steps, bubble SDF {sdf}, {r['threads']} thread(s), "
-                  f"{r['workers']} solver worker(s), "
+                  f"{r['workers']} solver worker(s), {budget}"
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
                   f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first "
-                  f"solve "
-                  f"{r['first_solve_ms'] / 1e3:.1f} s{compiling})")
+                  f"solve {r['first_solve_ms'] / 1e3:.1f} s{compiling})")
         print(f"\n{total} episodes in {settings['wall_s']:.0f} s"
               + (f" ({reused} of them reused from {args.episodes}; the episodes' own wall times add up to "
                  f"{sum(r['episodes_wall_s'] for r in rows):.0f} s)" if log is not None else "")

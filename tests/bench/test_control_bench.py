@@ -80,6 +80,9 @@ def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost
     assert rates[0]["step_forward_ms"] + rates[0]["cost_forward_ms"] <= rates[0]["rollout_ms"]
     assert control.run(parse("--rate-workers", "0", "--out", str(tmp_path))) == 2
     assert "--rate-workers" in capsys.readouterr().err
+    for bad in ("2", "half"):
+        assert control.run(parse("--rate-activation-budgets", bad, "--out", str(tmp_path))) == 2
+        assert "--rate-activation-budgets" in capsys.readouterr().err
 
 
 def test_table_is_laid_out_like_table_iii(tmp_path, capsys):
@@ -121,5 +124,6 @@ def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp
     finally:
         torch._dynamo.reset()
     out = capsys.readouterr().out
-    assert "float32" in out and "sub-steps, bubble SDF in 3 solver steps, 1 thread(s), 1 solver worker(s), compiled:" in out
+    assert "float32" in out and ("sub-steps, bubble SDF in 3 solver steps, 1 thread(s), 1 solver worker(s), "
+                                 "activation budget 0, compiled:") in out
     assert "compiling the step" in out

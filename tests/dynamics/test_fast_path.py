@@ -257,3 +257,24 @@ def test_threads_stepping_at_once_compile_each_signature_once(fresh_dynamo):
     for out in results:
         torch.testing.assert_close(out.forces.detach(), expected.forces, rtol=0, atol=1e-14)
         torch.testing.assert_close(out.object_pose.detach(), expected.object_pose, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("budget", [0.0, 1.0])
+def test_the_activation_budget_keeps_the_step_and_its_gradient_and_is_not_left_set(budget, fresh_dynamo):
+    """Compiled with AOT autograd at either activation budget (0: recompute the forward's intermediates in the
+    backward), the step and its gradient are the eager ones; the budget applies while compiling only."""
+    import torch._functorch.config as functorch_config
+
+    model, state, u = pushing(batch=2)
+    fast = CompiledStep(model, backend="aot_eager", activation_memory_budget=budget)
+    default = functorch_config.activation_memory_budget
+    results = []
+    for fn in (fast, lambda s, v: step(model, s, v)):
+        leaf = u.clone().requires_grad_(True)
+        out = fn(state, leaf)
+        (grad,) = torch.autograd.grad(out.forces.sum() + out.object_pose[:, :3].sum(), leaf)
+        results.append((out.forces.detach(), grad))
+    assert fast.compiled, fast.fallback_reason
+    assert functorch_config.activation_memory_budget == default
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-9, atol=1e-12)
