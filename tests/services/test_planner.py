@@ -142,3 +142,12 @@ def test_one_rollout_gives_the_plans_predictions_and_the_carry_over_after_the_st
         torch.testing.assert_close(got, want, rtol=0, atol=0)
     assert torch.equal(carry_over(states, 9).object_pose, states[-1].object_pose)
     assert not torch.equal(states[1].body_poses, states[3].body_poses)
+
+
+def test_the_solver_gets_the_configured_workers(core, tmp_path):
+    """``planner.workers`` reaches the solver settings of every goal; one worker when the key is left out."""
+    path = tmp_path / "workers.toml"
+    path.write_text(SIM_TOML.read_text().replace("[planner]", "[planner]\nworkers = 2\n", 1))
+    two = PlannerCore.build(load_config(path))
+    assert core.settings.config(core.settings.horizon, 1).workers == 1
+    assert two.settings.config(two.settings.horizon, 1).workers == 2
