@@ -9,8 +9,8 @@ import logging
 import os
 import sys
 from collections.abc import Awaitable, Callable
-from typing import NoReturn
 from pathlib import Path
+from typing import NoReturn
 
 from hydrosoft.services.config import ConfigError, StackConfig, load_config
 from hydrosoft.services.runtime import run_service

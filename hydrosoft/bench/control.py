@@ -338,9 +338,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         budgets = [float(text) for text in args.rate_activation_budgets]
+        budgets_ok = all(0.0 <= budget <= 1.0 for budget in budgets)
     except ValueError:
-        budgets = [-1.0]
-    if not all(0.0 <= budget <= 1.0 for budget in budgets):
+        budgets_ok = False
+    if not budgets_ok:
         _log(f"bench control: --rate-activation-budgets takes numbers from 0 to 1, got "
              f"{','.join(args.rate_activation_budgets)!r}")
         return 2
