@@ -61,6 +61,20 @@ class State(NamedTuple):
     phi: Tensor | None = None
 
 
+OBJECT_UPDATES = ("explicit", "linearly_implicit")
+"""The object updates a ``Model`` can take (``Model.object_update``)."""
+LINEARLY_IMPLICIT_CONTACTS = ("nh", "snh")
+"""Contact models whose force response the linearly implicit update predicts: the incremental ones, which load a
+point by ``E A`` along the normal and ``K A`` across it until it slides."""
+STICKING_SHARE = 0.5
+"""In the linearly implicit update, a point whose tangential force is at most this share of its friction limit
+``mu f_n`` sticks (its full tangential stiffness ``K A``), one on the limit slides (none: the cone projection puts
+sliding points exactly on it), and one in between gets the linear blend, so that the update is continuous."""
+STIFFNESS_DEPTH = 5e-4
+"""m: in the linearly implicit update, a point's stiffness ramps in linearly over this depth inside a body (full
+from there on), so that a point crossing the surface does not switch the update discontinuously."""
+
+
 @dataclass(frozen=True)
 class Model:
     """A compiled scene: the minimal tensors and callables one step needs, in one dtype and device.
@@ -80,6 +94,11 @@ class Model:
     stability_margin: points within this distance (m) of a body count as in contact for the run-time stability
     check (``substeps_needed``). max_substeps: the most sub-steps a step may take before it raises
     ``UnstableStepError``.
+    object_update: how step 3 moves the object. ``"explicit"`` (the paper's update, sub-stepped for stability as
+    above) or ``"linearly_implicit"`` (``_linearly_implicit_motion``: backward Euler on the linearised contact
+    forces, stable at any step length, so one sub-step per step; NH and SNH only). The two agree where the
+    contacts are soft and the motion slow, and have the same rest states; in between, the implicit update relaxes
+    stiff contacts less per step (``hydrosoft-stack bench model --sections object-update`` measures the gap).
     """
 
     points: Tensor
@@ -101,6 +120,15 @@ class Model:
     support: int | None = None
     stability_margin: float = 0.0
     max_substeps: int = 64
+    object_update: str = "explicit"
+
+    def __post_init__(self) -> None:
+        if self.object_update not in OBJECT_UPDATES:
+            raise ValueError(f"object_update: one of {', '.join(OBJECT_UPDATES)}, got {self.object_update!r}")
+        if self.object_update == "linearly_implicit" and self.contact.name not in LINEARLY_IMPLICIT_CONTACTS:
+            raise ValueError(
+                f"object_update 'linearly_implicit' needs an incremental contact model "
+                f"({', '.join(LINEARLY_IMPLICIT_CONTACTS)}), whose force response it predicts; got {self.contact.name!r}")
 
     @property
     def n_points(self) -> int:
@@ -135,6 +163,16 @@ class Model:
             gravity=cast(self.gravity),
             touchable=tuple(cast(t) for t in self.touchable),
         )
+
+
+def with_object_update(model: Model, object_update: str) -> Model:
+    """The model, as ``scene.compile_scene`` built it, with the given object update (``Model.object_update``): the
+    linearly implicit update takes one sub-step per step, which its stability never needs to raise; the explicit one
+    keeps the scene's count."""
+    if object_update == model.object_update:
+        return model
+    return replace(model, object_update=object_update,
+                   substeps=1 if object_update == "linearly_implicit" else model.substeps)
 
 
 STABLE_RATIO = 1.8
@@ -247,8 +285,11 @@ def substeps_needed(model: Model, state: State) -> int:
     are stiffer than that count allows (``stability_ratio`` above ``1.8 n``).
 
     Raises ``UnstableStepError`` naming the bound when that exceeds ``model.max_substeps``. Non-finite samples
-    are ignored (they are already lost, and the planner discards them).
+    are ignored (they are already lost, and the planner discards them). A linearly implicit model is stable at any
+    step length: always ``model.substeps``.
     """
+    if model.object_update == "linearly_implicit":
+        return model.substeps
     ratio = stability_ratio(model, state)
     worst = float(torch.nan_to_num(ratio, nan=0.0).max()) if ratio.numel() else 0.0
     needed = max(model.substeps, math.ceil(worst / STABLE_RATIO))
@@ -676,18 +717,8 @@ def _friction_system(model: Model, state: State, body_poses: Tensor, w: Tensor, 
     f_n = torch.relu((state.forces * normal.unsqueeze(1)).sum(-1))
     limit = model.material.mu.view(1, -1, 1) * f_n
     lever = points - state.object_pose[:, None, :3]
-    if model.planar:
-        J = _planar_jacobian(lever)
-        izz = torch.einsum("bi,ij,bj->b", R_o[:, 2], model.inertia, R_o[:, 2])
-        mass = torch.diag_embed(torch.stack([torch.full_like(izz, model.mass), torch.full_like(izz, model.mass), izz], -1))
-        w_v = w[:, [0, 1, 5]]
-    else:
-        J = _spatial_jacobian(lever)
-        eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(w.shape[0], 3, 3)
-        inertia = R_o @ model.inertia @ R_o.mT
-        zero = torch.zeros_like(eye)
-        mass = torch.cat([torch.cat([model.mass * eye, zero], -1), torch.cat([zero, inertia], -1)], -2)
-        w_v = w
+    J = (_planar_jacobian if model.planar else _spatial_jacobian)(lever)
+    mass, w_v = _generalised_mass(model, R_o, w)
     v0 = gain * torch.linalg.solve(mass, w_v.unsqueeze(-1)).squeeze(-1)
     projector = torch.eye(3, dtype=w.dtype, device=w.device) - normal.unsqueeze(-1) * normal.unsqueeze(-2)
     PJ = projector @ J
@@ -709,6 +740,77 @@ def _friction_motion(model: Model, system: FrictionSystem, v: Tensor) -> Tensor:
     return v
 
 
+def _generalised_mass(model: Model, R_o: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """The object's mass matrix ``(B, d, d)`` in the world frame at rotations ``R_o (B, 3, 3)`` and the matching
+    coordinates ``(B, d)`` of the wrench ``w (B, 6)``: ``d = 3`` (x, y, yaw) for planar models, else 6."""
+    if model.planar:
+        izz = torch.einsum("bi,ij,bj->b", R_o[:, 2], model.inertia, R_o[:, 2])
+        mass = torch.diag_embed(torch.stack([torch.full_like(izz, model.mass), torch.full_like(izz, model.mass), izz], -1))
+        return mass, w[:, [0, 1, 5]]
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(w.shape[0], 3, 3)
+    inertia = R_o @ model.inertia @ R_o.mT
+    zero = torch.zeros_like(eye)
+    return torch.cat([torch.cat([model.mass * eye, zero], -1), torch.cat([zero, inertia], -1)], -2), w
+
+
+def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w: Tensor, dt_sub: Tensor) -> Tensor:
+    """Object displacement ``(B, 6)`` of a sub-step by backward Euler on the linearised contact forces.
+
+    The explicit update moves the object by ``dq = gain M^-1 w`` with the wrench ``w (B, 6)`` of the forces at the
+    start (``gain = (h/epsilon) dt_sub``). This one uses the forces at the end instead, predicted linearly: each
+    point ``i`` inside body ``m`` at the start loads by ``A_i S_mi (c_mi - J_i dq)``, with ``c_mi`` the motion of
+    the body's material at the point over the sub-step (m), ``J_i`` the point's Jacobian at its lever about the
+    centre of mass and ``S = E n n^T + K_eff (I - n n^T)`` (``K_eff = K`` for a sticking point, 0 for one that
+    slides: ``STICKING_SHARE``; both ramped in over ``STIFFNESS_DEPTH``), and its stored force ``f_mi`` turns with the body (by its rotation ``T_m`` over the
+    sub-step, as step 4 turns it). So ``(M / gain + K_c) dq = w + sum_mi J_i^T (A_i S_mi c_mi + (T_m - I) f_mi)``
+    with the contact
+    stiffness ``K_c = sum_mi A_i J_i^T S_mi J_i``: ``d = 3`` (x, y, yaw) planar, else 6, mass matrix in the world
+    frame. Where the forces are linear in the motion (sticking points fully inside) the force error then decays by
+    ``1 / (1 + gain lambda)`` per sub-step instead of ``1 - gain lambda``: stable for any stiffness, where the
+    explicit update needs ``gain lambda < 2``. Steady motion and rest states are the explicit update's: at a
+    constant body velocity the predicted and the start forces agree. Points that enter a body during the
+    sub-step are not predicted; the exact contact update (step 4) loads them, and the next sub-step predicts them.
+    ``state.phi`` must be cached (``_substep`` fills it).
+    """
+    gain = model.dt / model.epsilon * dt_sub
+    R_o, t_o = _frame(state.object_pose)
+    points = _world_points(model, state.object_pose)
+    normals = se3.small_matmul(R_o, -model.normals.mT).mT
+    R_b0, t_b0 = _frame(state.body_poses)
+    R_b1, t_b1 = _frame(body_poses)
+    turns = se3.small_matmul(R_b1, R_b0.mT)
+    jacobian = _planar_jacobian if model.planar else _spatial_jacobian
+    stiffness, push = 0.0, 0.0
+    for m, (index, phi) in enumerate(zip(touchable_points(model), state.phi.split(pair_counts(model), dim=-1))):
+        x, n, area, f = points, normals, model.areas, state.forces[:, m]
+        if index is not None:
+            x, n, area, f = x[:, index], n[:, index], area[index], f[:, index]
+        f_n = (f * n).sum(-1)
+        capacity = model.material.mu[m] * f_n  # friction limit (N)
+        spare = capacity - se3.safe_norm(f - f_n.unsqueeze(-1) * n)
+        ramp = (1 - STICKING_SHARE) * capacity
+        sticking = torch.where(ramp > 0, spare / torch.where(ramp > 0, ramp, torch.ones_like(ramp)), 0.0).clamp(0, 1)
+        contact = area * (-phi / STIFFNESS_DEPTH).clamp(0, 1)  # (B, n) m^2
+        k_t = model.material.K[m] * sticking * contact  # (B, n) N/m
+        k_n = model.material.E[m] * contact - k_t
+        lever_b = x - t_b0[:, m].mT
+        carried = (se3.small_matmul(turns[:, m], lever_b.mT) + t_b1[:, m] - t_b0[:, m]).mT - lever_b
+        load = k_t.unsqueeze(-1) * carried + (k_n * (carried * n).sum(-1)).unsqueeze(-1) * n
+        load = load + se3.small_matmul(f, turns[:, m].mT) - f  # the stored forces turn with the body
+        J = jacobian(x - t_o.mT)  # (B, n, 3, d)
+        g = (J * n.unsqueeze(-1)).sum(-2)  # (B, n, d): the generalised normals J^T n
+        push = push + (J * load.unsqueeze(-1)).sum((1, 2))
+        JtJ = (J.unsqueeze(-1) * J.unsqueeze(-2)).sum(-3)
+        stiffness = stiffness + (k_t.view(*k_t.shape, 1, 1) * JtJ
+                                 + k_n.view(*k_n.shape, 1, 1) * g.unsqueeze(-1) * g.unsqueeze(-2)).sum(1)
+    mass, w_v = _generalised_mass(model, R_o, w)
+    v = se3.small_spd_solve(mass / gain + stiffness, w_v + push)
+    if model.planar:
+        zero = torch.zeros_like(v[:, 0])
+        return torch.stack([v[:, 0], v[:, 1], zero, zero, zero, v[:, 2]], dim=-1)
+    return v
+
+
 def _normal_wrench(model: Model, state: State) -> Tensor:
     """Net wrench ``(B, 6)`` of the normal parts of the contact forces and gravity, about the centre of mass."""
     normal = se3.rotate_vectors(state.object_pose, -model.normals).unsqueeze(1)
@@ -721,6 +823,10 @@ def _substep(model: Model, state: State, u: Tensor, dt_sub: Tensor) -> State:
     if getattr(model.contact, "implicit_friction", False):
         motion = _implicit_friction_motion(model, state, body_poses, _normal_wrench(model, state), dt_sub,
                                            model.contact.slip_tolerance)
+    elif model.object_update == "linearly_implicit":
+        if state.phi is None:
+            state = state._replace(phi=packed_distances(model, state.object_pose, state.body_poses))
+        motion = _linearly_implicit_motion(model, state, body_poses, object_wrench(model, state), dt_sub)
     else:
         motion = _object_motion(model, state, object_wrench(model, state), dt_sub)
     return advance_forces(model, state, se3.retract(state.object_pose, motion), body_poses)

@@ -201,7 +201,10 @@ class PlannerConfig(Strict):
     than one under load; raise it on a machine with cores to spare). workers: solver threads that each roll out a
     share of the samples (``CemGdConfig.workers``; 1 by default), at most ``samples``: on a machine with a core per
     worker to spare, two workers with one torch thread each beat one solve on two threads (``hydrosoft-stack bench
-    control --rate-workers 1,2 --threads 1`` measures it). max_reapproaches: how often one goal may bring
+    control --rate-workers 1,2 --threads 1`` measures it). object_update: the planner model's object update
+    (``hydrosoft.dynamics.Model.object_update``): ``explicit``, sub-stepped as the scene's contacts need, or
+    ``linearly_implicit``, one sub-step per control step (NH and SNH planners; ``hydrosoft-stack bench control
+    --rate-object-updates`` measures the rate of each). max_reapproaches: how often one goal may bring
     the bubble back onto an object it lost (``services/reapproach.py``; one-arm scenes) before it fails; 0: a lost
     object fails the goal at once."""
 
@@ -221,6 +224,7 @@ class PlannerConfig(Strict):
     target_lead_s: float = 0.5
     threads: int = 1
     workers: int = 1
+    object_update: Literal["explicit", "linearly_implicit"] = "explicit"
     max_reapproaches: int = 3
 
     def __post_init__(self) -> None:
@@ -236,6 +240,8 @@ class PlannerConfig(Strict):
                  f"{self.workers}")
         for key, value in self.max_age_s.items():
             _require(value > 0, f"planner.max_age_s.{key}", f"must be > 0 s, got {value}")
+        _require(self.object_update == "explicit" or self.model in ("nh", "snh"), "planner.object_update",
+                 f"linearly_implicit needs an NH or SNH planner (planner.model), got {self.model!r}")
 
 
 class SimConfig(Strict):

@@ -43,7 +43,7 @@ import torch
 from hydrosoft.control import CemGd
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
-from hydrosoft.dynamics import CompiledStep, State, step
+from hydrosoft.dynamics import CompiledStep, State, step, with_object_update
 from hydrosoft.geometry import se3
 from hydrosoft.geometry.sdf import Ellipsoid
 from hydrosoft.scene import Scene, build_surface, compile_scene
@@ -118,8 +118,9 @@ class PlannerCore:
         settings = PlannerSettings(model=pc.model, spacing=pc.spacing, samples=pc.samples, elites=pc.elites,
                                    horizon=pc.horizon, grad_steps=pc.grad_steps, dtype=getattr(torch, pc.dtype),
                                    seed=pc.seed, sdf_solver_steps=pc.sdf_solver_steps, compile=pc.compile,
-                                   workers=pc.workers)
+                                   workers=pc.workers, object_update=pc.object_update)
         model, state, _ = compile_scene(planner_scene(task, pc), dtype=settings.dtype)
+        model = with_object_update(model, pc.object_update)
         arms = {}
         for arm in config.arms:
             if arm.name not in model.body_names:

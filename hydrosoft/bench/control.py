@@ -125,6 +125,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --compile: the compiled step's activation_memory_budget for the replanning rate "
                              "(0: the backward recomputes the forward's intermediates, the default; 1: torch's "
                              "default saving), one measurement each in the same run")
+    parser.add_argument("--object-update", default="explicit",
+                        help="the episode planners' object update (PlannerSettings.object_update): explicit, "
+                             "sub-stepped as the scene needs (default), or linearly_implicit, one sub-step per "
+                             "control step (NH and SNH planners only)")
+    parser.add_argument("--rate-object-updates", type=_csv, default=None, metavar="U1,U2",
+                        help="the planner's object update for the replanning rate, one measurement each in the "
+                             "same run: explicit, linearly_implicit (default: --object-update)")
     parser.add_argument("--episodes", type=Path, default=None, metavar="FILE",
                         help="append each finished episode to FILE (JSON lines) and reuse the episodes already in "
                              "it that ran with the same settings: a long run can stop and resume")
@@ -168,7 +175,7 @@ def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
 
 def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
                     sdf_solver_steps: int | None = None, workers: int = 1,
-                    activation_budget: float = 0.0) -> dict:
+                    activation_budget: float = 0.0, object_update: str = "explicit") -> dict:
     """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
     first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the
@@ -177,7 +184,8 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     sub-steps and the stability checks) and of the stage and terminal costs (``cost_forward_ms``) take, summed over
     the workers' threads; the backward passes through both are in ``backward_ms``. ``sdf_solver_steps``: the
     planner's bubble ellipsoid solve; ``workers``: the solver's threads, each rolling out a share of the samples
-    (both ``PlannerSettings``); ``activation_budget``: the compiled step's ``activation_memory_budget``."""
+    (both ``PlannerSettings``); ``activation_budget``: the compiled step's ``activation_memory_budget``;
+    ``object_update``: the planner model's (``PlannerSettings.object_update``)."""
     import msgspec
     import torch
 
@@ -190,7 +198,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     task = make_task("pushing")
     settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
                                compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps,
-                               workers=workers)
+                               workers=workers, object_update=object_update)
     setup = prepare(task, settings, compile_options={"activation_memory_budget": activation_budget})
     model = setup.planner_model
     surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
@@ -214,7 +222,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         else:
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
                           "cost_s": stage_calls.seconds + terminal_calls.seconds})
-        _log(f"[rate] {dtype}, {workers} worker(s), solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
+        _log(f"[rate] {dtype}, {workers} worker(s), {object_update} object update, solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
     compiled = getattr(setup.dynamics, "compiled", False)
     return {
@@ -224,6 +232,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
         "workers": workers, "activation_budget": activation_budget if compile else None,
+        "object_update": object_update,
         "step_forward_ms": 1e3 * mean["step_s"], "cost_forward_ms": 1e3 * mean["cost_s"],
     }
 
@@ -316,6 +325,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from hydrosoft.bench.episode_log import EpisodeLog
+    from hydrosoft.dynamics import OBJECT_UPDATES
     from hydrosoft.tasks import TASKS, make_task
     from hydrosoft.tasks.evaluation import PlannerSettings, PlantSettings, prepare, run_episode
 
@@ -345,6 +355,15 @@ def run(args: argparse.Namespace) -> int:
         _log(f"bench control: --rate-activation-budgets takes numbers from 0 to 1, got "
              f"{','.join(args.rate_activation_budgets)!r}")
         return 2
+    rate_updates = [args.object_update] if args.rate_object_updates is None else args.rate_object_updates
+    if not {args.object_update, *rate_updates} <= set(OBJECT_UPDATES):
+        _log(f"bench control: --object-update and --rate-object-updates take {', '.join(OBJECT_UPDATES)}, got "
+             f"{args.object_update!r} and {','.join(rate_updates)!r}")
+        return 2
+    if args.object_update != "explicit" and not set(args.models) <= {"nh", "snh"}:
+        _log(f"bench control: --object-update {args.object_update} needs NH or SNH planners, got models "
+             f"{','.join(args.models)}")
+        return 2
     torch.set_num_threads(args.threads)
     preset = QUICK if args.quick else FULL
     goals = args.goals if args.goals is not None else preset["goals"]
@@ -369,7 +388,10 @@ def run(args: argparse.Namespace) -> int:
     if args.episodes is not None:
         log = EpisodeLog(args.episodes, {**{k: preset[k] for k in planner_keys}, "compile": args.compile,
                                          "sdf_solver_steps": args.sdf_solver_steps, "steps": args.steps,
-                                         "plant": args.plant, "noise": noise})
+                                         "plant": args.plant, "noise": noise,
+                                         # only when not the default, so that logs from before the option still match
+                                         **({"object_update": args.object_update}
+                                            if args.object_update != "explicit" else {})})
         _log(f"bench control: {len(log.episodes)} episodes with these settings in {args.episodes}"
              + (f" ({log.other_settings} lines of other settings and {log.malformed} malformed lines not used)"
                 if log.other_settings or log.malformed else ""))
@@ -379,7 +401,7 @@ def run(args: argparse.Namespace) -> int:
         task = make_task(name, args.steps)
         for model in args.models:
             planner = PlannerSettings(model=model, compile=args.compile, sdf_solver_steps=args.sdf_solver_steps,
-                                      **{k: preset[k] for k in planner_keys})
+                                      object_update=args.object_update, **{k: preset[k] for k in planner_keys})
             plants = {"finer": PlantSettings(model=model if args.plant == "same" else args.plant, **noise),
                       "same": replace(PlantSettings.same_as_planner(model), **noise)}
             compiled_step = None
@@ -414,7 +436,8 @@ def run(args: argparse.Namespace) -> int:
                              f"{result.initial_error_mm:.1f} -> {result.error_mm:.2f} mm ({result.status}, "
                              f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
                     rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
-    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers), budget)
+    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers), budget, update)
+                  for update in rate_updates
                   for budget in (budgets if args.compile else budgets[:1]) for workers in args.rate_workers
                   for sdf in rate_sdf for dtype in args.rate_dtypes] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
@@ -422,6 +445,7 @@ def run(args: argparse.Namespace) -> int:
                 "plants": args.plants, "same_models": same_models,
                 "threads": args.threads,
                 "compile": args.compile, "sdf_solver_steps": args.sdf_solver_steps,
+                "object_update": args.object_update,
                 "noise": {"pose_mm": args.pose_noise_mm, "pose_deg": args.pose_noise_deg,
                           "deformation_mm": args.deformation_noise_mm},
                 "steps": {name: make_task(name, args.steps).steps for name in args.tasks},
@@ -443,7 +467,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
                   f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
                   f"point-body pairs), {r['substeps']} sub-steps, bubble SDF {sdf}, {r['threads']} thread(s), "
-                  f"{r['workers']} solver worker(s), {budget}"
+                  f"{r['workers']} solver worker(s), {r['object_update']} object update, {budget}"
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
                   f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first "

@@ -70,6 +70,33 @@ def small_matmul(a: Tensor, b: Tensor) -> Tensor:
     return a @ b
 
 
+def small_spd_solve(a: Tensor, b: Tensor) -> Tensor:
+    """``x (..., d)`` with ``a x = b`` for small symmetric positive definite ``a (..., d, d)`` (d <= 6: a mass
+    matrix plus a contact stiffness) and ``b (..., d)``.
+
+    Under ``torch.compile`` it is a Cholesky factorisation and two triangular solves written out entry by entry,
+    elementwise over the batch, which inductor fuses into one kernel: its ``linalg.solve`` is an external LAPACK
+    call per batch that it cannot fuse (and with the C++ wrapper, a call through its slow proxy executor). Eager,
+    it is ``torch.linalg.solve``. A non-finite ``a`` gives a non-finite ``x``.
+    """
+    if not torch.compiler.is_compiling():
+        return torch.linalg.solve(a, b.unsqueeze(-1)).squeeze(-1)
+    d = a.shape[-1]
+    zero = torch.zeros_like(b[..., 0])
+    factor: list[list[Tensor]] = [[] for _ in range(d)]  # rows of the lower Cholesky factor L
+    for j in range(d):
+        for i in range(j, d):
+            rest = a[..., i, j] - sum((factor[i][k] * factor[j][k] for k in range(j)), zero)
+            factor[i].append(torch.sqrt(rest) if i == j else rest / factor[j][j])
+    y: list[Tensor] = []
+    for i in range(d):
+        y.append((b[..., i] - sum((factor[i][k] * y[k] for k in range(i)), zero)) / factor[i][i])
+    x: list[Tensor] = [zero] * d
+    for i in reversed(range(d)):
+        x[i] = (y[i] - sum((factor[k][i] * x[k] for k in range(i + 1, d)), zero)) / factor[i][i]
+    return torch.stack(x, dim=-1)
+
+
 # ----------------------------------------------------------------------------------------------------
 # Quaternions (..., 4) = [w, x, y, z]
 # ----------------------------------------------------------------------------------------------------

@@ -43,7 +43,7 @@ from torch import Tensor
 
 from hydrosoft.control import CemGd, CemGdConfig
 from hydrosoft.control.costs import orientation_error, position_error
-from hydrosoft.dynamics import CompiledStep, Model, State, step
+from hydrosoft.dynamics import CompiledStep, Model, State, step, with_object_update
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, build_surface, compile_scene
 from hydrosoft.tactile import TactileObservation, estimate_state, membrane_penetration, sensor_bodies
@@ -66,6 +66,9 @@ class PlannerSettings:
     sdf_solver_steps: None, or a fixed number of solver steps for the planner's iteratively solved body SDFs
     (the ellipsoid's ``solver_steps``: 2 is exact to rounding within 1 cm of the membrane and fuses into one
     kernel when compiled); the plant always solves to convergence.
+    object_update: the planner model's object update (``Model.object_update``): ``"explicit"`` (the paper's,
+    sub-stepped as the scene's contacts need) or ``"linearly_implicit"`` (one sub-step per control step, stable at
+    any stiffness; NH and SNH). substep_factor multiplies either count.
     compile: run the planner's step through ``dynamics.CompiledStep`` (``torch.compile``, eager fallback with a
     warning). ``prepare`` builds one instance per setup, shared by every solver made from it, so each input
     signature compiles once: the first solve pays for the four a CEM-GD solve uses (gradient-enabled and no-grad
@@ -91,6 +94,7 @@ class PlannerSettings:
     sdf_solver_steps: int | None = None
     compile: bool = False
     workers: int = 1
+    object_update: str = "explicit"
 
     def config(self, horizon: int, iterations: int) -> CemGdConfig:
         """The solver configuration for a plan of ``horizon`` steps and ``iterations`` CEM rounds."""
@@ -233,6 +237,7 @@ def prepare(
     spacing = planner.spacing or task.scene.object.spacing
     scene = with_solver_steps(with_contact(task.scene, planner.model, spacing), planner.sdf_solver_steps)
     model, _, _ = compile_scene(scene, dtype=planner.dtype)
+    model = with_object_update(model, planner.object_update)
     model = replace(model, substeps=model.substeps * planner.substep_factor)
     world = Plant(task.scene, plant, spacing)
     missing = [name for name in model.body_names if name not in world.model.body_names]

@@ -39,6 +39,8 @@ def test_the_shipped_configs_load(name):
     (ONE_ARM + "[planner]\nsdf_solver_steps = 33\n", "planner.sdf_solver_steps"),
     (ONE_ARM + "[planner]\nworkers = 0\n", "planner.workers"),
     (ONE_ARM + "[planner]\nsamples = 16\nworkers = 17\n", "planner.workers"),  # more workers than samples
+    (ONE_ARM + "[planner]\nobject_update = \"implicit\"\n", "planner.object_update"),
+    (ONE_ARM + "[planner]\nmodel = \"pf\"\nobject_update = \"linearly_implicit\"\n", "planner.object_update"),
 ])
 def test_a_bad_key_is_named(text, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
