@@ -995,6 +995,9 @@ class CompiledStep:
     def __call__(self, state: State, u: Tensor) -> State:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
         if self.fallback_reason is None:
+            # one layout for every u: a planner's u[:, k] is a view whose strides depend on its horizon, and each
+            # new stride would compile the step again (an open-loop plan of each episode's length passed the limit)
+            u = u.contiguous()
             try:
                 key = _signature(state, u)
                 if key in self._warm:

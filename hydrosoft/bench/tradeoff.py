@@ -6,7 +6,8 @@ NH, float64, one integration sub-step per compiled sub-step), one knob at a time
 - ``samples`` B: 8, 16, 32, 64;  ``grad_steps`` G: 0, 1, 2;  ``horizon`` K: 4, 6, 10;
 - ``spacing`` (m): 0.0167, 0.0125, 0.0084;  ``dt``: the planner's integration step as a fraction of the
   compiled one, 1 or 1/2 (``substep_factor`` 1, 2);  ``dtype``: float64, float32;  ``model``: nh, snh (smoothed);
-  ``sdf_solver_steps``: the bubble ellipsoid solved to convergence or in 2 fixed steps.
+  ``sdf_solver_steps``: the bubble ellipsoid solved to convergence or in 2 fixed steps;  ``object_update``:
+  explicit (sub-stepped as the scene's contacts need) or linearly implicit (one sub-step per step).
 
 Every setting runs goals ``0 .. --goals - 1`` (default 5) of a fixed small task set closed loop on the finer NH
 plant (default planar pushing and planar rotation, ``--quick``: planar rotation, goal 0, fewer values). Reported
@@ -38,6 +39,7 @@ SWEEP = {
     "dtype": ["float64", "float32"],
     "model": ["nh", "snh"],
     "sdf_solver_steps": [None, 2],
+    "object_update": ["explicit", "linearly_implicit"],
 }
 QUICK_SWEEP = {"samples": [8, 16], "grad_steps": [0, 1], "dtype": ["float64", "float32"], "model": ["nh", "snh"]}
 

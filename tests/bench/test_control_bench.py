@@ -85,6 +85,23 @@ def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost
         assert "--rate-activation-budgets" in capsys.readouterr().err
 
 
+def test_the_rate_is_measured_per_object_update_and_the_episodes_plan_with_the_chosen_one(tmp_path, capsys):
+    assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
+                             "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes",
+                             "float32", "--object-update", "linearly_implicit", "--rate-object-updates",
+                             "explicit,linearly_implicit", "--json", "--out", str(tmp_path))) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["settings"]["object_update"] == "linearly_implicit"
+    assert report["rows"][0]["errors_mm"][0] >= 0
+    rates = report["replanning"]
+    assert [(r["object_update"], r["substeps"]) for r in rates] == [("explicit", 3), ("linearly_implicit", 1)]
+    assert all(r["rate_hz"] > 0 for r in rates)
+    assert control.run(parse("--object-update", "implicit", "--out", str(tmp_path))) == 2
+    assert "--object-update" in capsys.readouterr().err
+    assert control.run(parse("--object-update", "linearly_implicit", "--models", "pf", "--out", str(tmp_path))) == 2
+    assert "NH or SNH" in capsys.readouterr().err
+
+
 def test_table_is_laid_out_like_table_iii(tmp_path, capsys):
     args = parse("--tasks", "rotation", "--models", "nh", "--quick", "--steps", "1", "--rate-solves", "0",
                  "--out", str(tmp_path))

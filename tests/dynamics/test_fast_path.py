@@ -17,6 +17,7 @@ from hydrosoft.dynamics import (
     signed_distances,
     step,
     touchable_points,
+    with_object_update,
 )
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
@@ -188,6 +189,23 @@ def test_a_compiled_step_past_the_recompile_limit_says_so(fresh_dynamo):
             expanded = State(*(t.expand(batch, *t.shape[1:]) for t in state[:3]))
             fast(expanded, u.expand(batch, -1, -1))
     assert not fast.compiled and "recompile" in fast.fallback_reason.lower()
+
+
+def test_actions_sliced_from_plans_of_any_horizon_reuse_one_graph(fresh_dynamo):
+    """A planner passes ``u[:, k]`` of a ``(B, K, M, 6)`` plan: a view whose strides depend on ``K``. A one-sub-step
+    model (the linearly implicit one) hands it to the graph as it is, so each horizon compiled the step anew (an
+    open-loop plan of each episode's length passed dynamo's limit and ran eager); the step now takes every ``u`` in
+    one layout."""
+    model, state, u = pushing(batch=2)
+    model = with_object_update(model, "linearly_implicit")
+    counters = torch._dynamo.utils.counters
+    fast = CompiledStep(model, backend="eager", dynamic=False)
+    for horizon in (1, 6, 10, 40):
+        plan = u.unsqueeze(1).expand(-1, horizon, -1, -1).contiguous()
+        fast(state, plan[:, 0])
+        if horizon == 1:
+            graphs = counters["stats"]["unique_graphs"]
+    assert fast.compiled and counters["stats"]["unique_graphs"] == graphs
 
 
 def test_a_compiled_rollout_checks_stability_once_per_step_with_the_same_result(monkeypatch):

@@ -96,6 +96,26 @@ def test_point_distance_is_the_add_and_zero_at_the_goal():
     assert float(mean_point_distance(points, goal, goal)) == 0.0
 
 
+def test_the_closed_form_tracking_term_is_the_mean_over_the_points_with_its_gradient():
+    g = torch.Generator().manual_seed(0)
+    points = 0.02 * torch.randn(132, 3, dtype=F64, generator=g)
+    turns = torch.nn.functional.normalize(torch.randn(16, 4, dtype=F64, generator=g), dim=-1)
+    pose = torch.cat([0.01 * torch.randn(16, 3, dtype=F64, generator=g), turns], -1).requires_grad_(True)
+    goal = torch.cat([0.01 * torch.randn(3, dtype=F64, generator=g), se3.quat_normalize(torch.randn(4, dtype=F64,
+                                                                                                  generator=g))])
+    per_point = (se3.transform_points(pose, points) - se3.transform_points(goal, points)).square().sum(-1).mean(-1)
+    closed = mean_squared_point_distance(points, pose, goal)
+    torch.testing.assert_close(closed, per_point, rtol=1e-12, atol=1e-18)
+    (want,) = torch.autograd.grad(per_point.sum(), pose)
+    (got,) = torch.autograd.grad(mean_squared_point_distance(points, pose, goal).sum(), pose)
+
+    def along_unit_quaternions(grad):  # poses move on unit quaternions: only the tangent part reaches the actions
+        q = pose.detach()[:, 3:]
+        return torch.cat([grad[:, :3], grad[:, 3:] - (grad[:, 3:] * q).sum(-1, keepdim=True) * q], -1)
+
+    torch.testing.assert_close(along_unit_quaternions(got), along_unit_quaternions(want), rtol=1e-10, atol=1e-15)
+
+
 @pytest.mark.parametrize("name", TASKS)
 def test_costs_are_finite_with_finite_gradients_and_lowest_at_the_goal(name):
     task = make_task(name)
