@@ -1,7 +1,7 @@
 """``hydrosoft-stack bench model``: step speed, memory and force accuracy of the four contact models.
 
-Four sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
-"wrench": [...], "pruning": [...]}``, otherwise as tables. Progress goes to stderr.
+Five sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
+"wrench": [...], "object_update": [...], "pruning": [...]}``, otherwise as tables. Progress goes to stderr.
 
 ``rows``: one quasi-dynamic step (``dynamics.step``) of the planar pushing scene, a Soft Bubble (ellipsoid) pressed
 5 mm into a cube resting on the table (half-space): ``M = 2`` bodies, the cube's surface discretised to about
@@ -44,6 +44,14 @@ cylinder (``bench.wrench_scenes``, 5 mm spacing) with the Soft Bubble pressed 6 
 ``force_z_n`` (N, the same in every mode), and ``compile_s`` (first call) for compiled rows. Drake's hydroelastic
 query takes 0.06-0.2 ms for such pairs (``config.drake_query_ms``).
 
+``object-update``: the explicit object update (the scene's sub-steps) against the linearly implicit one
+(``Model.object_update``; one sub-step per step, and four for its convergence) on ten-step rollouts of eight samples
+(float64, eager) under random actions of up to half each task's bounds: pushing, pushing with a fifth of its damping
+time (``epsilon / 5``, contacts five times stiffer for the explicit update), rolling and in-hand. Reference: the
+explicit update at four times the scene's sub-steps (``--quick``: the two pushing scenes). Per row: ``substeps``, ``step_ms`` (one step of the batch,
+best of loop means), and the largest object position error ``position_error_mm`` and rotation error
+``rotation_error_mrad`` over the rollout, against the reference, beside its largest motion ``motion_mm``.
+
 ``pruning``: step time of the compiled task scenes (pushing, rotation, rolling, in-hand) with pruning (the
 default) and without (``prune=False``), float32, and the largest difference of the net contact force after
 the timed step.
@@ -64,6 +72,8 @@ from typing import Any
 FULL_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,16,64,256", "points": "100,500,2000"}
 QUICK_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,64", "points": "100,500"}
 
+SECTIONS = ("rows", "accuracy", "wrench", "object-update", "pruning")
+
 # Accuracy path (metres): gap above contact at the start and end, indentation, shear travel.
 GAP, DEPTH, SHEAR = 0.001, 0.003, 0.006
 
@@ -82,9 +92,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dtypes", default=None, help="comma list: float32,float64 (float64 is always timed)")
     parser.add_argument("--batches", default=None, help="comma list of batch sizes (default 1,16,64,256)")
     parser.add_argument("--points", default=None, help="comma list of surface point counts (default 100,500,2000)")
-    parser.add_argument("--sections", default="rows,accuracy,wrench,pruning",
-                        help="comma list of sections to run: rows, accuracy, wrench (pose-to-wrench query), pruning "
-                             "(default all four)")
+    parser.add_argument("--sections", default=",".join(SECTIONS),
+                        help="comma list of sections to run: rows, accuracy, wrench (pose-to-wrench query), "
+                             "object-update (explicit against linearly implicit), pruning (default all five)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -102,13 +112,13 @@ def run(args: argparse.Namespace) -> int:
             grid[key] = getattr(args, key)
     sections = set(args.sections.split(","))
     bench = _Bench(torch.device(args.device), quick=args.quick)
-    unknown = sections - {"rows", "accuracy", "wrench", "pruning"}
+    unknown = sections - set(SECTIONS)
     if unknown:
-        print(f"bench model: unknown section {', '.join(sorted(unknown))}; the sections are rows, accuracy, wrench, "
-              f"pruning", file=sys.stderr)
+        print(f"bench model: unknown section {', '.join(sorted(unknown))}; the sections are {', '.join(SECTIONS)}",
+              file=sys.stderr)
         return 2
     doc: dict[str, Any] = {"config": bench.config(grid, args.compile), "rows": [], "accuracy": [], "wrench": [],
-                           "pruning": []}
+                           "object_update": [], "pruning": []}
     if "rows" in sections:
         doc["rows"] = bench.rows(
             models=grid["models"].split(","),
@@ -121,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
         doc["accuracy"] = bench.accuracy()
     if "wrench" in sections:
         doc["wrench"] = bench.wrench_query(compiled=args.compile)
+    if "object-update" in sections:
+        doc["object_update"] = bench.object_update()
     if "pruning" in sections:
         doc["pruning"] = bench.pruning()
     if args.json:
@@ -525,6 +537,59 @@ class _Bench:
                     out.append(row)
         return out
 
+    def object_update(self) -> list[dict]:
+        torch = self.torch
+        from dataclasses import replace
+
+        import msgspec
+
+        from hydrosoft.dynamics import State, step, with_object_update
+        from hydrosoft.geometry import se3
+        from hydrosoft.scene import compile_scene
+        from hydrosoft.tasks import make_task
+
+        batch, steps = 8, 10
+        out = []
+        scenes = (("pushing", 1.0), ("pushing", 0.2)) + ((("rolling", 1.0), ("in_hand", 1.0)) if not self.quick else ())
+        for name, damping in scenes:
+            _progress(f"object update: {name}, epsilon x {damping:g}")
+            task = make_task(name)
+            scene = msgspec.structs.replace(task.scene, epsilon=task.scene.epsilon * damping, max_substeps=1024)
+            model, state, _ = compile_scene(scene, device=self.device)
+            low, high = task.bounds(model.body_names)
+            g = torch.Generator().manual_seed(0)
+            u = 0.5 * (low + (high - low) * torch.rand(batch, *low.shape, generator=g, dtype=torch.float64))
+            u = u.to(self.device)
+            start = State(*(t.expand(batch, *t.shape[1:]).contiguous() for t in state[:3]))
+
+            def rollout(variant, u=u, start=start):
+                poses, x = [], start
+                with torch.no_grad():
+                    for _ in range(steps):
+                        x = step(variant, x, u)
+                        poses.append(x.object_pose)
+                return torch.stack(poses)
+
+            reference = rollout(replace(model, substeps=4 * model.substeps))
+            implicit = with_object_update(model, "linearly_implicit")
+            variants = {"explicit": model, "linearly_implicit": implicit,
+                        "linearly_implicit x4": replace(implicit, substeps=4)}
+            times = self._interleaved({label: functools.partial(step, variant, start, u)
+                                       for label, variant in variants.items()})
+            motion = (reference[..., :3] - start.object_pose[:, :3]).norm(dim=-1).max()
+            for label, variant in variants.items():
+                poses = rollout(variant)
+                turn = se3.quat_to_matrix(reference[..., 3:]).mT @ se3.quat_to_matrix(poses[..., 3:])
+                cos = ((turn.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
+                out.append({
+                    "task": name, "epsilon_factor": damping, "update": label, "batch": batch,
+                    "substeps": variant.substeps, "step_ms": 1e3 * times[label],
+                    "position_error_mm": 1e3 * float((poses[..., :3] - reference[..., :3]).norm(dim=-1).max()),
+                    "rotation_error_mrad": 1e3 * float(torch.arccos(cos).max()),
+                    "motion_mm": 1e3 * float(motion),
+                })
+        return out
+
     def pruning(self) -> list[dict]:
         torch = self.torch
         from hydrosoft.dynamics import step
@@ -598,6 +663,13 @@ def _print_tables(doc: dict) -> None:
         for r in doc["wrench"]:
             print(f"{r['object']:>13} {r['points']:>5} {r['dtype']:>7} {r['mode']:>8} {r['query_ms']:>9.4f} "
                   f"{r['force_z_n']:>7.3f}")
+    if doc["object_update"]:
+        print("\nobject update against the explicit one at 4x the sub-steps (float64 eager, 10 steps, largest errors)")
+        print(f"{'task':>9} {'eps x':>5} {'update':>21} {'subs':>4} {'step ms':>8} {'pos mm':>8} {'rot mrad':>8} "
+              f"{'motion mm':>9}")
+        for r in doc["object_update"]:
+            print(f"{r['task']:>9} {r['epsilon_factor']:>5g} {r['update']:>21} {r['substeps']:>4} {r['step_ms']:>8.2f} "
+                  f"{r['position_error_mm']:>8.3f} {r['rotation_error_mrad']:>8.2f} {r['motion_mm']:>9.2f}")
     if doc["pruning"]:
         print("\npruning (float32 eager step)")
         print(f"{'task':>9} {'B':>3} {'N full':>6} {'N kept':>6} {'bodies':>6} {'full ms':>8} {'pruned ms':>9} "

@@ -33,7 +33,7 @@ def _run(args, capsys):
 
 def test_quick_bench_json_schema_and_values(quick_args, capsys):
     doc = _run(quick_args, capsys)
-    assert set(doc) == {"config", "rows", "accuracy", "wrench", "pruning"}
+    assert set(doc) == {"config", "rows", "accuracy", "wrench", "object_update", "pruning"}
     assert doc["config"]["threads"] == 1 and doc["config"]["memory_method"]
 
     rows = doc["rows"]
@@ -78,6 +78,20 @@ def test_quick_bench_json_schema_and_values(quick_args, capsys):
         assert PRUNING_FIELDS <= set(r)
         assert r["step_ms_full"] > 0 and r["step_ms_pruned"] > 0
         assert 0 < r["points_pruned"] <= r["points_full"]
+
+
+def test_the_object_update_section_measures_both_updates_against_the_reference(quick_args, capsys):
+    doc = _run(argparse.Namespace(**{**vars(quick_args), "sections": "object-update"}), capsys)
+    rows = {(r["task"], r["epsilon_factor"], r["update"]): r for r in doc["object_update"]}
+    assert {key[:2] for key in rows} == {("pushing", 1.0), ("pushing", 0.2)}
+    for damping in (1.0, 0.2):
+        explicit, implicit, finer = (rows[("pushing", damping, update)]
+                                     for update in ("explicit", "linearly_implicit", "linearly_implicit x4"))
+        assert implicit["substeps"] == 1 and finer["substeps"] == 4
+        assert 0 < implicit["position_error_mm"] < 0.1 * implicit["motion_mm"]
+        assert finer["position_error_mm"] < implicit["position_error_mm"]
+        assert all(math.isfinite(r["step_ms"]) and r["step_ms"] > 0 for r in (explicit, implicit, finer))
+    assert rows[("pushing", 0.2, "explicit")]["substeps"] > 3 * rows[("pushing", 1.0, "explicit")]["substeps"]
 
 
 def test_tables_without_json(capsys):
