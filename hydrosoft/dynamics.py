@@ -966,7 +966,8 @@ class CompiledStep:
     --rate-activation-budgets 1,0`` measures it).
     An instance may be called from several threads at once (``CemGdConfig.workers``). The first step from each
     new input signature runs alone, so that it compiles once: two threads compiling the same signature at once each
-    added its graphs to dynamo's cache and passed its recompile limit (seen: the solver fell back to eager).
+    added its graphs to dynamo's cache and passed its recompile limit (seen: the solver fell back to eager). Its
+    backward graph compiles then too, not lazily at its first backward, which ran outside the lock.
     """
 
     def __init__(self, model: Model, activation_memory_budget: float = 0.0, **options) -> None:
@@ -1002,8 +1003,12 @@ class CompiledStep:
                 key = _signature(state, u)
                 if key in self._warm:
                     return self._compiled_step(state, u)
-                budget = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget)
-                with self._first_steps, budget:
+                # the backward graph compiles with the forward, under the lock: lazily, at the first backward, it
+                # compiled outside it while another worker ran or compiled, and dynamo failed ("FX to symbolically
+                # trace a dynamo-optimized function"), leaving the process unable to compile
+                settings = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget,
+                                                         force_non_lazy_backward_lowering=True)
+                with self._first_steps, settings:
                     out = self._compiled_step(state, u)
                     self._warm.add(key)
                     return out

@@ -18,7 +18,9 @@ that can touch a body in pushing and rotation), B = 64 samples, 8 elites, horizo
 The replanning rate is always measured with the full planner (B = 64, K = 10, G = 2, 132 active points, 3
 sub-steps) on closed-loop planar pushing, once per ``--rate-dtypes`` entry, ``--rate-sdf-solver-steps`` entry
 (the bubble's closest-point solve converged, or in a fixed number of steps) and ``--rate-workers`` entry (the
-solver's threads, each rolling out a share of the samples) in the same run: the first solve is
+solver's threads, each rolling out a share of the samples) and ``--rate-object-updates`` entry (the planner
+model's object update, explicit or linearly implicit: ``PlannerSettings.object_update``; ``--object-update`` sets the
+episodes') in the same run: the first solve is
 reported apart (``first_solve_ms``: a warm-up, and with ``--compile`` the compilation unless an episode planner
 of the same shapes compiled the step before), then the mean of the timed solves (``solve_ms``, ``rate_hz``) and
 its rollout / backward / CEM split.

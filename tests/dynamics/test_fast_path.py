@@ -208,6 +208,32 @@ def test_actions_sliced_from_plans_of_any_horizon_reuse_one_graph(fresh_dynamo):
     assert fast.compiled and counters["stats"]["unique_graphs"] == graphs
 
 
+def test_the_backward_graph_compiles_with_the_first_forward_step(fresh_dynamo):
+    """The first step from a new signature compiles its backward graph too, under the first-step lock: compiled
+    lazily at the first backward, outside the lock, it raced a second solver worker and dynamo failed."""
+    from functorch.compile import make_boxed_func
+    from torch._dynamo.backends.common import aot_autograd
+
+    events = []
+
+    def recorder(name):
+        def compiler(graph, example_inputs):
+            events.append(name)
+            return make_boxed_func(graph.forward)
+        return compiler
+
+    model, state, u = pushing(batch=2)
+    fast = CompiledStep(model, backend=aot_autograd(fw_compiler=recorder("forward"),
+                                                    bw_compiler=recorder("backward")))
+    leaf = u.clone().requires_grad_(True)
+    out = fast(state, leaf)
+    assert fast.compiled, fast.fallback_reason
+    assert "backward" in events  # before any backward pass
+    compiled = len(events)
+    (grad,) = torch.autograd.grad(out.object_pose.sum() + out.forces.sum(), leaf)
+    assert len(events) == compiled and torch.isfinite(grad).all()
+
+
 def test_a_compiled_rollout_checks_stability_once_per_step_with_the_same_result(monkeypatch):
     """The start check of a step from the state the previous step returned is the end check already done."""
     import hydrosoft.dynamics as dynamics
