@@ -154,11 +154,12 @@ def test_the_solver_gets_the_configured_workers(core, tmp_path):
 
 
 def test_the_planner_model_takes_the_configured_object_update(core, tmp_path):
-    """``planner.object_update = "linearly_implicit"`` gives the solver's model that update and one sub-step per step;
-    left out, the scene's explicit update and its sub-steps."""
-    path = tmp_path / "implicit.toml"
-    path.write_text(SIM_TOML.read_text().replace("[planner]", '[planner]\nobject_update = "linearly_implicit"\n', 1))
-    implicit = PlannerCore.build(load_config(path))
-    assert core.model.object_update == "explicit" and core.model.substeps > 1
-    assert implicit.model.object_update == "linearly_implicit" and implicit.model.substeps == 1
-    assert implicit.settings.object_update == "linearly_implicit"
+    """deploy/sim.toml's ``planner.object_update = "linearly_implicit"`` gives the solver's model that update and one
+    sub-step per step; left out, the scene's explicit update and its sub-steps."""
+    path = tmp_path / "explicit.toml"
+    text = SIM_TOML.read_text()
+    path.write_text("\n".join(line for line in text.splitlines() if not line.startswith("object_update")))
+    explicit = PlannerCore.build(load_config(path))
+    assert core.model.object_update == "linearly_implicit" and core.model.substeps == 1
+    assert core.settings.object_update == "linearly_implicit"
+    assert explicit.model.object_update == "explicit" and explicit.model.substeps > 1
