@@ -142,5 +142,5 @@ def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp
         torch._dynamo.reset()
     out = capsys.readouterr().out
     assert "float32" in out and ("sub-steps, bubble SDF in 3 solver steps, 1 thread(s), 1 solver worker(s), "
-                                 "activation budget 0, compiled:") in out
+                                 "explicit object update, activation budget 0, compiled:") in out
     assert "compiling the step" in out

@@ -8,7 +8,7 @@ import msgspec
 import pytest
 import torch
 
-from hydrosoft.dynamics import State, UnstableStepError, step, with_object_update
+from hydrosoft.dynamics import CompiledStep, State, UnstableStepError, step, with_object_update
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
 from hydrosoft.tasks.scenes import task_scene
@@ -125,6 +125,29 @@ def test_gradients_are_finite_and_match_finite_differences():
         with torch.no_grad():
             numeric = (end_pose(u + h * direction) - end_pose(u - h * direction)) / (2 * h)
         assert torch.isclose(analytic, numeric, rtol=2e-2, atol=0)
+
+
+def test_the_compiled_step_is_the_eager_one():
+    """Inductor, float32: the linearly implicit step (its written-out solve included) and its gradient against the
+    eager step, at the tolerances of the explicit step's compiled check (``test_fast_path``). About a minute."""
+    scene = task_scene("pushing")
+    scene = msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, spacing=0.0125))
+    model, state, _ = compile_scene(scene, dtype=torch.float32)
+    model = with_object_update(model, "linearly_implicit")
+    state, u = random_pushes(model, state, 2, seed=1)
+    state = step(model, state, u)
+    fast = CompiledStep(model)
+    results = []
+    for fn in (lambda s, v: step(model, s, v), fast):
+        leaf = u.clone().requires_grad_(True)
+        out = fn(state, leaf)
+        (grad,) = torch.autograd.grad(out.forces.sum() + out.object_pose[:, :3].sum(), leaf)
+        results.append((out, grad))
+    assert fast.compiled, fast.fallback_reason
+    (eager, eager_grad), (compiled, compiled_grad) = results
+    assert (compiled.forces - eager.forces).abs().max() <= 1e-5 * eager.forces.abs().max()
+    assert torch.allclose(compiled.object_pose, eager.object_pose, rtol=0, atol=1e-6)
+    assert (compiled_grad - eager_grad).abs().max() <= 1e-4 * eager_grad.abs().max()
 
 
 def test_the_compiled_solve_is_the_eager_one():
