@@ -129,7 +129,8 @@ class Model:
         if self.object_update == "linearly_implicit" and self.contact.name not in LINEARLY_IMPLICIT_CONTACTS:
             raise ValueError(
                 f"object_update 'linearly_implicit' needs an incremental contact model "
-                f"({', '.join(LINEARLY_IMPLICIT_CONTACTS)}), whose force response it predicts; got {self.contact.name!r}")
+                f"({', '.join(LINEARLY_IMPLICIT_CONTACTS)}), whose force response it predicts; got "
+                f"{self.contact.name!r}")
 
     @property
     def n_points(self) -> int:
@@ -735,6 +736,12 @@ def _friction_motion(model: Model, system: FrictionSystem, v: Tensor) -> Tensor:
         # instead of the whole loop)
         direction, _ = _newton_direction(system, v)
         v = v + (direction - direction.detach())
+    return _displacement(model, v)
+
+
+def _displacement(model: Model, v: Tensor) -> Tensor:
+    """The object displacement ``(B, 6)`` of a motion ``v (B, d)`` in the model's coordinates: (x, y, yaw) placed
+    in the 6-vector for planar models (``d = 3``), else ``v`` itself."""
     if model.planar:
         zero = torch.zeros_like(v[:, 0])
         return torch.stack([v[:, 0], v[:, 1], zero, zero, zero, v[:, 2]], dim=-1)
@@ -762,10 +769,9 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
     point ``i`` inside body ``m`` at the start loads by ``A_i S_mi (c_mi - J_i dq)``, with ``c_mi`` the motion of
     the body's material at the point over the sub-step (m), ``J_i`` the point's Jacobian at its lever about the
     centre of mass and ``S = E n n^T + K_eff (I - n n^T)`` (``K_eff = K`` for a sticking point, 0 for one that
-    slides: ``STICKING_SHARE``; both ramped in over ``STIFFNESS_DEPTH``), and its stored force ``f_mi`` turns with the body (by its rotation ``T_m`` over the
-    sub-step, as step 4 turns it). So ``(M / gain + K_c) dq = w + sum_mi J_i^T (A_i S_mi c_mi + (T_m - I) f_mi)``
-    with the contact
-    stiffness ``K_c = sum_mi A_i J_i^T S_mi J_i``: ``d = 3`` (x, y, yaw) planar, else 6, mass matrix in the world
+    slides: ``STICKING_SHARE``; both ramped in over ``STIFFNESS_DEPTH``), and its stored force ``f_mi`` turns with
+    the body (by its rotation ``T_m`` over the sub-step, as step 4 turns it). So ``(M / gain + K_c) dq = w +
+    sum_mi J_i^T (A_i S_mi c_mi + (T_m - I) f_mi)`` with the contact stiffness ``K_c = sum_mi A_i J_i^T S_mi J_i``: ``d = 3`` (x, y, yaw) planar, else 6, mass matrix in the world
     frame. Where the forces are linear in the motion (sticking points fully inside) the force error then decays by
     ``1 / (1 + gain lambda)`` per sub-step instead of ``1 - gain lambda``: stable for any stiffness, where the
     explicit update needs ``gain lambda < 2``. Steady motion and rest states are the explicit update's: at a
@@ -777,9 +783,8 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
     R_o, t_o = _frame(state.object_pose)
     points = _world_points(model, state.object_pose)
     normals = se3.small_matmul(R_o, -model.normals.mT).mT
-    R_b0, t_b0 = _frame(state.body_poses)
-    R_b1, t_b1 = _frame(body_poses)
-    turns = se3.small_matmul(R_b1, R_b0.mT)
+    t_b0, t_b1 = state.body_poses[..., :3, None], body_poses[..., :3, None]
+    turns = _body_turns(model, state.body_poses, body_poses)
     jacobian = _planar_jacobian if model.planar else _spatial_jacobian
     stiffness, push = 0.0, 0.0
     for m, (index, phi) in enumerate(zip(touchable_points(model), state.phi.split(pair_counts(model), dim=-1))):
@@ -805,11 +810,7 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
         stiffness = stiffness + (k_t.view(*k_t.shape, 1, 1) * JtJ
                                  + k_n.view(*k_n.shape, 1, 1) * g.unsqueeze(-1) * g.unsqueeze(-2)).sum(1)
     mass, w_v = _generalised_mass(model, R_o, w)
-    v = se3.small_spd_solve(mass / gain + stiffness, w_v + push)
-    if model.planar:
-        zero = torch.zeros_like(v[:, 0])
-        return torch.stack([v[:, 0], v[:, 1], zero, zero, zero, v[:, 2]], dim=-1)
-    return v
+    return _displacement(model, se3.small_spd_solve(mass / gain + stiffness, w_v + push))
 
 
 def _normal_wrench(model: Model, state: State) -> Tensor:

@@ -224,7 +224,8 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         else:
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
                           "cost_s": stage_calls.seconds + terminal_calls.seconds})
-        _log(f"[rate] {dtype}, {workers} worker(s), {object_update} object update, solve {k}{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
+        _log(f"[rate] {dtype}, {workers} worker(s), {object_update} object update, solve {k}"
+             f"{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
     compiled = getattr(setup.dynamics, "compiled", False)
     return {
@@ -327,7 +328,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from hydrosoft.bench.episode_log import EpisodeLog
-    from hydrosoft.dynamics import OBJECT_UPDATES
+    from hydrosoft.dynamics import LINEARLY_IMPLICIT_CONTACTS, OBJECT_UPDATES
     from hydrosoft.tasks import TASKS, make_task
     from hydrosoft.tasks.evaluation import PlannerSettings, PlantSettings, prepare, run_episode
 
@@ -362,7 +363,7 @@ def run(args: argparse.Namespace) -> int:
         _log(f"bench control: --object-update and --rate-object-updates take {', '.join(OBJECT_UPDATES)}, got "
              f"{args.object_update!r} and {','.join(rate_updates)!r}")
         return 2
-    if args.object_update != "explicit" and not set(args.models) <= {"nh", "snh"}:
+    if args.object_update != "explicit" and not set(args.models) <= set(LINEARLY_IMPLICIT_CONTACTS):
         _log(f"bench control: --object-update {args.object_update} needs NH or SNH planners, got models "
              f"{','.join(args.models)}")
         return 2

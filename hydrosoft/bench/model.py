@@ -48,9 +48,10 @@ query takes 0.06-0.2 ms for such pairs (``config.drake_query_ms``).
 (``Model.object_update``; one sub-step per step, and four for its convergence) on ten-step rollouts of eight samples
 (float64, eager) under random actions of up to half each task's bounds: pushing, pushing with a fifth of its damping
 time (``epsilon / 5``, contacts five times stiffer for the explicit update), rolling and in-hand. Reference: the
-explicit update at four times the scene's sub-steps (``--quick``: the two pushing scenes). Per row: ``substeps``, ``step_ms`` (one step of the batch,
-best of loop means), and the largest object position error ``position_error_mm`` and rotation error
-``rotation_error_mrad`` over the rollout, against the reference, beside its largest motion ``motion_mm``.
+explicit update at four times the scene's sub-steps (``--quick``: the two pushing scenes). Per row:
+``substeps``, ``step_ms`` (one step of the batch, best of loop means), and the largest object position error
+``position_error_mm`` and rotation error ``rotation_error_mrad`` over the rollout, against the reference, beside
+its largest motion ``motion_mm``.
 
 ``pruning``: step time of the compiled task scenes (pushing, rotation, rolling, in-hand) with pruning (the
 default) and without (``prune=False``), float32, and the largest difference of the net contact force after
