@@ -315,6 +315,9 @@ class MeshSDF:
         clamped = torch.minimum(torch.maximum(points, lo), hi)
         u = (clamped - lo) / self.spacing
         cell = torch.minimum(u.detach().floor(), points.new_tensor([nx - 2, ny - 2, nz - 2])).clamp_min(0)
+        # a NaN coordinate reads cell 0 (its weight t is NaN, so is the distance): a NaN cast to an index is out of
+        # range (compiled, it raised; unchecked, it would read outside the grid)
+        cell = torch.nan_to_num(cell, nan=0.0)
         t = u - cell
         index = cell.long()
         flat = (index[..., 0] * ny + index[..., 1]) * nz + index[..., 2]

@@ -164,6 +164,16 @@ def test_batched_shapes_and_identity_semantics(cases):
     assert f.bounding_radius == pytest.approx(math.sqrt(0.02**2 + 0.015**2 + 0.01**2))
 
 
+def test_non_finite_points_give_non_finite_distances_eager_and_compiled(cases):
+    f, _, _ = cases["box"]
+    points = torch.tensor([[0.0, 0.0, 0.0], [math.nan, 0.0, 0.0], [0.001, math.inf, 0.0], [0.0, 0.0, math.nan],
+                           [0.005, -0.004, 0.003]], dtype=F64)
+    compiled = torch.compile(f.__call__, dynamic=False)  # inductor checks its indices: a NaN cell raised here
+    for phi in (f(points), compiled(points)):
+        assert torch.isnan(phi[[1, 3]]).all() and phi[2] == math.inf
+        torch.testing.assert_close(phi[[0, 4]], f(points[[0, 4]]), rtol=1e-12, atol=1e-15)
+
+
 def test_bad_meshes_files_and_parameters(tmp_path):
     box = trimesh.creation.box(extents=(0.03, 0.03, 0.03))
     with pytest.raises(ValueError, match="watertight"):

@@ -13,7 +13,7 @@ from hydrosoft.control.costs import orientation_error, position_error
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
 from hydrosoft.tasks import TASKS, make_task
-from hydrosoft.tasks.base import mean_point_distance, mean_squared_point_distance
+from hydrosoft.tasks.base import PointTracking, mean_point_distance, mean_squared_point_distance
 
 F64 = torch.float64
 RANGES = {  # task -> (what is measured, low, high), as stated in the task modules' docstrings
@@ -114,6 +114,21 @@ def test_the_closed_form_tracking_term_is_the_mean_over_the_points_with_its_grad
         return torch.cat([grad[:, :3], grad[:, 3:] - (grad[:, 3:] * q).sum(-1, keepdim=True) * q], -1)
 
     torch.testing.assert_close(along_unit_quaternions(got), along_unit_quaternions(want), rtol=1e-10, atol=1e-15)
+
+
+def test_the_tracking_term_is_that_of_the_rotation_a_quaternion_of_any_scale_or_sign_represents():
+    g = torch.Generator().manual_seed(1)
+    points = 0.02 * torch.randn(60, 3, dtype=F64, generator=g) + torch.tensor([0.01, -0.02, 0.005], dtype=F64)
+    goal = torch.cat([0.01 * torch.randn(3, dtype=F64, generator=g), se3.quat_normalize(torch.randn(4, dtype=F64,
+                                                                                                  generator=g))])
+    unit = torch.cat([0.01 * torch.randn(8, 3, dtype=F64, generator=g),
+                      se3.quat_normalize(torch.randn(8, 4, dtype=F64, generator=g))], -1)
+    scale = torch.tensor([0.3, 1.0, 2.5, -1.0, -0.7, 4.0, 1e-3, 1e3], dtype=F64).view(-1, 1)
+    scaled = torch.cat([unit[:, :3], scale * unit[:, 3:]], -1)
+    tracking = PointTracking.of(points, goal)
+    per_point = (se3.transform_points(unit, points) - se3.transform_points(goal, points)).square().sum(-1).mean(-1)
+    torch.testing.assert_close(tracking(scaled), per_point, rtol=1e-11, atol=1e-18)
+    assert float(tracking(goal.unsqueeze(0))[0]) < 1e-15
 
 
 @pytest.mark.parametrize("name", TASKS)
