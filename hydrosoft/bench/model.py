@@ -506,7 +506,7 @@ class _Bench:
         """Pose-to-wrench query times at batch 1 (``dynamics.pressure_wrenches``), per object, dtype and mode."""
         torch = self.torch
         from hydrosoft.bench.wrench_scenes import BUBBLE_RADII_M, SPACING_M, bench_object, start_pose, wrench_scene
-        from hydrosoft.dynamics import pressure_wrenches
+        from hydrosoft.dynamics import DEFAULT_OPTIONS, pressure_wrenches
         from hydrosoft.scene import compile_scene
 
         out = []
@@ -523,7 +523,7 @@ class _Bench:
                 queries = {"eager": functools.partial(pressure_wrenches, model)}
                 if compiled:
                     queries["compiled"] = torch.compile(functools.partial(pressure_wrenches, model), dynamic=False,
-                                                        options={"cpp_wrapper": True})
+                                                        options=dict(DEFAULT_OPTIONS))
                 for mode, query in queries.items():
                     _progress(f"wrench: {name} {dtype} {mode}")
                     with torch.no_grad():
