@@ -835,8 +835,11 @@ def _substep(model: Model, state: State, u: Tensor, dt_sub: Tensor) -> State:
 
 
 def _moved_bodies(model: Model, state: State, u: Tensor) -> Tensor:
-    """The bodies' poses ``(B, M, 7)`` after the sub-step's actions ``u (B, M, 6)`` (unactuated bodies stay)."""
-    return se3.retract(state.body_poses, u * model.actuated.view(1, -1, 1))
+    """The bodies' poses ``(B, M, 7)`` after the sub-step's actions ``u (B, M, 6)`` (unactuated bodies stay).
+
+    An unactuated body's actions are selected away, not multiplied by zero, so their gradient is exactly zero even
+    where the gradient at its pose is not finite."""
+    return se3.retract(state.body_poses, torch.where(model.actuated.view(1, -1, 1) > 0, u, 0.0))
 
 
 def _integrate(model: Model, state: State, u: Tensor, substep, n: int) -> State:

@@ -144,8 +144,8 @@ def test_compiled_step_falls_back_to_eager_when_compilation_fails():
 def test_compiled_step_matches_eager():
     """Inductor, float32 (the fast path), one graph (fullgraph: the ellipsoid's solver loop included). Stated
     tolerance: forces within 1e-5 of the largest force, poses within 1e-6 m, signed distances within 1e-7 m,
-    gradients within 1e-4 of the largest gradient entry (on finite samples). The third sample's action is NaN, as
-    a planner's lost sample is: it stays NaN, and the others and the compiled path are unaffected (the default
+    gradients within 1e-4 of the largest gradient entry. The third sample's action is NaN, as a planner's lost
+    sample is: it stays NaN, and the others, their gradients and the compiled path are unaffected (the default
     options leave the kernels' index checks out). (About a minute: most of it compiling.)"""
     model, state, u = pushing(torch.float32, spacing=0.0125, batch=3)
     u[2] = torch.nan
@@ -162,14 +162,15 @@ def test_compiled_step_matches_eager():
     assert torch.allclose(compiled.phi[:2], eager.phi[:2], rtol=0, atol=1e-7)
 
     grads = []
-    finite = [0, 1, 0]
-    state, u = State(*(t[finite] for t in state)), u[finite]
     for fn in (lambda s, v: step(model, s, v), fast):
         leaf = u.detach().requires_grad_(True)
         out = fn(state, leaf)
-        (g,) = torch.autograd.grad(out.forces.sum() + out.object_pose[:, :3].sum(), leaf)
-        grads.append(g)
+        (g,) = torch.autograd.grad(out.forces[:2].sum() + out.object_pose[:2, :3].sum(), leaf)
+        grads.append(g[:2])
     assert fast.compiled
+    # inductor's backward once gave NaN for the unactuated body's actions of the finite samples (0 * NaN), and a
+    # planner zeroes the whole gradient of a sample with a non-finite entry: each sample's descent must be its own
+    assert torch.isfinite(grads[1]).all()
     assert (grads[1] - grads[0]).abs().max() <= 1e-4 * grads[0].abs().max()
 
 
