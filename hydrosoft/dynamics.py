@@ -977,10 +977,13 @@ class CompiledStep:
     and this step's are many and small: with 0 the full pushing planner's solve took 0.89 of the time with 1, for
     the same compile time (float32, one thread; ``hydrosoft-stack bench control --compile
     --rate-activation-budgets 1,0`` measures it).
-    An instance may be called from several threads at once (``CemGdConfig.workers``). The first step from each
-    new input signature runs alone, so that it compiles once: two threads compiling the same signature at once each
-    added its graphs to dynamo's cache and passed its recompile limit (seen: the solver fell back to eager). Its
-    backward graph compiles then too, not lazily at its first backward, which ran outside the lock.
+    An instance may be called from several threads at once (``CemGdConfig.workers``). Each thread steps through a
+    compiled copy of its own, with its own dynamo cache and guards: with one copy shared by two solver workers,
+    dynamo's guards failed spuriously in the middle of a run ("runtime guards failed even though they passed during
+    recompilation-reason analysis"), twice in two runs, each time a 23-26 s recompile that also spends one of the
+    copy's 8 graphs. A second thread's copy compiles the same graphs again, mostly from inductor's cache. The first
+    step from each new input signature runs alone, one thread at a time: dynamo compiling in two threads at once
+    failed. Its backward graph compiles then too, not lazily at its first backward, which ran outside the lock.
     """
 
     def __init__(self, model: Model, activation_memory_budget: float = 0.0, **options) -> None:
@@ -989,16 +992,12 @@ class CompiledStep:
         self.fallback_reason: str | None = None
         if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
             options["options"] = dict(DEFAULT_OPTIONS)
-        friction_move = None
-        if getattr(model.contact, "implicit_friction", False):
-            friction_move = torch.compile(_private_copy(_newton_move), **options)
-        self._compiled = torch.compile(_private_copy(_bound_substep(model, friction_move)), **options)
-        # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
-        # next step starts from that state, so its start check is already known (one stability check per step)
-        self._end_check = threading.local()
-        # input signatures (_signature) a step has run from: their graphs are compiled, and further steps from them
-        # may run on several threads at once; a step from any other runs under _first_steps, one at a time
-        self._warm: set[tuple] = set()
+        self._options = options
+        # per thread: its compiled copy (compiled), the input signatures (_signature) its steps have run from, whose
+        # graphs are compiled (warm), and (signed distances of the last state it returned, the sub-steps a step from
+        # it needs) (last): a rollout's next step starts from that state, so its start check is already known
+        self._per_thread = threading.local()
+        # a step from a signature its thread's copy has not run from compiles, under this lock, one at a time
         self._first_steps = threading.Lock()
 
     @property
@@ -1013,17 +1012,18 @@ class CompiledStep:
             # new stride would compile the step again (an open-loop plan of each episode's length passed the limit)
             u = u.contiguous()
             try:
+                local = self._thread_copy()
                 key = _signature(state, u)
-                if key in self._warm:
-                    return self._compiled_step(state, u)
+                if key in local.warm:
+                    return self._compiled_step(local, state, u)
                 # the backward graph compiles with the forward, under the lock: lazily, at the first backward, it
                 # compiled outside it while another worker ran or compiled, and dynamo failed ("FX to symbolically
                 # trace a dynamo-optimized function"), leaving the process unable to compile
                 settings = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget,
                                                          force_non_lazy_backward_lowering=True)
                 with self._first_steps, settings:
-                    out = self._compiled_step(state, u)
-                    self._warm.add(key)
+                    out = self._compiled_step(local, state, u)
+                    local.warm.add(key)
                     return out
             except UnstableStepError:
                 raise
@@ -1033,12 +1033,29 @@ class CompiledStep:
                               RuntimeWarning, stacklevel=2)
         return step(self.model, state, u)
 
-    def _compiled_step(self, state: State, u: Tensor) -> State:
+    @property
+    def compiled_substep(self):
+        """This thread's compiled sub-step ``(state, u_sub, dt_sub) -> state`` alone (no stability check, no lock),
+        for timing it (``bench model``)."""
+        return self._thread_copy().compiled
+
+    def _thread_copy(self) -> threading.local:
+        """This thread's compiled copy of the sub-step and its state (``__init__``), made at its first step."""
+        local = self._per_thread
+        if not hasattr(local, "compiled"):
+            friction_move = None
+            if getattr(self.model.contact, "implicit_friction", False):
+                friction_move = torch.compile(_private_copy(_newton_move), **self._options)
+            local.compiled = torch.compile(_private_copy(_bound_substep(self.model, friction_move)), **self._options)
+            local.warm, local.last = set(), None
+        return local
+
+    def _compiled_step(self, local: threading.local, state: State, u: Tensor) -> State:
         with _RAISE_PAST_RECOMPILE_LIMIT:
-            known = getattr(self._end_check, "last", None)
+            known = local.last
             same = known is not None and state.phi is not None and state.phi is known[0]
-            out, needed = _checked_step(self.model, state, u, self._compiled, known[1] if same else None)
-        self._end_check.last = None if needed is None else (out.phi, needed)
+            out, needed = _checked_step(self.model, state, u, local.compiled, known[1] if same else None)
+        local.last = None if needed is None else (out.phi, needed)
         return out
 
 

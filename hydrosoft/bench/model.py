@@ -345,7 +345,7 @@ class _Bench:
                                                  functools.partial(_substep, model))
                     if compiled:
                         stepper = CompiledStep(model)
-                        variants[(name, "compiled")] = (model, stepper, stepper._compiled)
+                        variants[(name, "compiled")] = (model, stepper, stepper.compiled_substep)
                 for batch in batches:
                     out.extend(self._time_config(contact, n_points, batch, variants, dtypes))
         return out

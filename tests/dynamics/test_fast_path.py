@@ -268,11 +268,11 @@ def test_a_compiled_rollout_checks_stability_once_per_step_with_the_same_result(
     assert torch.isfinite(compiled_again.forces).all()
 
 
-def test_threads_stepping_at_once_compile_each_signature_once(fresh_dynamo):
+def test_threads_stepping_at_once_each_compile_their_own_copy_once(fresh_dynamo):
     """Solver workers call one CompiledStep from several threads at once. Four threads taking the first steps of a
-    rollout together, with gradients and without, compile the graphs that one thread alone compiles, stay compiled
-    and return the eager step's states. (Without the first-step lock each thread added its own copy of every graph
-    to dynamo's cache, and the instance passed its recompile limit.)"""
+    rollout together, two with gradients and two without, each compile the graphs that one thread alone compiles
+    for its grad mode into a copy of their own (a shared copy's guards failed spuriously mid-run), stay compiled
+    and return the eager step's states."""
     import threading
 
     model, state, u = pushing(batch=2)
@@ -306,7 +306,7 @@ def test_threads_stepping_at_once_compile_each_signature_once(fresh_dynamo):
         thread.join(timeout=300)
     assert not errors and len(results) == 4, errors
     assert fast.compiled, fast.fallback_reason
-    assert counters["stats"]["unique_graphs"] - before == graphs_alone
+    assert counters["stats"]["unique_graphs"] - before == 2 * graphs_alone
     for out in results:
         torch.testing.assert_close(out.forces.detach(), expected.forces, rtol=0, atol=1e-14)
         torch.testing.assert_close(out.object_pose.detach(), expected.object_pose, rtol=0, atol=1e-14)
