@@ -34,6 +34,7 @@ import math
 import threading
 import types
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -977,13 +978,15 @@ class CompiledStep:
     and this step's are many and small: with 0 the full pushing planner's solve took 0.89 of the time with 1, for
     the same compile time (float32, one thread; ``hydrosoft-stack bench control --compile
     --rate-activation-budgets 1,0`` measures it).
-    An instance may be called from several threads at once (``CemGdConfig.workers``). Each thread steps through a
-    compiled copy of its own, with its own dynamo cache and guards: with one copy shared by two solver workers,
-    dynamo's guards failed spuriously in the middle of a run ("runtime guards failed even though they passed during
-    recompilation-reason analysis"), twice in two runs, each time a 23-26 s recompile that also spends one of the
-    copy's 8 graphs. A second thread's copy compiles the same graphs again, mostly from inductor's cache. The first
-    step from each new input signature runs alone, one thread at a time: dynamo compiling in two threads at once
-    failed. Its backward graph compiles then too, not lazily at its first backward, which ran outside the lock.
+    An instance may be called from several threads at once (``CemGdConfig.workers``). A call checks out a compiled
+    copy of the sub-step that no other call is using, with its own dynamo cache and guards, and returns it after:
+    with one copy used by two solver workers at once, dynamo's guards failed spuriously in the middle of a run
+    ("runtime guards failed even though they passed during recompilation-reason analysis"), twice in two runs,
+    each time a 23-26 s recompile that also spent one of the copy's 8 graphs. So there are as many copies as calls
+    ever ran at once (the solver's workers), each compiled once, mostly from inductor's cache after the first;
+    calls one after another, from any threads (a service's executor), share one. The first step from each input
+    signature a copy has not run from runs alone: dynamo compiling in two threads at once failed. Its backward
+    graph compiles then too, not lazily at its first backward, which ran outside the lock.
     """
 
     def __init__(self, model: Model, activation_memory_budget: float = 0.0, **options) -> None:
@@ -993,12 +996,14 @@ class CompiledStep:
         if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
             options["options"] = dict(DEFAULT_OPTIONS)
         self._options = options
-        # per thread: its compiled copy (compiled), the input signatures (_signature) its steps have run from, whose
-        # graphs are compiled (warm), and (signed distances of the last state it returned, the sub-steps a step from
-        # it needs) (last): a rollout's next step starts from that state, so its start check is already known
-        self._per_thread = threading.local()
-        # a step from a signature its thread's copy has not run from compiles, under this lock, one at a time
+        self._copies: list[_CompiledCopy] = []  # all made so far
+        self._idle: list[_CompiledCopy] = []  # those no call is using
+        self._copies_lock = threading.Lock()
+        # a step from a signature its copy has not run from compiles, under this lock, one at a time
         self._first_steps = threading.Lock()
+        # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
+        # next step starts from that state, so its start check is already known (one stability check per step)
+        self._end_check = threading.local()
 
     @property
     def compiled(self) -> bool:
@@ -1011,19 +1016,19 @@ class CompiledStep:
             # one layout for every u: a planner's u[:, k] is a view whose strides depend on its horizon, and each
             # new stride would compile the step again (an open-loop plan of each episode's length passed the limit)
             u = u.contiguous()
+            key = _signature(state, u)
+            copy = self._check_out(key)
             try:
-                local = self._thread_copy()
-                key = _signature(state, u)
-                if key in local.warm:
-                    return self._compiled_step(local, state, u)
+                if key in copy.warm:
+                    return self._compiled_step(copy, state, u)
                 # the backward graph compiles with the forward, under the lock: lazily, at the first backward, it
                 # compiled outside it while another worker ran or compiled, and dynamo failed ("FX to symbolically
                 # trace a dynamo-optimized function"), leaving the process unable to compile
                 settings = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget,
                                                          force_non_lazy_backward_lowering=True)
                 with self._first_steps, settings:
-                    out = self._compiled_step(local, state, u)
-                    local.warm.add(key)
+                    out = self._compiled_step(copy, state, u)
+                    copy.warm.add(key)
                     return out
             except UnstableStepError:
                 raise
@@ -1031,32 +1036,50 @@ class CompiledStep:
                 self.fallback_reason = f"{type(err).__name__}: {err}"
                 warnings.warn(f"torch.compile of the step failed, running eager: {self.fallback_reason}",
                               RuntimeWarning, stacklevel=2)
+            finally:
+                with self._copies_lock:
+                    self._idle.append(copy)
         return step(self.model, state, u)
 
     @property
     def compiled_substep(self):
-        """This thread's compiled sub-step ``(state, u_sub, dt_sub) -> state`` alone (no stability check, no lock),
-        for timing it (``bench model``)."""
-        return self._thread_copy().compiled
+        """A compiled sub-step ``(state, u_sub, dt_sub) -> state`` alone (no stability check, no lock), for timing it
+        from one thread (``bench model``)."""
+        copy = self._check_out()
+        with self._copies_lock:
+            self._idle.append(copy)
+        return copy.compiled
 
-    def _thread_copy(self) -> threading.local:
-        """This thread's compiled copy of the sub-step and its state (``__init__``), made at its first step."""
-        local = self._per_thread
-        if not hasattr(local, "compiled"):
+    def _check_out(self, key: tuple | None = None) -> _CompiledCopy:
+        """A copy no call is using, one compiled for the input signature ``key`` if there is one (a new copy when
+        all are in use); the caller returns it to ``_idle``."""
+        with self._copies_lock:
+            if self._idle:
+                warm = [i for i, copy in enumerate(self._idle) if key in copy.warm]
+                return self._idle.pop(warm[-1] if warm else -1)
             friction_move = None
             if getattr(self.model.contact, "implicit_friction", False):
                 friction_move = torch.compile(_private_copy(_newton_move), **self._options)
-            local.compiled = torch.compile(_private_copy(_bound_substep(self.model, friction_move)), **self._options)
-            local.warm, local.last = set(), None
-        return local
+            copy = _CompiledCopy(torch.compile(_private_copy(_bound_substep(self.model, friction_move)),
+                                               **self._options), set())
+            self._copies.append(copy)
+            return copy
 
-    def _compiled_step(self, local: threading.local, state: State, u: Tensor) -> State:
+    def _compiled_step(self, copy: _CompiledCopy, state: State, u: Tensor) -> State:
         with _RAISE_PAST_RECOMPILE_LIMIT:
-            known = local.last
+            known = getattr(self._end_check, "last", None)
             same = known is not None and state.phi is not None and state.phi is known[0]
-            out, needed = _checked_step(self.model, state, u, local.compiled, known[1] if same else None)
-        local.last = None if needed is None else (out.phi, needed)
+            out, needed = _checked_step(self.model, state, u, copy.compiled, known[1] if same else None)
+        self._end_check.last = None if needed is None else (out.phi, needed)
         return out
+
+
+class _CompiledCopy(NamedTuple):
+    """One compiled copy of a ``CompiledStep``'s sub-step and the input signatures (``_signature``) it has run from,
+    whose graphs are compiled."""
+
+    compiled: Callable
+    warm: set
 
 
 def _signature(state: State, u: Tensor) -> tuple:

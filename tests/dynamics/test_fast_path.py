@@ -270,9 +270,10 @@ def test_a_compiled_rollout_checks_stability_once_per_step_with_the_same_result(
 
 def test_threads_stepping_at_once_each_compile_their_own_copy_once(fresh_dynamo):
     """Solver workers call one CompiledStep from several threads at once. Four threads taking the first steps of a
-    rollout together, two with gradients and two without, each compile the graphs that one thread alone compiles
-    for its grad mode into a copy of their own (a shared copy's guards failed spuriously mid-run), stay compiled
-    and return the eager step's states."""
+    rollout together, two with gradients and two without, each step through a compiled copy of their own (a copy
+    used by two at once failed its guards spuriously mid-run), compile it once for their grad mode, stay compiled
+    and return the eager step's states. Later calls one after another, from another thread, reuse a copy: no new
+    graphs."""
     import threading
 
     model, state, u = pushing(batch=2)
@@ -307,6 +308,18 @@ def test_threads_stepping_at_once_each_compile_their_own_copy_once(fresh_dynamo)
     assert not errors and len(results) == 4, errors
     assert fast.compiled, fast.fallback_reason
     assert counters["stats"]["unique_graphs"] - before == 2 * graphs_alone
+    assert len(fast._copies) == 4
+
+    def later_rollouts() -> None:
+        for grad in (False, True):
+            with torch.set_grad_enabled(grad):
+                results.append(fast(fast(state, u), u))
+
+    before = counters["stats"]["unique_graphs"]
+    later = threading.Thread(target=later_rollouts)
+    later.start()
+    later.join(timeout=300)
+    assert len(results) == 6 and counters["stats"]["unique_graphs"] == before and len(fast._copies) == 4
     for out in results:
         torch.testing.assert_close(out.forces.detach(), expected.forces, rtol=0, atol=1e-14)
         torch.testing.assert_close(out.object_pose.detach(), expected.object_pose, rtol=0, atol=1e-14)
