@@ -520,6 +520,9 @@ def test_the_arm_stops_in_bounded_time_when_heartbeats_stop_and_waits_for_a_fres
         rest_ns, rest = await at_rest(tcp, 2.0)
         planner.goal = None
         reason = planner.arm_state().stop_reason
+        # a target re-sent just before the goal was dropped may still be on its way: it must reach the commander
+        # (and be spent by the stop) before heartbeats resume, or it is a fresh target that rightly resumes
+        await asyncio.sleep(4 * REPLAN_PERIOD_S + 0.2)
         planner.heartbeats = True
         await asyncio.sleep(0.5)
         _, still, twist = await tcp.read()
