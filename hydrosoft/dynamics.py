@@ -772,12 +772,13 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
     centre of mass and ``S = E n n^T + K_eff (I - n n^T)`` (``K_eff = K`` for a sticking point, 0 for one that
     slides: ``STICKING_SHARE``; both ramped in over ``STIFFNESS_DEPTH``), and its stored force ``f_mi`` turns with
     the body (by its rotation ``T_m`` over the sub-step, as step 4 turns it). So ``(M / gain + K_c) dq = w +
-    sum_mi J_i^T (A_i S_mi c_mi + (T_m - I) f_mi)`` with the contact stiffness ``K_c = sum_mi A_i J_i^T S_mi J_i``: ``d = 3`` (x, y, yaw) planar, else 6, mass matrix in the world
-    frame. Where the forces are linear in the motion (sticking points fully inside) the force error then decays by
-    ``1 / (1 + gain lambda)`` per sub-step instead of ``1 - gain lambda``: stable for any stiffness, where the
-    explicit update needs ``gain lambda < 2``. Steady motion and rest states are the explicit update's: at a
-    constant body velocity the predicted and the start forces agree. Points that enter a body during the
-    sub-step are not predicted; the exact contact update (step 4) loads them, and the next sub-step predicts them.
+    sum_mi J_i^T (A_i S_mi c_mi + (T_m - I) f_mi)`` with the contact stiffness ``K_c = sum_mi A_i J_i^T S_mi J_i``:
+    ``d = 3`` (x, y, yaw) planar, else 6, mass matrix in the world frame. Where the forces are linear in the motion
+    (sticking points fully inside) the force error then decays by ``1 / (1 + gain lambda)`` per sub-step instead of
+    ``1 - gain lambda``: stable for any stiffness, where the explicit update needs ``gain lambda < 2``. Steady
+    motion and rest states are the explicit update's: at a constant body velocity the predicted and the start forces
+    agree. Points that enter a body during the sub-step are not predicted; the exact contact update (step 4) loads
+    them, and the next sub-step predicts them.
     ``state.phi`` must be cached (``_substep`` fills it).
     """
     gain = model.dt / model.epsilon * dt_sub
