@@ -35,7 +35,7 @@ import threading
 import types
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import torch
@@ -89,6 +89,8 @@ class Model:
     planar: the object moves in (x, y, yaw) only, its height and tilt held.
     touchable: per body, the indices ``(N_m,)`` of the points it can touch (per-body pruning by the scene
     compiler: a point out of a body's reach is never evaluated against it); ``()`` means every point for every body.
+    point_sets (derived from ``touchable``): per body, the slice its touchable points span where they are
+    consecutive (a view when compiled, where indices are a gather read point by point), else the indices.
     support: in a planar model, the index of the body that carries the object's weight (the table: an unactuated
     horizontal half-space), or None. Its normal forces are set each step to balance the vertical load: the
     weight plus the other bodies' downward contact forces (``support_load``), so its friction limit is
@@ -123,8 +125,10 @@ class Model:
     stability_margin: float = 0.0
     max_substeps: int = 64
     object_update: str = "explicit"
+    point_sets: tuple[slice | Tensor, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "point_sets", tuple(_point_set(index) for index in self.touchable))
         if self.object_update not in OBJECT_UPDATES:
             raise ValueError(f"object_update: one of {', '.join(OBJECT_UPDATES)}, got {self.object_update!r}")
         if self.object_update == "linearly_implicit" and self.contact.name not in LINEARLY_IMPLICIT_CONTACTS:
@@ -180,6 +184,15 @@ def with_object_update(model: Model, object_update: str) -> Model:
 
 STABLE_RATIO = 1.8
 """Largest ``(h/epsilon)(h/n) lambda_max(M^-1 K_c)`` a sub-step may take: 0.9 of the explicit update's limit 2."""
+
+
+def _point_set(index: Tensor) -> slice | Tensor:
+    """A body's touchable point indices ``(N_m,)`` as the slice they span when they are consecutive, else as they are
+    (``Model.point_sets``; ``compile_scene`` orders the points so that the first two bodies' sets are consecutive)."""
+    values = index.tolist()
+    if values and values == list(range(values[0], values[-1] + 1)):
+        return slice(values[0], values[-1] + 1)
+    return index
 
 
 class UnstableStepError(ValueError):
@@ -378,13 +391,19 @@ def pair_counts(model: Model) -> list[int]:
     return [model.n_points if index is None else index.numel() for index in touchable_points(model)]
 
 
-def _body_groups(model: Model) -> list[tuple[slice, Tensor | None]]:
+def _point_sets(model: Model) -> tuple[slice | Tensor | None, ...]:
+    """Per body, its touchable points as ``Model.point_sets`` holds them (a slice where they are consecutive, else
+    indices ``(N_m,)``), or None for all ``N`` points: what the step indexes with."""
+    return model.point_sets if model.touchable else (None,) * model.n_bodies
+
+
+def _body_groups(model: Model) -> list[tuple[slice, slice | Tensor | None]]:
     """Bodies evaluated together, each group on one point set: all ``M`` bodies on every point (one batched
     evaluation) when the model is not pruned per body and has no support body, else each body alone on its
-    ``touchable`` indices (all points when the model is not pruned)."""
+    touchable points (``_point_sets``; all points when the model is not pruned)."""
     if not model.touchable and (model.support is None or not model.planar):
         return [(slice(0, model.n_bodies), None)]
-    return [(slice(m, m + 1), index) for m, index in enumerate(touchable_points(model))]
+    return [(slice(m, m + 1), points) for m, points in enumerate(_point_sets(model))]
 
 
 def _distances(model: Model, A: Tensor, c: Tensor, P: Tensor, bodies: slice) -> Tensor:
@@ -394,7 +413,7 @@ def _distances(model: Model, A: Tensor, c: Tensor, P: Tensor, bodies: slice) -> 
     return torch.stack([model.bodies[m](local[:, j]) for j, m in enumerate(range(bodies.start, bodies.stop))], 1)
 
 
-def _group_points(model: Model, index: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+def _group_points(model: Model, index: slice | Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
     """The points, normals ``(n, 3)`` and areas ``(n,)`` of a body group's point set (all when ``index`` is None)."""
     if index is None:
         return model.points, model.normals, model.areas
@@ -537,7 +556,9 @@ def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: 
         f = model.contact.step(geometry, previous, material)
         if is_support:
             f = _with_support_normal(f, geometry, load, getattr(model.contact, "implicit_friction", False))
-        if index is not None:
+        if isinstance(index, slice):
+            f = torch.nn.functional.pad(f, (0, 0, index.start, n - index.stop))
+        elif index is not None:
             f = f.new_zeros(f.shape[0], f.shape[1], n, 3).index_copy(2, index, f)
         forces[g] = f
         phis[g] = geometry.phi_next.flatten(1)
@@ -789,7 +810,7 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
     turns = _body_turns(model, state.body_poses, body_poses)
     jacobian = _planar_jacobian if model.planar else _spatial_jacobian
     stiffness, push = 0.0, 0.0
-    for m, (index, phi) in enumerate(zip(touchable_points(model), state.phi.split(pair_counts(model), dim=-1))):
+    for m, (index, phi) in enumerate(zip(_point_sets(model), state.phi.split(pair_counts(model), dim=-1))):
         x, n, area, f = points, normals, model.areas, state.forces[:, m]
         if index is not None:
             x, n, area, f = x[:, index], n[:, index], area[index], f[:, index]

@@ -344,3 +344,52 @@ def test_the_activation_budget_keeps_the_step_and_its_gradient_and_is_not_left_s
     assert functorch_config.activation_memory_budget == default
     torch.testing.assert_close(results[0][0], results[1][0], rtol=0, atol=1e-12)
     torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("task", ["pushing", "rotation", "rolling", "in_hand"])
+def test_each_body_of_the_task_scenes_reads_its_points_as_a_slice(task):
+    """The scene compiler orders the points so that each of two bodies' touchable points are consecutive: the step
+    reads them as slices of exactly the touchable points."""
+    model, _, _ = compile_scene(task_scene(task))
+    for index, points in zip(model.touchable, model.point_sets):
+        assert isinstance(points, slice)
+        assert torch.equal(torch.arange(model.n_points)[points], index)
+
+
+def test_a_third_body_off_the_order_reads_its_points_by_index():
+    """Only the first two bodies' point sets are made consecutive; a body whose points are not stays a gather."""
+    from hydrosoft.scene import _consecutive_order
+
+    near = torch.tensor([[1, 1, 0, 0, 1, 0], [0, 1, 1, 0, 1, 0], [1, 0, 1, 1, 0, 0]], dtype=torch.bool)
+    order = _consecutive_order(near)
+    assert order.tolist() == [0, 1, 4, 2, 3, 5]
+    rows = near[:, order]
+    for row in rows[:2]:
+        kept = row.nonzero().squeeze(-1)
+        assert torch.equal(kept, torch.arange(int(kept[0]), int(kept[-1]) + 1))
+    model, _, _ = compile_scene(task_scene("pushing"))
+    scattered = torch.tensor([0, 2, 5])
+    assert isinstance(replace(model, touchable=(scattered, model.touchable[1])).point_sets[0], torch.Tensor)
+
+
+@pytest.mark.parametrize("update", ["explicit", "linearly_implicit"])
+def test_sliced_and_gathered_point_sets_step_alike(update):
+    """The step reads a body's points as a slice where they are consecutive; the same model with gathered indices
+    takes the same steps, forces and gradients (float64, to rounding)."""
+    model, state, u = pushing()
+    model = with_object_update(model, update)
+    gathered = replace(model)
+    object.__setattr__(gathered, "point_sets", tuple(model.touchable))
+    results = []
+    for m in (model, gathered):
+        leaf = u.clone().requires_grad_(True)
+        x = state
+        for _ in range(4):
+            x = step(m, x, leaf)
+        (grad,) = torch.autograd.grad(x.object_pose.sum() + x.forces.square().sum(), leaf)
+        results.append((x, grad))
+    (a, grad_a), (b, grad_b) = results
+    assert torch.allclose(a.forces, b.forces, rtol=0, atol=1e-12)
+    assert torch.allclose(a.object_pose, b.object_pose, rtol=0, atol=1e-15)
+    assert torch.allclose(grad_a, grad_b, rtol=1e-10, atol=1e-12)
+    assert grad_a.abs().max() > 0
