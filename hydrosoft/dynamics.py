@@ -195,6 +195,15 @@ def _point_set(index: Tensor) -> slice | Tensor:
     return index
 
 
+def with_gathered_points(model: Model) -> Model:
+    """The same model reading each body's touchable points by index (a gather) even where they are consecutive, as
+    a model whose point sets are not consecutive does (``hydrosoft-stack bench model --sections point-sets`` times
+    the two)."""
+    gathered = replace(model)
+    object.__setattr__(gathered, "point_sets", tuple(model.touchable))
+    return gathered
+
+
 class UnstableStepError(ValueError):
     """A step whose contacts are too stiff for the explicit object update within ``max_substeps`` sub-steps."""
 

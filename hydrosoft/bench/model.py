@@ -1,7 +1,8 @@
 """``hydrosoft-stack bench model``: step speed, memory and force accuracy of the four contact models.
 
-Five sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
-"wrench": [...], "object_update": [...], "pruning": [...]}``, otherwise as tables. Progress goes to stderr.
+Six sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
+"wrench": [...], "object_update": [...], "pruning": [...], "point_sets": [...]}``, otherwise as tables. Progress
+goes to stderr.
 
 ``rows``: one quasi-dynamic step (``dynamics.step``) of the planar pushing scene, a Soft Bubble (ellipsoid) pressed
 5 mm into a cube resting on the table (half-space): ``M = 2`` bodies, the cube's surface discretised to about
@@ -56,6 +57,14 @@ its largest motion ``motion_mm``.
 ``pruning``: step time of the compiled task scenes (pushing, rotation, rolling, in-hand) with pruning (the
 default) and without (``prune=False``), float32, and the largest difference of the net contact force after
 the timed step.
+
+``point-sets``: the pushing planner's model (the full planner's 216 surface points, pruned per body to 132;
+linearly implicit object update, float32), eager or (with ``--compile``) compiled, at B = 32 and 64 (``--quick``:
+B = 8): one step with each body's touchable points read as a slice (``Model.point_sets``, the default wherever
+they are consecutive) against the same model reading them by index (``dynamics.with_gathered_points``), timed
+interleaved: ``forward_ms`` (no grad) and ``forward_backward_ms`` (forward plus backward of ``sum(object_pose) +
+sum(forces)`` to the controls) of each, their ratios (slices / gathers), ``compile_s`` of each compiled variant,
+and the largest force difference between the two after the step (N).
 """
 
 from __future__ import annotations
@@ -73,7 +82,7 @@ from typing import Any
 FULL_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,16,64,256", "points": "100,500,2000"}
 QUICK_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,64", "points": "100,500"}
 
-SECTIONS = ("rows", "accuracy", "wrench", "object-update", "pruning")
+SECTIONS = ("rows", "accuracy", "wrench", "object-update", "pruning", "point-sets")
 
 # Accuracy path (metres): gap above contact at the start and end, indentation, shear travel.
 GAP, DEPTH, SHEAR = 0.001, 0.003, 0.006
@@ -95,7 +104,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--points", default=None, help="comma list of surface point counts (default 100,500,2000)")
     parser.add_argument("--sections", default=",".join(SECTIONS),
                         help="comma list of sections to run: rows, accuracy, wrench (pose-to-wrench query), "
-                             "object-update (explicit against linearly implicit), pruning (default all five)")
+                             "object-update (explicit against linearly implicit), pruning, point-sets (slices against "
+                             "gathers; default all six)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -119,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     doc: dict[str, Any] = {"config": bench.config(grid, args.compile), "rows": [], "accuracy": [], "wrench": [],
-                           "object_update": [], "pruning": []}
+                           "object_update": [], "pruning": [], "point_sets": []}
     if "rows" in sections:
         doc["rows"] = bench.rows(
             models=grid["models"].split(","),
@@ -136,6 +146,8 @@ def run(args: argparse.Namespace) -> int:
         doc["object_update"] = bench.object_update()
     if "pruning" in sections:
         doc["pruning"] = bench.pruning()
+    if "point-sets" in sections:
+        doc["point_sets"] = bench.point_sets(compiled=args.compile)
     if args.json:
         print(json.dumps(doc, indent=1))
     else:
@@ -638,6 +650,58 @@ class _Bench:
         return out
 
 
+    def point_sets(self, compiled: bool) -> list[dict]:
+        torch = self.torch
+        import msgspec
+
+        from hydrosoft.bench.control import FULL
+        from hydrosoft.dynamics import CompiledStep, pair_counts, step, with_gathered_points, with_object_update
+        from hydrosoft.scene import compile_scene
+        from hydrosoft.tasks.scenes import task_scene
+
+        scene = task_scene("pushing")
+        scene = msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, spacing=FULL["spacing"]))
+        model, state, _ = compile_scene(scene, device=self.device)
+        model, state = self._cast(with_object_update(model, "linearly_implicit"), state, torch.float32)
+        variants = {"slices": model, "gathers": with_gathered_points(model)}
+        out = []
+        for batch in (8,) if self.quick else (32, 64):
+            _progress(f"point-sets: B={batch}{' (compiling both variants)' if compiled else ''}")
+            fns, compile_s, ends = {}, {}, {}
+            for name, variant in variants.items():
+                stepper = CompiledStep(variant, dynamic=False) if compiled else functools.partial(step, variant)
+                start, u = self._batched(variant, state, batch)
+
+                def forward(stepper=stepper, start=start, u=u):
+                    with torch.no_grad():
+                        return stepper(start, u)
+
+                def backward(stepper=stepper, start=start, u=u):
+                    leaf = u.detach().requires_grad_(True)
+                    nxt = stepper(start, leaf)
+                    torch.autograd.grad(nxt.object_pose.sum() + nxt.forces.sum(), leaf)
+
+                tic = time.perf_counter()
+                ends[name] = forward()
+                backward()
+                self._sync()
+                compile_s[name] = time.perf_counter() - tic
+                fns[(name, "forward")], fns[(name, "backward")] = forward, backward
+            times = self._interleaved(fns)
+            row = {"batch": batch, "dtype": "float32", "mode": "compiled" if compiled else "eager",
+                   "points": model.n_points, "pairs": sum(pair_counts(model))}
+            for name in variants:
+                row[f"forward_ms_{name}"] = 1e3 * times[(name, "forward")]
+                row[f"forward_backward_ms_{name}"] = 1e3 * times[(name, "backward")]
+                if compiled:
+                    row[f"compile_s_{name}"] = compile_s[name]
+            row["forward_ratio"] = times[("slices", "forward")] / times[("gathers", "forward")]
+            row["forward_backward_ratio"] = times[("slices", "backward")] / times[("gathers", "backward")]
+            row["max_force_diff_n"] = float((ends["slices"].forces - ends["gathers"].forces).abs().max())
+            out.append(row)
+        return out
+
+
 def _print_tables(doc: dict) -> None:
     cfg = doc["config"]
     print(f"device {cfg['device']}, {cfg['threads']} threads, torch {cfg['torch']}; {cfg['scene']}")
@@ -679,6 +743,16 @@ def _print_tables(doc: dict) -> None:
             print(f"{r['task']:>9} {r['batch']:>3} {r['points_full']:>6} {r['points_pruned']:>6} "
                   f"{r['bodies_pruned']}/{r['bodies_full']:<4} {r['step_ms_full']:>8.3f} {r['step_ms_pruned']:>9.3f} "
                   f"{r['speedup']:>7.2f} {r['net_force_max_diff_n']:>9.2e}")
+
+    if doc["point_sets"]:
+        print("\npoint sets: the pushing planner's step (float32, linearly implicit), slices against gathers")
+        print(f"{'mode':>8} {'B':>3} {'pairs':>5} {'fwd slices':>10} {'fwd gathers':>11} {'ratio':>5} "
+              f"{'f+b slices':>10} {'f+b gathers':>11} {'ratio':>5} {'max dF N':>9}")
+        for r in doc["point_sets"]:
+            print(f"{r['mode']:>8} {r['batch']:>3} {r['pairs']:>5} {r['forward_ms_slices']:>10.3f} "
+                  f"{r['forward_ms_gathers']:>11.3f} {r['forward_ratio']:>5.2f} {r['forward_backward_ms_slices']:>10.3f} "
+                  f"{r['forward_backward_ms_gathers']:>11.3f} {r['forward_backward_ratio']:>5.2f} "
+                  f"{r['max_force_diff_n']:>9.2e}")
 
 
 def _mb(value: float | None) -> str:

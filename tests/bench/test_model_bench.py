@@ -33,7 +33,7 @@ def _run(args, capsys):
 
 def test_quick_bench_json_schema_and_values(quick_args, capsys):
     doc = _run(quick_args, capsys)
-    assert set(doc) == {"config", "rows", "accuracy", "wrench", "object_update", "pruning"}
+    assert set(doc) == {"config", "rows", "accuracy", "wrench", "object_update", "pruning", "point_sets"}
     assert doc["config"]["threads"] == 1 and doc["config"]["memory_method"]
 
     rows = doc["rows"]
@@ -94,14 +94,24 @@ def test_the_object_update_section_measures_both_updates_against_the_reference(q
     assert rows[("pushing", 0.2, "explicit")]["substeps"] > 3 * rows[("pushing", 1.0, "explicit")]["substeps"]
 
 
+def test_the_point_sets_section_times_slices_against_gathers_of_the_same_forces(quick_args, capsys):
+    doc = _run(argparse.Namespace(**{**vars(quick_args), "sections": "point-sets"}), capsys)
+    (row,) = doc["point_sets"]
+    assert row["batch"] == 8 and row["mode"] == "eager" and row["pairs"] == row["points"] == 132
+    for key in ("forward_ms_slices", "forward_ms_gathers", "forward_backward_ms_slices", "forward_backward_ms_gathers"):
+        assert math.isfinite(row[key]) and row[key] > 0
+    assert math.isclose(row["forward_ratio"], row["forward_ms_slices"] / row["forward_ms_gathers"], rel_tol=1e-9)
+    assert row["max_force_diff_n"] <= 1e-6  # float32: the same arithmetic, read two ways
+
+
 def test_tables_without_json(capsys):
     parser = argparse.ArgumentParser()
     bench_model.add_arguments(parser)
     args = parser.parse_args(
-        ["--quick", "--models", "nh", "--batches", "1", "--points", "100", "--sections", "rows,pruning"])
+        ["--quick", "--models", "nh", "--batches", "1", "--points", "100", "--sections", "rows,pruning,point-sets"])
     assert bench_model.run(args) == 0
     out = capsys.readouterr().out
-    assert "step speed and memory" in out and "pruning" in out and "pose-to-wrench" not in out
+    assert "step speed and memory" in out and "pruning" in out and "point sets" in out and "pose-to-wrench" not in out
     assert not out.lstrip().startswith("{")
 
 

@@ -17,6 +17,7 @@ from hydrosoft.dynamics import (
     signed_distances,
     step,
     touchable_points,
+    with_gathered_points,
     with_object_update,
 )
 from hydrosoft.geometry import se3
@@ -378,8 +379,8 @@ def test_sliced_and_gathered_point_sets_step_alike(update):
     takes the same steps, forces and gradients (float64, to rounding)."""
     model, state, u = pushing()
     model = with_object_update(model, update)
-    gathered = replace(model)
-    object.__setattr__(gathered, "point_sets", tuple(model.touchable))
+    gathered = with_gathered_points(model)
+    assert all(isinstance(points, torch.Tensor) for points in gathered.point_sets)
     results = []
     for m in (model, gathered):
         leaf = u.clone().requires_grad_(True)
