@@ -11,8 +11,10 @@ The problem is given as plain differentiable functions:
 - ``dynamics(state, u) -> state``: ``state`` is a tensor or a (named) tuple of tensors, each with a leading
   batch axis ``B``; ``u`` is ``(B, *action_shape)``. The batch rows must not interact (row ``b`` of the
   output depends only on row ``b`` of the inputs), so that one backward pass gives every sample's gradient.
-- ``stage_cost(state, u, k) -> (B,)``: cost ``l_k(x_k, u_k)`` of step ``k`` in ``0..K-1``.
-- ``terminal_cost(state) -> (B,)``: cost ``Phi(x_K)``.
+- ``stage_cost(states, u) -> (B,)``: the summed stage costs ``sum_k l_k(x_k, u_k)`` of a rollout, ``k`` in
+  ``0..K-1``, given its ``K`` states ``x_0 .. x_{K-1}`` (a list) and actions ``u (B, K, *action_shape)``: one call
+  per rollout, so a cost can evaluate all steps in one batch of operations instead of ``K`` small ones.
+- ``terminal_cost(state) -> (B,)``: cost ``Phi(x_K)``, called after ``stage_cost`` on the same thread.
 
 Step sizes and spreads are fractions of the action half-range ``(high - low) / 2``, so one configuration
 suits actions that mix metres and radians. An axis with ``low == high`` is held at that value.
@@ -95,7 +97,7 @@ class CemGd:
     def __init__(
         self,
         dynamics: Callable[[State, Tensor], State],
-        stage_cost: Callable[[State, Tensor, int], Tensor],
+        stage_cost: Callable[[list[State], Tensor], Tensor],
         terminal_cost: Callable[[State], Tensor],
         action_low: Tensor,
         action_high: Tensor,
@@ -192,11 +194,11 @@ class CemGd:
 
     def _rollout(self, x: State, u: Tensor) -> Tensor:
         """Total cost ``J (B,)`` of sequences ``u (B, K, *A)`` from states ``x`` (batch B), eq. 21."""
-        cost = torch.zeros(u.shape[0], dtype=self.dtype, device=self.device)
+        states = []
         for k in range(u.shape[1]):
-            cost = cost + self.stage_cost(x, u[:, k], k)
+            states.append(x)
             x = self.dynamics(x, u[:, k])
-        cost = cost + self.terminal_cost(x)
+        cost = self.stage_cost(states, u) + self.terminal_cost(x)
         if cost.shape != (u.shape[0],):
             raise ValueError(f"costs must have shape (B,) = ({u.shape[0]},), got {tuple(cost.shape)}")
         return cost

@@ -198,7 +198,10 @@ class Task:
 
     def costs(self, model: Model, goal: Tensor,
               anchor: tuple[Tensor, Tensor] | None = None) -> tuple[Callable, Callable]:
-        """``(stage_cost(state, u, k) -> (B,), terminal_cost(state) -> (B,))`` for ``goal (7,)`` on ``model``.
+        """``(stage_cost(states, u) -> (B,), terminal_cost(state) -> (B,))`` for ``goal (7,)`` on ``model``, as
+        ``control.CemGd`` calls them: ``stage_cost`` sums the stage costs of a rollout's ``K`` states
+        ``x_0 .. x_{K-1}`` (a list of ``State``, batch ``B``) under ``u (B, K, M, 6)``, all steps in one batch of
+        operations.
 
         The drift hinge bounds how far each actuated body slips over the object from the anchor state: the change
         of its offset from the object's centre (m), less the ``(1 / travel_ratio - 1)`` times the object's
@@ -206,9 +209,9 @@ class Task:
         rolling, where the contact on top moves twice as fast as the centre). ``anchor`` is ``(object_pose (7,),
         body_poses (M, 7))``: the state a goal started from, so that slip stays bounded over a whole episode of
         replans (each plan of a closed loop would otherwise allow ``drift_limit`` more, and the bubble walked off
-        the cube). Without it, the anchor is each plan's first state: the first state the stage cost sees at
-        ``k = 0`` (the solver always evaluates ``k = 0`` first in a rollout), kept per thread, so that solver
-        workers rolling out shares of the rows at once each keep their own.
+        the cube). Without it, the anchor is each plan's first state ``x_0``, which ``stage_cost`` sees; it is kept
+        per thread for the ``terminal_cost`` call that follows (solver workers roll out their shares of the rows on
+        threads of their own).
         """
         w = self.weights
         goal = goal.to(model.dtype)
@@ -216,31 +219,35 @@ class Task:
         scale = self.bounds(model.body_names, model.dtype)[1].clamp_min(torch.finfo(model.dtype).eps)
         actuated = (scale > 10 * torch.finfo(model.dtype).eps).any(-1)
         rolling = 1.0 / self.travel_ratio - 1.0
-        # the anchor (object position, body offsets): fixed, or each plan's first state, kept per thread (solver
-        # workers roll out their shares of the rows on threads of their own, each from k = 0)
+        # the anchor (object position, body offsets): fixed, or each plan's first state, kept per thread for the
+        # terminal cost (solver workers roll out their shares of the rows on threads of their own)
         fixed: tuple[Tensor, Tensor] | None = None
         if anchor is not None:
             origin = anchor[0].to(model.dtype)[:3]
             fixed = (origin, anchor[1].to(model.dtype)[actuated, :3] - origin)
         first = threading.local()
 
-        def slip(state: State) -> Tensor:
+        def slip(object_poses: Tensor, body_poses: Tensor) -> Tensor:
+            """Slip ``(B, K, M')`` (m) of the actuated bodies at ``object_poses (B, K, 7)``, ``body_poses (B, K, M, 7)``."""
             origin, offset0 = fixed if fixed is not None else first.anchor
-            moved = state.object_pose[:, None, :3] - origin
-            offset = state.body_poses[:, actuated, :3] - state.object_pose[:, None, :3]
+            moved = object_poses[:, :, None, :3] - origin
+            offset = body_poses[:, :, actuated, :3] - object_poses[:, :, None, :3]
             return safe_norm(offset - offset0 - rolling * moved)
 
-        def stage_cost(state: State, u: Tensor, k: int) -> Tensor:
-            if k == 0 and fixed is None:
-                origin = state.object_pose[:, None, :3].detach()
-                first.anchor = (origin, (state.body_poses[:, actuated, :3] - origin).detach())
-            track = tracking(state.object_pose) / w.scale**2
+        def stage_cost(states: list[State], u: Tensor) -> Tensor:
+            object_poses = torch.stack([state.object_pose for state in states], 1)
+            body_poses = torch.stack([state.body_poses for state in states], 1)
+            if fixed is None:  # (B, 1, 1, 3) and (B, 1, M', 3): broadcast over the steps
+                origin = object_poses[:, :1, None, :3].detach()
+                first.anchor = (origin, (body_poses[:, :1, actuated, :3] - origin).detach())
+            track = tracking(object_poses).sum(1) / w.scale**2
             effort = ((u / scale) * actuated.view(-1, 1)).square().flatten(1).sum(-1)
-            return w.stage * track + w.effort * effort + hinge_cost(slip(state), w.drift_limit, w.drift,
-                                                                    width=w.drift_width)
+            return w.stage * track + w.effort * effort + hinge_cost(slip(object_poses, body_poses), w.drift_limit,
+                                                                    w.drift, width=w.drift_width)
 
         def terminal_cost(state: State) -> Tensor:
             track = tracking(state.object_pose) / w.scale**2
-            return w.terminal * track + hinge_cost(slip(state), w.drift_limit, w.drift, width=w.drift_width)
+            drift = slip(state.object_pose.unsqueeze(1), state.body_poses.unsqueeze(1))
+            return w.terminal * track + hinge_cost(drift, w.drift_limit, w.drift, width=w.drift_width)
 
         return stage_cost, terminal_cost

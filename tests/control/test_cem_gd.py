@@ -31,8 +31,8 @@ def to_goal(state: State) -> torch.Tensor:
     return (state.pos - GOAL.to(state.pos)).square().sum(-1)
 
 
-def tracking_cost(state: State, u: torch.Tensor, k: int) -> torch.Tensor:
-    return to_goal(state) + 0.01 * effort_cost(u)
+def tracking_cost(states: list[State], u: torch.Tensor) -> torch.Tensor:
+    return sum(to_goal(state) for state in states) + 0.01 * effort_cost(u)
 
 
 def x0(pos=(0.0, 0.0, 0.0), dtype=F64) -> State:
@@ -97,7 +97,7 @@ def test_reaches_the_known_optimum():
     low = torch.full((3,), -BOUND, dtype=F64)
     solver = CemGd(
         lambda x, u: x + u,
-        lambda x, u, k: lam * effort_cost(u),
+        lambda states, u: lam * effort_cost(u),
         lambda x: (x - goal).square().sum(-1),
         low, -low,
         CemGdConfig(horizon=horizon, grad_steps=10, cem_iterations=5),
@@ -165,7 +165,7 @@ def test_float32_result_and_timings():
 
 
 def test_cost_of_wrong_shape_is_rejected():
-    solver = make_solver(CemGdConfig(), stage=lambda s, u, k: to_goal(s).unsqueeze(-1))
+    solver = make_solver(CemGdConfig(), stage=lambda states, u: to_goal(states[0]).unsqueeze(-1))
     with pytest.raises(ValueError, match="shape"):
         solver.solve(x0())
 
@@ -184,7 +184,7 @@ def test_every_sample_and_the_action_stay_within_bounds(low, width, start, dtype
     recorder = Recorder(lambda x, u: x + u)
     config = CemGdConfig(samples=12, elites=3, horizon=3, grad_steps=3, cem_iterations=2, lr=0.5)
     solver = CemGd(
-        recorder, lambda x, u, k: effort_cost(u), lambda x: (x - far).square().flatten(1).sum(-1),
+        recorder, lambda states, u: effort_cost(u), lambda x: (x - far).square().flatten(1).sum(-1),
         low_t, high_t, config, dtype=dtype,
     )
     state = torch.tensor(start, dtype=dtype).view(1, 2, 3)

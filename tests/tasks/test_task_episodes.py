@@ -77,7 +77,7 @@ class NaNCostTask(Task):
 
     def costs(self, model, goal, anchor=None):
         stage, terminal = super().costs(model, goal, anchor)
-        return (lambda state, u, k: stage(state, u, k) * math.nan), terminal
+        return (lambda states, u: stage(states, u) * math.nan), terminal
 
 
 def test_a_plan_without_a_finite_sample_applies_the_rest_action_and_says_so():

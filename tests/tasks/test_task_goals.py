@@ -161,7 +161,7 @@ def test_costs_are_finite_with_finite_gradients_and_lowest_at_the_goal(name):
     u = torch.zeros(2, model.n_bodies, 6, dtype=F64, requires_grad=True)
     batch = type(state)(*(t.expand(2, *t.shape[1:]).clone() for t in state[:3]))
     at_goal = batch._replace(object_pose=torch.stack([batch.object_pose[0], goal]))
-    cost = stage(at_goal, u, 0) + terminal(at_goal)
+    cost = stage([at_goal], u.unsqueeze(1)) + terminal(at_goal)
     (grad,) = torch.autograd.grad(cost.sum(), u)
     assert bool(torch.isfinite(cost).all()) and bool(torch.isfinite(grad).all())
     cost = cost.detach()
@@ -193,7 +193,7 @@ def test_the_anchored_drift_bounds_slip_accumulated_over_replans():
     assert drift_cost(task, model, state, moved(state, 0.01, 0.035)) > 1.0
     slipped = moved(state, 0.01, 0.035)
     stage, _ = task.costs(model, slipped.object_pose[0])  # anchored at each plan's start: the slip is forgotten
-    assert float(stage(slipped, torch.zeros(1, model.n_bodies, 6, dtype=F64), 0)[0]) < 1e-6
+    assert float(stage([slipped], torch.zeros(1, 1, model.n_bodies, 6, dtype=F64))[0]) < 1e-6
 
 
 def test_rolling_without_slip_is_no_drift_and_dragging_is():
@@ -248,3 +248,28 @@ def test_solver_workers_plan_what_one_thread_plans_with_the_task_costs():
         torch.testing.assert_close(shared.plan, alone.plan, rtol=0, atol=1e-12)
         assert shared.cost == pytest.approx(alone.cost, rel=1e-9)
         state = step(model, state, alone.action.unsqueeze(0))
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_a_rollouts_stage_cost_is_the_sum_of_its_steps(name):
+    """``stage_cost`` takes a whole rollout's states at once: it equals its steps' costs one by one (anchored), and
+    unanchored it anchors at the rollout's first state, for the terminal cost that follows too."""
+    task = make_task(name)
+    model, state, _ = compile_scene(task.scene)
+    g = torch.Generator().manual_seed(3)
+    states = [state._replace(object_pose=state.object_pose + 1e-3 * torch.randn(1, 7, generator=g, dtype=F64),
+                             body_poses=state.body_poses + 2e-2 * torch.randn(*state.body_poses.shape, generator=g,
+                                                                              dtype=F64), phi=None)
+              for _ in range(4)]
+    high = task.bounds(model.body_names, F64)[1]
+    u = high * (2 * torch.rand(1, 4, *high.shape, generator=g, dtype=F64) - 1)
+    goal = task.sample_goal(0)
+    stage, terminal = task.costs(model, goal, anchor=(states[0].object_pose[0], states[0].body_poses[0]))
+    whole = stage(states, u)
+    steps = sum(stage([s], u[:, k : k + 1]) for k, s in enumerate(states))
+    assert whole.shape == (1,) and float(whole) > 0 and torch.allclose(whole, steps, rtol=1e-12, atol=0)
+    free_stage, free_terminal = task.costs(model, goal)
+    assert torch.allclose(free_stage(states, u), whole, rtol=1e-12, atol=0)
+    assert torch.allclose(free_terminal(states[-1]), terminal(states[-1]), rtol=1e-12, atol=0)
+    elsewhere, _ = task.costs(model, goal, anchor=(states[1].object_pose[0], states[1].body_poses[0]))
+    assert not torch.allclose(elsewhere(states, u), whole, rtol=1e-6, atol=0)  # the anchor counts
