@@ -228,7 +228,8 @@ class Task:
         first = threading.local()
 
         def slip(object_poses: Tensor, body_poses: Tensor) -> Tensor:
-            """Slip ``(B, K, M')`` (m) of the actuated bodies at ``object_poses (B, K, 7)``, ``body_poses (B, K, M, 7)``."""
+            """Slip ``(B, K, M')`` (m) of the actuated bodies at ``object_poses (B, K, 7)`` and
+            ``body_poses (B, K, M, 7)``."""
             origin, offset0 = fixed if fixed is not None else first.anchor
             moved = object_poses[:, :, None, :3] - origin
             offset = body_poses[:, :, actuated, :3] - object_poses[:, :, None, :3]
