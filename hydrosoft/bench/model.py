@@ -658,7 +658,6 @@ class _Bench:
             })
         return out
 
-
     def point_sets(self, compiled: bool) -> list[dict]:
         torch = self.torch
         import msgspec
@@ -750,8 +749,7 @@ def _print_tables(doc: dict) -> None:
             print(f"{r['mode']:>8} {r['batch']:>3} {r['pairs']:>5} {r['forward_ms_slices']:>10.3f} "
                   f"{r['forward_ms_gathers']:>11.3f} {r['forward_ratio']:>5.2f} "
                   f"{r['forward_backward_ms_slices']:>10.3f} {r['forward_backward_ms_gathers']:>11.3f} "
-                  f"{r['forward_backward_ratio']:>5.2f} "
-                  f"{r['max_force_diff_n']:>9.2e}")
+                  f"{r['forward_backward_ratio']:>5.2f} {r['max_force_diff_n']:>9.2e}")
 
 
 def _mb(value: float | None) -> str:
