@@ -34,7 +34,7 @@ import math
 import threading
 import types
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -792,6 +792,54 @@ def _generalised_mass(model: Model, R_o: Tensor, w: Tensor) -> tuple[Tensor, Ten
     return torch.cat([torch.cat([model.mass * eye, zero], -1), torch.cat([zero, inertia], -1)], -2), w
 
 
+def _generalised(lever: Sequence[Tensor], v: Sequence[Tensor], planar: bool) -> list[Tensor]:
+    """``J^T v`` of point vectors ``v`` at levers ``lever`` about the centre of mass, one coordinate at a time: each
+    of ``lever`` and ``v`` is its three coordinates ``(B, n)`` (m; any unit), the result ``d`` coordinates ``(B, n)``:
+    ``(v, lever x v)`` (``d = 6``), or ``(v_x, v_y, (lever x v)_z)`` for planar models (``d = 3``: x, y, yaw).
+
+    Kept per coordinate so that compiled kernels run over the points (contiguous where the points are a transposed
+    view, ``_world_points``), not over a trailing axis of 3."""
+    (lx, ly, lz), (vx, vy, vz) = lever, v
+    yaw = lx * vy - ly * vx
+    if planar:
+        return [vx, vy, yaw]
+    return [vx, vy, vz, ly * vz - lz * vy, lz * vx - lx * vz, yaw]
+
+
+def _contact_stiffness(lever: Sequence[Tensor], normal: Sequence[Tensor], k_t: Tensor, k_n: Tensor,
+                       planar: bool) -> Tensor:
+    """The contact stiffness ``sum_i J_i^T (k_t,i I + k_n,i n_i n_i^T) J_i`` ``(B, d, d)`` of points with levers
+    ``lever`` (m) and unit normals ``normal`` (each three coordinates ``(B, n)``) and stiffnesses ``k_t, k_n (B, n)``
+    (N/m), in ``_generalised``'s coordinates.
+
+    Written out from ``J = [I, -[l]x]``: ``sum k_t J^T J = [[K I, -[a]x], [[a]x, sum k_t (|l|^2 I - l l^T)]]`` with
+    ``K = sum k_t`` and ``a = sum k_t l``; planar models keep rows and columns (x, y, yaw). Each entry is one sum over
+    the points, so no ``(B, n, d, d)`` tensor is formed."""
+    lx, ly, lz = lever
+    total = k_t.sum(-1)
+    ax, ay, az = ((k_t * l).sum(-1) for l in lever)
+    roll = (k_t * (ly * ly + lz * lz)).sum(-1)
+    pitch = (k_t * (lx * lx + lz * lz)).sum(-1)
+    yaw = (k_t * (lx * lx + ly * ly)).sum(-1)
+    zero = torch.zeros_like(total)
+    if planar:
+        rows = [[total, zero, -ay], [zero, total, ax], [-ay, ax, yaw]]
+    else:
+        xy, xz, yz = ((k_t * a * b).sum(-1) for a, b in ((lx, ly), (lx, lz), (ly, lz)))
+        rows = [[total, zero, zero, zero, az, -ay],
+                [zero, total, zero, -az, zero, ax],
+                [zero, zero, total, ay, -ax, zero],
+                [zero, -az, ay, roll, -xy, -xz],
+                [az, zero, -ax, -xy, pitch, -yz],
+                [-ay, ax, zero, -xz, -yz, yaw]]
+    g = _generalised(lever, normal, planar)
+    d = len(g)
+    weighted = [k_n * gi for gi in g]
+    normal_part = {(i, j): (weighted[i] * g[j]).sum(-1) for i in range(d) for j in range(i, d)}
+    return torch.stack([torch.stack([rows[i][j] + normal_part[min(i, j), max(i, j)] for j in range(d)], -1)
+                        for i in range(d)], -2)
+
+
 def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w: Tensor, dt_sub: Tensor) -> Tensor:
     """Object displacement ``(B, 6)`` of a sub-step by backward Euler on the linearised contact forces.
 
@@ -817,7 +865,6 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
     normals = se3.small_matmul(R_o, -model.normals.mT).mT
     t_b0, t_b1 = state.body_poses[..., :3, None], body_poses[..., :3, None]
     turns = _body_turns(model, state.body_poses, body_poses)
-    jacobian = _planar_jacobian if model.planar else _spatial_jacobian
     stiffness, push = 0.0, 0.0
     for m, (index, phi) in enumerate(zip(_point_sets(model), state.phi.split(pair_counts(model), dim=-1))):
         x, n, area, f = points, normals, model.areas, state.forces[:, m]
@@ -835,12 +882,9 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
         carried = (se3.small_matmul(turns[:, m], lever_b.mT) + t_b1[:, m] - t_b0[:, m]).mT - lever_b
         load = k_t.unsqueeze(-1) * carried + (k_n * (carried * n).sum(-1)).unsqueeze(-1) * n
         load = load + se3.small_matmul(f, turns[:, m].mT) - f  # the stored forces turn with the body
-        J = jacobian(x - t_o.mT)  # (B, n, 3, d)
-        g = (J * n.unsqueeze(-1)).sum(-2)  # (B, n, d): the generalised normals J^T n
-        push = push + (J * load.unsqueeze(-1)).sum((1, 2))
-        JtJ = (J.unsqueeze(-1) * J.unsqueeze(-2)).sum(-3)
-        stiffness = stiffness + (k_t.view(*k_t.shape, 1, 1) * JtJ
-                                 + k_n.view(*k_n.shape, 1, 1) * g.unsqueeze(-1) * g.unsqueeze(-2)).sum(1)
+        lever = (x - t_o.mT).unbind(-1)
+        push = push + torch.stack([term.sum(-1) for term in _generalised(lever, load.unbind(-1), model.planar)], -1)
+        stiffness = stiffness + _contact_stiffness(lever, n.unbind(-1), k_t, k_n, model.planar)
     mass, w_v = _generalised_mass(model, R_o, w)
     return _displacement(model, se3.small_spd_solve(mass / gain + stiffness, w_v + push))
 

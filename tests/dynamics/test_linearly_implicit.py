@@ -160,3 +160,29 @@ def test_the_compiled_solve_is_the_eager_one():
         with mock.patch("torch.compiler.is_compiling", return_value=True):
             written_out = se3.small_spd_solve(a, b)
         torch.testing.assert_close(written_out, se3.small_spd_solve(a, b), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_the_contact_stiffness_and_push_are_the_jacobian_products(planar):
+    """``_contact_stiffness`` and ``_generalised``, written out per coordinate, are ``sum_i J_i^T S_i J_i`` and
+    ``J_i^T v_i`` with the point Jacobians ``J = [I, -[l]x]`` formed explicitly (planar: columns x, y, yaw)."""
+    from hydrosoft.dynamics import _contact_stiffness, _generalised
+
+    g = torch.Generator().manual_seed(3)
+    B, n = 4, 7
+    lever = 0.05 * torch.randn(B, n, 3, generator=g, dtype=torch.float64)
+    normal = torch.nn.functional.normalize(torch.randn(B, n, 3, generator=g, dtype=torch.float64), dim=-1)
+    k_t, k_n = torch.rand(B, n, generator=g, dtype=torch.float64), torch.rand(B, n, generator=g, dtype=torch.float64)
+    v = torch.randn(B, n, 3, generator=g, dtype=torch.float64)
+    x, y, z = lever.unbind(-1)
+    zero, one = torch.zeros_like(x), torch.ones_like(x)
+    J = torch.stack([torch.stack([one, zero, zero, zero, z, -y], -1), torch.stack([zero, one, zero, -z, zero, x], -1),
+                     torch.stack([zero, zero, one, y, -x, zero], -1)], -2)  # (B, n, 3, 6): v + w x lever
+    if planar:
+        J = J[..., [0, 1, 5]]
+    S = k_t[..., None, None] * torch.eye(3, dtype=torch.float64) + k_n[..., None, None] * normal.unsqueeze(-1) * normal.unsqueeze(-2)
+    expected = (J.mT @ S @ J).sum(1)
+    stiffness = _contact_stiffness(lever.unbind(-1), normal.unbind(-1), k_t, k_n, planar)
+    torch.testing.assert_close(stiffness, expected, rtol=1e-12, atol=1e-15)
+    pushed = torch.stack(_generalised(lever.unbind(-1), v.unbind(-1), planar), -1)
+    torch.testing.assert_close(pushed, (J.mT @ v.unsqueeze(-1)).squeeze(-1), rtol=1e-12, atol=1e-15)
