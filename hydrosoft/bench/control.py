@@ -180,8 +180,11 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
                     activation_budget: float = 0.0, object_update: str = "explicit") -> dict:
     """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
-    first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), then the
-    mean of ``solves`` timed solves (``solve_ms``, ms) split into rollout / backward / CEM, and the replanning
+    first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), with
+    several workers a second warm-up solve (``warmup_solves_ms`` lists both: a worker's compiled copy of the step
+    that did not run a graph in the first solve, because the other worker's copy ran it alone, compiles it the first
+    time both need it at once, measured at 19 s in the second solve), then the mean of ``solves`` timed solves
+    (``solve_ms``, ms; their median and slowest too) split into rollout / backward / CEM, and the replanning
     rate (Hz) it allows, and how much of a solve the forward calls of the step (``step_forward_ms``: compiled
     sub-steps and the stability checks) and of the stage and terminal costs (``cost_forward_ms``) take, summed over
     the workers' threads; the backward passes through both are in ``backward_ms``. ``sdf_solver_steps``: the
@@ -210,8 +213,9 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     step_calls, stage_calls, terminal_calls = Stopwatch(setup.dynamics), Stopwatch(stage), Stopwatch(terminal)
     solver = CemGd(step_calls, stage_calls, terminal_calls, low, high,
                    config=settings.config(settings.horizon, 1), dtype=model.dtype)
-    first_s, times = 0.0, []
-    for k in range(solves + 1):
+    warmups = 1 if workers == 1 else 2
+    warmup_s, times = [], []
+    for k in range(solves + warmups):
         for watch in (step_calls, stage_calls, terminal_calls):
             watch.seconds = 0.0
         tic = time.perf_counter()
@@ -219,19 +223,21 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         wall = time.perf_counter() - tic
         setup.plant.apply(torch.zeros(setup.plant.model.n_bodies, 6, dtype=torch.float64).index_copy(
             0, setup.body_index, result.action.double()))
-        if k == 0:
-            first_s = wall
+        if k < warmups:
+            warmup_s.append(wall)
         else:
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
                           "cost_s": stage_calls.seconds + terminal_calls.seconds})
         _log(f"[rate] {dtype}, {workers} worker(s), {object_update} object update, solve {k}"
-             f"{' (warm-up)' if k == 0 else ''}: {1e3 * wall:.0f} ms")
+             f"{' (warm-up)' if k < warmups else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
     compiled = getattr(setup.dynamics, "compiled", False)
     return {
         "task": "pushing", "dtype": dtype, "samples": 64, "horizon": 10, "grad_steps": 2,
         "surface_points": surface_points, "points": model.n_points, "pairs": pairs, "substeps": model.substeps,
-        "sdf_solver_steps": sdf_solver_steps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * first_s,
+        "sdf_solver_steps": sdf_solver_steps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * warmup_s[0],
+        "warmup_solves_ms": [1e3 * t for t in warmup_s], "median_solve_ms": 1e3 * statistics.median(t["solve_s"] for t in times),
+        "slowest_solve_ms": 1e3 * max(t["solve_s"] for t in times),
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
         "workers": workers, "activation_budget": activation_budget if compile else None,
@@ -473,8 +479,9 @@ def run(args: argparse.Namespace) -> int:
                   f"{r['workers']} solver worker(s), {r['object_update']} object update, {budget}"
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
-                  f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; first "
-                  f"solve {r['first_solve_ms'] / 1e3:.1f} s{compiling})")
+                  f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; median "
+                  f"{r['median_solve_ms']:.0f} ms, slowest {r['slowest_solve_ms']:.0f} ms; warm-up solves "
+                  f"{', '.join(f'{t / 1e3:.1f}' for t in r['warmup_solves_ms'])} s{compiling})")
         print(f"\n{total} episodes in {settings['wall_s']:.0f} s"
               + (f" ({reused} of them reused from {args.episodes}; the episodes' own wall times add up to "
                  f"{sum(r['episodes_wall_s'] for r in rows):.0f} s)" if log is not None else "")

@@ -1,7 +1,8 @@
 """``hydrosoft-stack bench model``: step speed, memory and force accuracy of the four contact models.
 
-Six sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
-"wrench": [...], "object_update": [...], "pruning": [...], "point_sets": [...]}``, otherwise as tables. Progress
+Seven sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
+"wrench": [...], "object_update": [...], "pruning": [...], "point_sets": [...], "loop_tails": [...]}``, otherwise
+as tables. Progress
 goes to stderr.
 
 ``rows``: one quasi-dynamic step (``dynamics.step``) of the planar pushing scene, a Soft Bubble (ellipsoid) pressed
@@ -65,6 +66,11 @@ they are consecutive) against the same model reading them by index (``dynamics.w
 interleaved: ``forward_ms`` (no grad) and ``forward_backward_ms`` (forward plus backward of ``sum(object_pose) +
 sum(forces)`` to the controls) of each, their ratios (slices / gathers), ``compile_s`` of each compiled variant,
 and the largest force difference between the two after the step (N).
+
+``loop-tails``: the same model and batches, always compiled: the step with ``dynamics.DEFAULT_OPTIONS`` (inductor's
+loop tails as scalar loops) against the same options with inductor's masked tail vectorisation
+(``cpp.enable_loop_tail_vec``, its default), timed and reported as ``point-sets`` is (``scalar`` / ``masked``).
+Only with ``--compile`` (it compiles both variants: minutes); without it the section is skipped with a note.
 """
 
 from __future__ import annotations
@@ -82,7 +88,7 @@ from typing import Any
 FULL_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,16,64,256", "points": "100,500,2000"}
 QUICK_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,64", "points": "100,500"}
 
-SECTIONS = ("rows", "accuracy", "wrench", "object-update", "pruning", "point-sets")
+SECTIONS = ("rows", "accuracy", "wrench", "object-update", "pruning", "point-sets", "loop-tails")
 
 # Accuracy path (metres): gap above contact at the start and end, indentation, shear travel.
 GAP, DEPTH, SHEAR = 0.001, 0.003, 0.006
@@ -105,7 +111,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sections", default=",".join(SECTIONS),
                         help="comma list of sections to run: rows, accuracy, wrench (pose-to-wrench query), "
                              "object-update (explicit against linearly implicit), pruning, point-sets (slices against "
-                             "gathers; default all six)")
+                             "gathers), loop-tails (compiled step: scalar against masked loop tails; runs with "
+                             "--compile only); default all seven")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -129,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     doc: dict[str, Any] = {"config": bench.config(grid, args.compile), "rows": [], "accuracy": [], "wrench": [],
-                           "object_update": [], "pruning": [], "point_sets": []}
+                           "object_update": [], "pruning": [], "point_sets": [],
+                           "loop_tails": []}
     if "rows" in sections:
         doc["rows"] = bench.rows(
             models=grid["models"].split(","),
@@ -148,6 +156,11 @@ def run(args: argparse.Namespace) -> int:
         doc["pruning"] = bench.pruning()
     if "point-sets" in sections:
         doc["point_sets"] = bench.point_sets(compiled=args.compile)
+    if "loop-tails" in sections:
+        if args.compile:
+            doc["loop_tails"] = bench.loop_tails()
+        else:
+            _progress("loop-tails: skipped, it times the compiled step only (add --compile)")
     if args.json:
         print(json.dumps(doc, indent=1))
     else:
@@ -658,27 +671,36 @@ class _Bench:
             })
         return out
 
-    def point_sets(self, compiled: bool) -> list[dict]:
+    def _planner_model(self):
+        """The pushing planner's model (the full planner's 216 surface points pruned per body to 132, linearly
+        implicit object update) and its start state, float32."""
         torch = self.torch
         import msgspec
 
         from hydrosoft.bench.control import FULL
-        from hydrosoft.dynamics import CompiledStep, pair_counts, step, with_gathered_points, with_object_update
+        from hydrosoft.dynamics import with_object_update
         from hydrosoft.scene import compile_scene
         from hydrosoft.tasks.scenes import task_scene
 
         scene = task_scene("pushing")
         scene = msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, spacing=FULL["spacing"]))
         model, state, _ = compile_scene(scene, device=self.device)
-        model, state = self._cast(with_object_update(model, "linearly_implicit"), state, torch.float32)
-        variants = {"slices": model, "gathers": with_gathered_points(model)}
+        return self._cast(with_object_update(model, "linearly_implicit"), state, torch.float32)
+
+    def _step_pair(self, section: str, variants: dict[str, tuple[Any, Callable[[], Any]]], state,
+                   compiled: bool) -> list[dict]:
+        """Two ways of stepping the same model timed interleaved from ``state`` at B = 32 and 64 (quick: 8).
+        ``variants``: name -> (model, a function making its stepper); the first is the one under test, the ratios
+        are its times over the second's."""
+        from hydrosoft.dynamics import pair_counts
+
+        (first, (model, _)), (second, _) = variants.items()
         out = []
         for batch in (8,) if self.quick else (32, 64):
-            _progress(f"point-sets: B={batch}{' (compiling both variants)' if compiled else ''}")
+            _progress(f"{section}: B={batch}{' (compiling both variants)' if compiled else ''}")
             fns, compile_s, ends = {}, {}, {}
-            for name, variant in variants.items():
-                stepper = CompiledStep(variant, dynamic=False) if compiled else functools.partial(step, variant)
-                forward, backward = self._step_calls(stepper, *self._batched(variant, state, batch))
+            for name, (variant, make) in variants.items():
+                forward, backward = self._step_calls(make(), *self._batched(variant, state, batch))
                 tic = time.perf_counter()
                 ends[name] = forward()
                 backward()
@@ -693,11 +715,33 @@ class _Bench:
                 row[f"forward_backward_ms_{name}"] = 1e3 * times[(name, "backward")]
                 if compiled:
                     row[f"compile_s_{name}"] = compile_s[name]
-            row["forward_ratio"] = times[("slices", "forward")] / times[("gathers", "forward")]
-            row["forward_backward_ratio"] = times[("slices", "backward")] / times[("gathers", "backward")]
-            row["max_force_diff_n"] = float((ends["slices"].forces - ends["gathers"].forces).abs().max())
+            row["forward_ratio"] = times[(first, "forward")] / times[(second, "forward")]
+            row["forward_backward_ratio"] = times[(first, "backward")] / times[(second, "backward")]
+            row["max_force_diff_n"] = float((ends[first].forces - ends[second].forces).abs().max())
             out.append(row)
         return out
+
+    def point_sets(self, compiled: bool) -> list[dict]:
+        from hydrosoft.dynamics import CompiledStep, step, with_gathered_points
+
+        model, state = self._planner_model()
+
+        def stepper(variant):
+            return lambda: CompiledStep(variant, dynamic=False) if compiled else functools.partial(step, variant)
+
+        gathered = with_gathered_points(model)
+        return self._step_pair("point-sets", {"slices": (model, stepper(model)), "gathers": (gathered, stepper(gathered))},
+                               state, compiled)
+
+    def loop_tails(self) -> list[dict]:
+        from hydrosoft.dynamics import DEFAULT_OPTIONS, CompiledStep
+
+        model, state = self._planner_model()
+        masked = {**DEFAULT_OPTIONS, "cpp.enable_loop_tail_vec": True}
+        return self._step_pair("loop-tails", {
+            "scalar": (model, lambda: CompiledStep(model, dynamic=False)),
+            "masked": (model, lambda: CompiledStep(model, dynamic=False, options=dict(masked))),
+        }, state, compiled=True)
 
 
 def _print_tables(doc: dict) -> None:
@@ -741,15 +785,20 @@ def _print_tables(doc: dict) -> None:
             print(f"{r['task']:>9} {r['batch']:>3} {r['points_full']:>6} {r['points_pruned']:>6} "
                   f"{r['bodies_pruned']}/{r['bodies_full']:<4} {r['step_ms_full']:>8.3f} {r['step_ms_pruned']:>9.3f} "
                   f"{r['speedup']:>7.2f} {r['net_force_max_diff_n']:>9.2e}")
-    if doc["point_sets"]:
-        print("\npoint sets: the pushing planner's step (float32, linearly implicit), slices against gathers")
-        print(f"{'mode':>8} {'B':>3} {'pairs':>5} {'fwd slices':>10} {'fwd gathers':>11} {'ratio':>5} "
-              f"{'f+b slices':>10} {'f+b gathers':>11} {'ratio':>5} {'max dF N':>9}")
-        for r in doc["point_sets"]:
-            print(f"{r['mode']:>8} {r['batch']:>3} {r['pairs']:>5} {r['forward_ms_slices']:>10.3f} "
-                  f"{r['forward_ms_gathers']:>11.3f} {r['forward_ratio']:>5.2f} "
-                  f"{r['forward_backward_ms_slices']:>10.3f} {r['forward_backward_ms_gathers']:>11.3f} "
-                  f"{r['forward_backward_ratio']:>5.2f} {r['max_force_diff_n']:>9.2e}")
+    for key, title, (first, second) in (
+            ("point_sets", "point sets: the pushing planner's step (float32, linearly implicit), slices against gathers",
+             ("slices", "gathers")),
+            ("loop_tails", "loop tails: the pushing planner's compiled step (float32, linearly implicit), scalar loop "
+             "tails (DEFAULT_OPTIONS) against masked vectors", ("scalar", "masked"))):
+        if doc[key]:
+            print(f"\n{title}")
+            print(f"{'mode':>8} {'B':>3} {'pairs':>5} {'fwd ' + first:>12} {'fwd ' + second:>12} {'ratio':>5} "
+                  f"{'f+b ' + first:>12} {'f+b ' + second:>12} {'ratio':>5} {'max dF N':>9}")
+            for r in doc[key]:
+                print(f"{r['mode']:>8} {r['batch']:>3} {r['pairs']:>5} {r['forward_ms_' + first]:>12.3f} "
+                      f"{r['forward_ms_' + second]:>12.3f} {r['forward_ratio']:>5.2f} "
+                      f"{r['forward_backward_ms_' + first]:>12.3f} {r['forward_backward_ms_' + second]:>12.3f} "
+                      f"{r['forward_backward_ratio']:>5.2f} {r['max_force_diff_n']:>9.2e}")
 
 
 def _mb(value: float | None) -> str:

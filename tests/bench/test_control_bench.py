@@ -50,6 +50,8 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
         assert 150 <= rate["surface_points"] <= 250 and rate["pairs"] <= rate["points"] * 2 and rate["rate_hz"] > 0
         assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"]
         assert rate["compiled"] is False and rate["first_solve_ms"] > 0 and rate["sdf_solver_steps"] is None
+        assert rate["warmup_solves_ms"] == [rate["first_solve_ms"]]  # one worker: one warm-up solve
+        assert 0 < rate["median_solve_ms"] <= rate["slowest_solve_ms"]
     assert document["settings"]["compile"] is False
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
     assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -74,6 +76,7 @@ def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost
                              "--rate-workers", "1,2", "--json", "--out", str(tmp_path))) == 0
     rates = json.loads(capsys.readouterr().out)["replanning"]
     assert [r["workers"] for r in rates] == [1, 2]
+    assert [len(r["warmup_solves_ms"]) for r in rates] == [1, 2]  # two workers: a second, untimed warm-up solve
     for r in rates:
         assert 0 < r["step_forward_ms"] and 0 < r["cost_forward_ms"] and r["rate_hz"] > 0
     # one worker: the step's and the costs' forward calls lie within the rollouts (the rest is the CEM's own work)

@@ -33,7 +33,8 @@ def _run(args, capsys):
 
 def test_quick_bench_json_schema_and_values(quick_args, capsys):
     doc = _run(quick_args, capsys)
-    assert set(doc) == {"config", "rows", "accuracy", "wrench", "object_update", "pruning", "point_sets"}
+    assert set(doc) == {"config", "rows", "accuracy", "wrench", "object_update", "pruning", "point_sets",
+                        "loop_tails"}
     assert doc["config"]["threads"] == 1 and doc["config"]["memory_method"]
 
     rows = doc["rows"]
@@ -102,6 +103,13 @@ def test_the_point_sets_section_times_slices_against_gathers_of_the_same_forces(
         assert math.isfinite(row[key]) and row[key] > 0
     assert math.isclose(row["forward_ratio"], row["forward_ms_slices"] / row["forward_ms_gathers"], rel_tol=1e-9)
     assert row["max_force_diff_n"] <= 1e-6  # float32: the same arithmetic, read two ways
+
+
+def test_the_loop_tails_section_needs_compile_and_says_so(quick_args, capsys):
+    assert bench_model.run(argparse.Namespace(**{**vars(quick_args), "sections": "loop-tails"})) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["loop_tails"] == []
+    assert "loop-tails: skipped" in captured.err and "--compile" in captured.err
 
 
 def test_tables_without_json(capsys):
