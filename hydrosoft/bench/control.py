@@ -22,8 +22,9 @@ solver's threads, each rolling out a share of the samples) and ``--rate-object-u
 model's object update, explicit or linearly implicit: ``PlannerSettings.object_update``; ``--object-update`` sets the
 episodes') in the same run: the first solve is
 reported apart (``first_solve_ms``: a warm-up, and with ``--compile`` the compilation unless an episode planner
-of the same shapes compiled the step before), then the mean of the timed solves (``solve_ms``, ``rate_hz``) and
-its rollout / backward / CEM split.
+of the same shapes compiled the step before), then the mean of the timed solves (``solve_ms``, ``rate_hz``; each
+a closed-loop cycle: state estimate, solve and prediction, ``replanning_rate``) and its rollout / backward / CEM
+split.
 
 ``--compile`` (``PlannerSettings.compile``) runs the planner's step through ``torch.compile`` (inductor, C++
 wrapper): the first solve of each new planner shape compiles four sub-step graphs (with and without gradients,
@@ -190,7 +191,12 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     the workers' threads; the backward passes through both are in ``backward_ms``. ``sdf_solver_steps``: the
     planner's bubble ellipsoid solve; ``workers``: the solver's threads, each rolling out a share of the samples
     (both ``PlannerSettings``); ``activation_budget``: the compiled step's ``activation_memory_budget``;
-    ``object_update``: the planner model's (``PlannerSettings.object_update``)."""
+    ``object_update``: the planner model's (``PlannerSettings.object_update``).
+
+    A timed solve is one cycle of the closed loop, as ``evaluation.run_episode`` runs it: the state estimate from the
+    plant's sensors and the planner's prediction of this instant (``observed_state``; ``estimate_ms``), the solve,
+    and the prediction of the applied action for the next estimate (``predict``; ``predict_ms``). Only the first
+    estimate, with no prediction yet, presses the bodies in from contact-free (``dynamics.press_in``)."""
     import msgspec
     import torch
 
@@ -198,7 +204,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     from hydrosoft.dynamics import pair_counts
     from hydrosoft.scene import build_surface
     from hydrosoft.tasks import make_task
-    from hydrosoft.tasks.evaluation import PlannerSettings, observed_state, prepare
+    from hydrosoft.tasks.evaluation import PlannerSettings, observed_state, predict, prepare
 
     task = make_task("pushing")
     settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
@@ -214,12 +220,16 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     solver = CemGd(step_calls, stage_calls, terminal_calls, low, high,
                    config=settings.config(settings.horizon, 1), dtype=model.dtype)
     warmups = 1 if workers == 1 else 2
-    warmup_s, times = [], []
+    warmup_s, times, prediction = [], [], None
     for k in range(solves + warmups):
         for watch in (step_calls, stage_calls, terminal_calls):
             watch.seconds = 0.0
         tic = time.perf_counter()
-        result = solver.solve(observed_state(setup))
+        state = observed_state(setup, prediction)
+        estimated = time.perf_counter()
+        result = solver.solve(state)
+        solved = time.perf_counter()
+        prediction = predict(setup, state, result.action)
         wall = time.perf_counter() - tic
         setup.plant.apply(torch.zeros(setup.plant.model.n_bodies, 6, dtype=torch.float64).index_copy(
             0, setup.body_index, result.action.double()))
@@ -227,7 +237,8 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
             warmup_s.append(wall)
         else:
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
-                          "cost_s": stage_calls.seconds + terminal_calls.seconds})
+                          "cost_s": stage_calls.seconds + terminal_calls.seconds, "estimate_s": estimated - tic,
+                          "predict_s": wall - (solved - tic)})
         _log(f"[rate] {dtype}, {workers} worker(s), {object_update} object update, solve {k}"
              f"{' (warm-up)' if k < warmups else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
@@ -243,6 +254,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         "workers": workers, "activation_budget": activation_budget if compile else None,
         "object_update": object_update,
         "step_forward_ms": 1e3 * mean["step_s"], "cost_forward_ms": 1e3 * mean["cost_s"],
+        "estimate_ms": 1e3 * mean["estimate_s"], "predict_ms": 1e3 * mean["predict_s"],
     }
 
 
@@ -479,7 +491,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{r['workers']} solver worker(s), {r['object_update']} object update, {budget}"
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
-                  f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f} ms; median "
+                  f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f}, state estimate "
+                  f"{r['estimate_ms']:.1f}, prediction {r['predict_ms']:.1f} ms; median "
                   f"{r['median_solve_ms']:.0f} ms, slowest {r['slowest_solve_ms']:.0f} ms; warm-up solves "
                   f"{', '.join(f'{t / 1e3:.1f}' for t in r['warmup_solves_ms'])} s{compiling})")
         print(f"\n{total} episodes in {settings['wall_s']:.0f} s"

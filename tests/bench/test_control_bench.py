@@ -52,6 +52,9 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
         assert rate["compiled"] is False and rate["first_solve_ms"] > 0 and rate["sdf_solver_steps"] is None
         assert rate["warmup_solves_ms"] == [rate["first_solve_ms"]]  # one worker: one warm-up solve
         assert 0 < rate["median_solve_ms"] <= rate["slowest_solve_ms"]
+        # a closed-loop cycle: the estimate (carrying the last prediction) and the prediction are timed with the solve
+        assert rate["estimate_ms"] > 0 and rate["predict_ms"] > 0
+        assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"] + rate["estimate_ms"] + rate["predict_ms"]
     assert document["settings"]["compile"] is False
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
     assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
