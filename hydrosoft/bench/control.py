@@ -246,8 +246,9 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     return {
         "task": "pushing", "dtype": dtype, "samples": 64, "horizon": 10, "grad_steps": 2,
         "surface_points": surface_points, "points": model.n_points, "pairs": pairs, "substeps": model.substeps,
-        "sdf_solver_steps": sdf_solver_steps, "solves": solves, "compiled": compiled, "first_solve_ms": 1e3 * warmup_s[0],
-        "warmup_solves_ms": [1e3 * t for t in warmup_s], "median_solve_ms": 1e3 * statistics.median(t["solve_s"] for t in times),
+        "sdf_solver_steps": sdf_solver_steps, "solves": solves, "compiled": compiled,
+        "first_solve_ms": 1e3 * warmup_s[0], "warmup_solves_ms": [1e3 * t for t in warmup_s],
+        "median_solve_ms": 1e3 * statistics.median(t["solve_s"] for t in times),
         "slowest_solve_ms": 1e3 * max(t["solve_s"] for t in times),
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
@@ -491,8 +492,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{r['workers']} solver worker(s), {r['object_update']} object update, {budget}"
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
-                  f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f}, state estimate "
-                  f"{r['estimate_ms']:.1f}, prediction {r['predict_ms']:.1f} ms; median "
+                  f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f}, "
+                  f"state estimate {r['estimate_ms']:.1f}, prediction {r['predict_ms']:.1f} ms; median "
                   f"{r['median_solve_ms']:.0f} ms, slowest {r['slowest_solve_ms']:.0f} ms; warm-up solves "
                   f"{', '.join(f'{t / 1e3:.1f}' for t in r['warmup_solves_ms'])} s{compiling})")
         print(f"\n{total} episodes in {settings['wall_s']:.0f} s"

@@ -730,8 +730,8 @@ class _Bench:
             return lambda: CompiledStep(variant, dynamic=False) if compiled else functools.partial(step, variant)
 
         gathered = with_gathered_points(model)
-        return self._step_pair("point-sets", {"slices": (model, stepper(model)), "gathers": (gathered, stepper(gathered))},
-                               state, compiled)
+        variants = {"slices": (model, stepper(model)), "gathers": (gathered, stepper(gathered))}
+        return self._step_pair("point-sets", variants, state, compiled)
 
     def loop_tails(self) -> list[dict]:
         from hydrosoft.dynamics import DEFAULT_OPTIONS, CompiledStep
@@ -786,8 +786,8 @@ def _print_tables(doc: dict) -> None:
                   f"{r['bodies_pruned']}/{r['bodies_full']:<4} {r['step_ms_full']:>8.3f} {r['step_ms_pruned']:>9.3f} "
                   f"{r['speedup']:>7.2f} {r['net_force_max_diff_n']:>9.2e}")
     for key, title, (first, second) in (
-            ("point_sets", "point sets: the pushing planner's step (float32, linearly implicit), slices against gathers",
-             ("slices", "gathers")),
+            ("point_sets", "point sets: the pushing planner's step (float32, linearly implicit), slices against "
+             "gathers", ("slices", "gathers")),
             ("loop_tails", "loop tails: the pushing planner's compiled step (float32, linearly implicit), scalar loop "
              "tails (DEFAULT_OPTIONS) against masked vectors", ("scalar", "masked"))):
         if doc[key]:

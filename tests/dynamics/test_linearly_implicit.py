@@ -180,7 +180,8 @@ def test_the_contact_stiffness_and_push_are_the_jacobian_products(planar):
                      torch.stack([zero, zero, one, y, -x, zero], -1)], -2)  # (B, n, 3, 6): v + w x lever
     if planar:
         J = J[..., [0, 1, 5]]
-    S = k_t[..., None, None] * torch.eye(3, dtype=torch.float64) + k_n[..., None, None] * normal.unsqueeze(-1) * normal.unsqueeze(-2)
+    S = (k_t[..., None, None] * torch.eye(3, dtype=torch.float64)
+         + k_n[..., None, None] * normal.unsqueeze(-1) * normal.unsqueeze(-2))
     expected = (J.mT @ S @ J).sum(1)
     stiffness = _contact_stiffness(lever.unbind(-1), normal.unbind(-1), k_t, k_n, planar)
     torch.testing.assert_close(stiffness, expected, rtol=1e-12, atol=1e-15)
