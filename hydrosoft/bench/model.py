@@ -2,8 +2,7 @@
 
 Seven sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
 "wrench": [...], "object_update": [...], "pruning": [...], "point_sets": [...], "loop_tails": [...]}``, otherwise
-as tables. Progress
-goes to stderr.
+as tables. Progress goes to stderr.
 
 ``rows``: one quasi-dynamic step (``dynamics.step``) of the planar pushing scene, a Soft Bubble (ellipsoid) pressed
 5 mm into a cube resting on the table (half-space): ``M = 2`` bodies, the cube's surface discretised to about
