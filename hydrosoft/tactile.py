@@ -104,10 +104,19 @@ def estimate_state(model: Model, observation: TactileObservation, sensors: Tenso
     return State(object_pose=pose, body_poses=body_poses, forces=forces)
 
 
+def carry_over(states: list[State], steps: int) -> State | None:
+    """The prediction to carry into the next ``estimate_state``: the planner's predicted state after ``steps`` of its
+    plan's actions, from ``states`` ``x_1 .. x_K`` along the plan (``PlanResult.states``; the last when the plan is
+    shorter), detached and without its cached distances. None when there are no states (no plan was found)."""
+    if not states:
+        return None
+    return State(*(t.detach() for t in states[min(steps, len(states)) - 1][:3]))
+
+
 def sensor_bodies(model: Model) -> Tensor:
     """Indices ``(S,)`` of the model's sensor bodies: the actuated ones (the Soft Bubbles on the arms)."""
     return model.actuated.nonzero().squeeze(-1)
 
 
-__all__ = ["TactileObservation", "estimate_state", "forces_from_deformation", "membrane_penetration", "observe_geometry",
-           "sensor_bodies"]
+__all__ = ["TactileObservation", "carry_over", "estimate_state", "forces_from_deformation", "membrane_penetration",
+           "observe_geometry", "sensor_bodies"]

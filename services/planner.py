@@ -4,9 +4,10 @@ Inputs (each refused when older than ``planner.max_age_s``): the object pose fro
 pose from its commander, and each bubble's membrane deformation image from its bubble camera. They become a
 ``hydrosoft.tactile.TactileObservation`` (the membrane deformation turned into per-point depths inside the nominal
 membrane), which ``hydrosoft.tactile.estimate_state`` turns into the planner's state, carrying shear over from the
-planner's own prediction of the last plan. ``CemGd`` then plans; the plan's first actions, applied to the arms'
-current TCP poses, are the absolute TCP targets sent to the commanders, each with a deadline. Stale inputs mean no
-solve and no target, also when an input went stale during the solve: the commander's watchdog then stops the arm.
+planner's own prediction of the last plan (the solver's rollout of it, ``PlanResult.states``). ``CemGd`` then plans;
+the plan's first actions, applied to the arms' current TCP poses, are the absolute TCP targets sent to the
+commanders, each with a deadline. Stale inputs mean no solve and no target, also when an input went stale during the
+solve: the commander's watchdog then stops the arm.
 
 The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. ``Start`` is refused without
 fresh inputs to start from (the drift cost is anchored at the object and TCP poses the goal starts at). A goal ends
@@ -40,14 +41,14 @@ import msgspec
 import numpy as np
 import torch
 
-from hydrosoft.control import CemGd
+from hydrosoft.control import CemGd, PlanResult
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import CompiledStep, State, step, with_object_update
 from hydrosoft.geometry import se3
 from hydrosoft.geometry.sdf import Ellipsoid
 from hydrosoft.scene import Scene, build_surface, compile_scene
-from hydrosoft.tactile import TactileObservation, estimate_state, sensor_bodies
+from hydrosoft.tactile import TactileObservation, carry_over, estimate_state, sensor_bodies
 from hydrosoft.tasks import Task, make_task
 from hydrosoft.tasks.base import mean_point_distance
 from hydrosoft.tasks.evaluation import METRIC_SPACING_M, PlannerSettings, with_contact, with_solver_steps
@@ -192,24 +193,6 @@ def targets_from_plan(core: PlannerCore, arm_poses: dict[str, torch.Tensor], pla
             pose = se3.retract(pose, plan[k, index].double())
         targets[name] = core.frame.to_base(pose)
     return targets
-
-
-def predict(core: PlannerCore, state: State, plan: torch.Tensor) -> list[State]:
-    """The planner model's states ``(B = 1)`` after each of the ``K`` actions of ``plan (K, M, 6)`` (eager, no
-    gradient), one rollout for both of their uses: the Plan message's predictions, and the carry-over for the next
-    state estimate (``carry_over``)."""
-    states = []
-    with torch.no_grad():
-        for k in range(plan.shape[0]):
-            state = step(core.model, state, plan[k].unsqueeze(0))
-            states.append(state)
-    return states
-
-
-def carry_over(states: list[State], steps: int) -> State:
-    """The predicted state after ``steps`` of the plan's actions (the last when the plan is shorter), without its
-    cached distances: what the next state estimate starts from."""
-    return State(*(t.detach() for t in states[min(steps, len(states)) - 1][:3]))
 
 
 @dataclass
@@ -432,9 +415,8 @@ class Planner:
         targets = targets_from_plan(self.core, arm_poses, result.plan.detach(), steps)
         await self.send_targets({name: pose.numpy() for name, pose in targets.items()}, self.target_deadline_ns())
         stamps["targets_ns"] = time.monotonic_ns()
-        states = await loop.run_in_executor(None, predict, self.core, state, result.plan.detach())
-        await self.out.send(self.plan_message(result, states, stamps), topic=f"plan/{self.config.scene.task}")
-        episode.prediction = carry_over(states, steps)
+        await self.out.send(self.plan_message(result, stamps), topic=f"plan/{self.config.scene.task}")
+        episode.prediction = carry_over(result.states, steps)
 
     async def out_of_contact(self, episode: Episode, decision: Decision, object_pose: torch.Tensor,
                              arm_poses: dict[str, torch.Tensor]) -> None:
@@ -484,18 +466,19 @@ class Planner:
         self.service.count_error("object_lost", reason)
         self._end_episode()
 
-    def plan_message(self, result, states: list[State], stamps: dict[str, int]) -> msg.Plan:
-        """The Plan message of a solve, base frame: actions, predicted object poses (``states``, from ``predict``)
-        and the first step's contact forces, with the ``stamps`` (ns) of its way from the camera to the targets
-        (``msg.Plan``)."""
+    def plan_message(self, result: PlanResult, stamps: dict[str, int]) -> msg.Plan:
+        """The Plan message of a solve, base frame: actions, predicted object poses (``result.states``, the solver's
+        rollout of its plan) and the first step's contact forces, with the ``stamps`` (ns) of its way from the camera
+        to the targets (``msg.Plan``)."""
         dtype = np.float32 if self.core.model.dtype == torch.float32 else np.float64
         frame = self.core.frame
-        poses = frame.to_base(torch.stack([s.object_pose[0] for s in states]))
+        poses = frame.to_base(torch.stack([s.object_pose[0] for s in result.states]))
+        forces = result.states[0].forces[0].detach()
         poses[:, 3:] = torch.nn.functional.normalize(poses[:, 3:], dim=-1)
         actions = frame.vectors_to_base(result.plan.detach().unflatten(-1, (2, 3))).flatten(-2)
         return msg.Plan(task=self.config.scene.task, actions=actions.numpy().astype(dtype),
                         predicted_object_poses=poses.numpy().astype(dtype),
-                        predicted_forces=frame.vectors_to_base(states[0].forces[0].detach()).numpy().astype(dtype),
+                        predicted_forces=frame.vectors_to_base(forces).numpy().astype(dtype),
                         cost=float(result.cost) if math.isfinite(result.cost) else 0.0,
                         solve_ms=1e3 * sum(result.timings.values()), **stamps)
 

@@ -7,7 +7,14 @@ from hydrosoft.contact.cone import split_normal
 from hydrosoft.dynamics import step
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
-from hydrosoft.tactile import TactileObservation, estimate_state, forces_from_deformation, observe_geometry, sensor_bodies
+from hydrosoft.tactile import (
+    TactileObservation,
+    carry_over,
+    estimate_state,
+    forces_from_deformation,
+    observe_geometry,
+    sensor_bodies,
+)
 from hydrosoft.tasks.scenes import task_scene
 
 
@@ -76,3 +83,21 @@ def test_without_a_prediction_the_table_holds_the_press_in_forces_and_there_is_n
     table = model.body_names.index("table")
     weight = model.mass * 9.81
     assert float(estimate.forces[:, table, :, 2].sum()) > weight
+
+
+def test_the_carry_over_is_the_predicted_state_after_the_steps_sent():
+    """``carry_over`` takes the state after ``steps`` of the plan's predicted states (the last when the plan is
+    shorter), detached and without cached distances; no states (no plan) carry nothing."""
+    model, state = sheared_pushing_state()
+    u = torch.zeros(1, model.n_bodies, 6, dtype=model.dtype)
+    u[0, model.body_names.index("bubble"), 0] = 0.001
+    leaf = u.clone().requires_grad_(True)
+    states = []
+    for _ in range(3):
+        state = step(model, state, leaf)
+        states.append(state)
+    carried = carry_over(states, 2)
+    assert carried.phi is None and not carried.forces.requires_grad
+    assert all(torch.equal(got, want) for got, want in zip(carried[:3], states[1][:3]))
+    assert torch.equal(carry_over(states, 9).object_pose, states[-1].object_pose)
+    assert carry_over([], 1) is None

@@ -3,8 +3,9 @@ Bharadhwaj et al., "Model-predictive control via cross-entropy and gradient-base
 
 Each ``solve`` call is one time step ``h`` of Algorithm 1: sample ``B`` action sequences of ``K`` steps from a
 diagonal Gaussian, improve every sequence by ``G`` Adam steps on its own rollout cost, refit the Gaussian to
-the ``M`` lowest-cost sequences, return the first action of the best one, then shift the Gaussian and the
-elites one step ahead as the warm start of the next call (where the ``B - M`` others are resampled).
+the ``M`` lowest-cost sequences, return the first action of the best one (with the states its rollout passed
+through: the model's prediction along the plan, at no extra cost), then shift the Gaussian and the elites one step
+ahead as the warm start of the next call (where the ``B - M`` others are resampled).
 
 The problem is given as plain differentiable functions:
 
@@ -81,6 +82,7 @@ class PlanResult(NamedTuple):
     cost: float  # its cost J; inf when no sample had a finite cost
     status: str  # "ok" or "no_finite_sample" (then action and plan are the rest action)
     timings: dict[str, float]  # wall s: rollout_s (forward), backward_s (gradients + Adam), cem_s; the slowest share's
+    states: list[State]  # x_1 .. x_K (batch 1) along plan, from the rollout that scored it; [] with no finite sample
 
 
 class CemGd:
@@ -141,14 +143,14 @@ class CemGd:
         cfg = self.config
         timings = {"rollout_s": 0.0, "backward_s": 0.0, "cem_s": 0.0}
         x0 = tree_map(self._expand, x0)
-        best_cost, best_plan = math.inf, None
+        best_cost, best_plan, best_states = math.inf, None, []
         for _ in range(cfg.cem_iterations):
             tic = self._clock()
             u = self._sample()
             timings["cem_s"] += self._clock() - tic
             shares = self._map(self._improve, self._shares(x0, u))
             u, cost = torch.cat([share[0] for share in shares]), torch.cat([share[1] for share in shares])
-            slowest = max((share[2] for share in shares), key=lambda t: t["rollout_s"] + t["backward_s"])
+            slowest = max((share[3] for share in shares), key=lambda t: t["rollout_s"] + t["backward_s"])
             timings["rollout_s"] += slowest["rollout_s"]
             timings["backward_s"] += slowest["backward_s"]
 
@@ -160,6 +162,7 @@ class CemGd:
                 lowest = cost[order[0]].item()
                 if lowest < best_cost:
                     best_cost, best_plan = lowest, u[order[0]]
+                    best_states = _sample_states(shares, int(order[0]))
                 self._elites = u[order[: min(cfg.elites, n_finite)]]
                 self.mean = self._elites.mean(0)
                 self.std = self._elites.std(0, correction=0).maximum(cfg.min_std * self._half)
@@ -168,12 +171,12 @@ class CemGd:
         if best_plan is None:
             self.reset()
             plan = self._rest.expand(cfg.horizon, *self.action_shape).clone()
-            return PlanResult(plan[0].clone(), plan, math.inf, "no_finite_sample", timings)
+            return PlanResult(plan[0].clone(), plan, math.inf, "no_finite_sample", timings, [])
 
         tic = self._clock()
         self._shift()
         timings["cem_s"] += self._clock() - tic
-        return PlanResult(best_plan[0].clone(), best_plan, best_cost, "ok", timings)
+        return PlanResult(best_plan[0].clone(), best_plan, best_cost, "ok", timings, best_states)
 
     def _expand(self, leaf: Any) -> Any:
         """Batch-1 tensor -> ``(B, ...)`` contiguous copy on the solver's device (floats in its dtype)."""
@@ -192,27 +195,28 @@ class CemGd:
         fresh = (self.mean + self.std * noise).clamp(self.low, self.high)
         return fresh if self._elites is None else torch.cat([self._elites, fresh])
 
-    def _rollout(self, x: State, u: Tensor) -> Tensor:
-        """Total cost ``J (B,)`` of sequences ``u (B, K, *A)`` from states ``x`` (batch B), eq. 21."""
-        states = []
+    def _rollout(self, x: State, u: Tensor) -> tuple[Tensor, list[State]]:
+        """Total cost ``J (B,)`` of sequences ``u (B, K, *A)`` from states ``x`` (batch B), eq. 21, and the states
+        ``x_1 .. x_K`` the rollout passed through."""
+        states = [x]
         for k in range(u.shape[1]):
-            states.append(x)
-            x = self.dynamics(x, u[:, k])
-        cost = self.stage_cost(states, u) + self.terminal_cost(x)
+            states.append(self.dynamics(states[-1], u[:, k]))
+        cost = self.stage_cost(states[:-1], u) + self.terminal_cost(states[-1])
         if cost.shape != (u.shape[0],):
             raise ValueError(f"costs must have shape (B,) = ({u.shape[0]},), got {tuple(cost.shape)}")
-        return cost
+        return cost, states[1:]
 
-    def _improve(self, x0: State, u: Tensor) -> tuple[Tensor, Tensor, dict[str, float]]:
-        """One share's part of a CEM round: its ``G`` Adam steps from ``u (b, K, *A)`` and the cost of the result;
-        ``(u, J (b,), timings)``. Every sample's descent is its own, so shares need not meet until the refit."""
+    def _improve(self, x0: State, u: Tensor) -> tuple[Tensor, Tensor, list[State], dict[str, float]]:
+        """One share's part of a CEM round: its ``G`` Adam steps from ``u (b, K, *A)`` and the rollout of the result;
+        ``(u, J (b,), states x_1 .. x_K, timings)``. Every sample's descent is its own, so shares need not meet until
+        the refit."""
         timings = {"rollout_s": 0.0, "backward_s": 0.0}
         u = self._descend(x0, u, timings)
         tic = self._clock()
         with torch.no_grad():  # grad mode is per thread: set here, on the worker
-            cost = self._rollout(x0, u)
+            cost, states = self._rollout(x0, u)
         timings["rollout_s"] += self._clock() - tic
-        return u, cost, timings
+        return u, cost, states, timings
 
     def _shares(self, x: State, u: Tensor) -> list[tuple[State, Tensor]]:
         """The batch ``(x, u)`` as ``workers`` contiguous shares (one share, unsplit, with one worker)."""
@@ -246,7 +250,7 @@ class CemGd:
             tic = self._clock()
             with torch.enable_grad():
                 leaf = u.detach().requires_grad_(True)
-                cost = self._rollout(x0, leaf)
+                cost, _ = self._rollout(x0, leaf)
                 timings["rollout_s"] += self._clock() - tic
                 tic = self._clock()
                 finite = torch.isfinite(cost)
@@ -277,3 +281,14 @@ class CemGd:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         return time.perf_counter()
+
+
+def _sample_states(shares: list[tuple[Tensor, Tensor, list[State], dict]], index: int) -> list[State]:
+    """Sample ``index``'s states ``x_1 .. x_K`` (batch 1, copies) from the shares' rollouts (``CemGd._improve``'s
+    results, in order)."""
+    for u, _, states, _ in shares:
+        if index < u.shape[0]:
+            return [tree_map(lambda t: t[index:index + 1].clone() if isinstance(t, Tensor) else t, state)
+                    for state in states]
+        index -= u.shape[0]
+    raise IndexError("sample index past the shares")

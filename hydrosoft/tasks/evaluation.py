@@ -13,8 +13,9 @@ sees measurements.
   Soft Bubble, the depth of each planner surface point inside its nominal membrane, computed from the plant's
   geometry (``tactile.membrane_penetration``: what its depth camera sees; optionally noisy). The plant's force
   state never leaves it. ``tactile.estimate_state`` turns the observation into the planner's state, carrying
-  shear and the table's forces over from the planner's own prediction of this instant (one step of its model
-  under the action it applied); the first action is applied to the plant.
+  shear and the table's forces over from the planner's own prediction of this instant (the state after the
+  applied action in the solver's rollout of its plan, ``PlanResult.states``); the first action is applied to
+  the plant.
 
 The plant is finer than the planner by default (``PlantSettings()``); ``PlantSettings.same_as_planner()`` is the
 planner's own model (the paper's simulation setting, as far as we can tell), which separates what model
@@ -46,7 +47,7 @@ from hydrosoft.control.costs import orientation_error, position_error
 from hydrosoft.dynamics import CompiledStep, Model, State, step, with_object_update
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, build_surface, compile_scene
-from hydrosoft.tactile import TactileObservation, estimate_state, membrane_penetration, sensor_bodies
+from hydrosoft.tactile import TactileObservation, carry_over, estimate_state, membrane_penetration, sensor_bodies
 from hydrosoft.tasks.base import Task, mean_point_distance
 
 METRIC_SPACING_M = 0.005  # surface spacing of the points the ADD error is measured on (fixed for all settings)
@@ -261,14 +262,6 @@ def observed_state(setup: Setup, prediction: State | None = None) -> State:
     return estimate_state(model, seen, setup.sensors, prediction)
 
 
-def predict(setup: Setup, state: State, u: Tensor) -> State:
-    """The planner model's prediction ``(B = 1)`` of the state after applying ``u (M, 6)`` from ``state`` (eager
-    step, no gradient): the carry-over for the next state estimate."""
-    with torch.no_grad():
-        nxt = step(setup.planner_model, state, u.to(setup.planner_model.dtype).unsqueeze(0))
-    return State(*(t.detach() for t in nxt[:3]))
-
-
 @dataclass
 class EpisodeResult:
     """One episode. Errors are ADD (mm), position (mm) and angle (deg) of the plant's object vs the goal.
@@ -361,7 +354,7 @@ def run_episode(
         u = plan[0] if loop == "closed" else plan[k]
         u = u.detach().clamp(low, high)
         if loop == "closed":
-            prediction = predict(setup, state, u)
+            prediction = carry_over(result.states, 1)
         plant_u = torch.zeros(plant.model.n_bodies, 6, dtype=plant.model.dtype)
         plant_u[setup.body_index] = u.to(plant.model.dtype)
         if not plant.apply(plant_u):

@@ -221,7 +221,7 @@ def test_all_nan_returns_the_rest_action_and_recovers():
 
     solver = make_solver(CemGdConfig(grad_steps=2), dynamics=dynamics)
     result = solver.solve(x0())
-    assert result.status == "no_finite_sample" and result.cost == math.inf
+    assert result.status == "no_finite_sample" and result.cost == math.inf and result.states == []
     assert torch.equal(result.action, torch.zeros(1, 3, dtype=F64))
     assert torch.equal(result.plan, torch.zeros(10, 1, 3, dtype=F64))
     broken = False
@@ -319,6 +319,24 @@ def test_workers_split_the_batch_over_threads_and_plan_the_same(workers):
         state = integrator(state, result.action.unsqueeze(0))
     assert threading.get_ident() not in recorder.threads and 1 <= len(recorder.threads) <= workers
     assert recorder.batches == {len(share) for share in torch.arange(64).tensor_split(workers)}
+
+
+@pytest.mark.parametrize("workers, cem_iterations", [(1, 1), (1, 3), (3, 1), (3, 3)])
+def test_the_states_are_the_models_rollout_of_the_returned_plan(workers, cem_iterations):
+    """``PlanResult.states`` is ``x_1 .. x_K`` of the returned plan from the solved state (each a batch-1 copy, the
+    non-float leaf too), whichever share and CEM round the best sample came from: the planner's prediction."""
+    solver = make_solver(CemGdConfig(seed=5, workers=workers, cem_iterations=cem_iterations))
+    state = x0((0.1, 0.2, -0.1))
+    for _ in range(2):
+        result = solver.solve(state)
+        assert len(result.states) == result.plan.shape[0] == 10
+        expected = state
+        for k, got in enumerate(result.states):
+            expected = integrator(expected, result.plan[k].unsqueeze(0))
+            torch.testing.assert_close(got.pos, expected.pos, rtol=0, atol=1e-15)
+            assert torch.equal(got.steps, state.steps + k + 1) and got.pos._base is None
+        assert to_goal(result.states[-1]).item() < to_goal(state).item()
+        state = result.states[0]
 
 
 def test_workers_are_validated():

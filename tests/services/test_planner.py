@@ -14,12 +14,9 @@ import torch
 from hydrosoft.geometry import se3
 from hydrosoft.services import messages as msg
 from hydrosoft.services.config import load_config
-from hydrosoft.dynamics import State, step
 from hydrosoft.services.planner import (
     PlannerCore,
     arm_end_positions,
-    carry_over,
-    predict,
     resolve_target,
     targets_from_plan,
 )
@@ -120,28 +117,6 @@ def test_targets_leave_in_the_base_frame_of_a_turned_and_moved_task_frame(core, 
                                dtype=torch.float64), atol=1e-9, rtol=0)
     same = targets_from_plan(core, {"bubble": tcp}, plan, steps=3)["bubble"]  # sim.toml: the identity
     torch.testing.assert_close(same[:3], tcp[:3] + torch.tensor([0.006, 0, 0.0], dtype=torch.float64))
-
-
-def test_one_rollout_gives_the_plans_predictions_and_the_carry_over_after_the_steps_sent(core):
-    """``predict`` rolls the plan out once; the carry-over after ``steps`` actions is that many model steps from the
-    state (the last state when the plan is shorter), without the cached distances."""
-    dtype = core.model.dtype
-    state = State(core.task.initial_pose().to(dtype).unsqueeze(0), core.fixed_poses.to(dtype).unsqueeze(0),
-                  torch.zeros(1, core.model.n_bodies, core.model.n_points, 3, dtype=dtype))
-    plan = torch.zeros(4, 2, 6, dtype=dtype)
-    plan[:, 0, 0] = 0.002
-    plan[:, 0, 2] = -0.0005
-    states = predict(core, state, plan)
-    assert len(states) == 4
-    stepped = state
-    for k in range(2):
-        stepped = step(core.model, stepped, plan[k].unsqueeze(0))
-    carried = carry_over(states, 2)
-    assert carried.phi is None
-    for got, want in zip(carried[:3], stepped[:3]):
-        torch.testing.assert_close(got, want, rtol=0, atol=0)
-    assert torch.equal(carry_over(states, 9).object_pose, states[-1].object_pose)
-    assert not torch.equal(states[1].body_poses, states[3].body_poses)
 
 
 def test_the_solver_gets_the_configured_workers(core, tmp_path):
