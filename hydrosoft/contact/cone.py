@@ -30,10 +30,14 @@ def project_to_cone(f_n: Tensor, f_t: Tensor, mu: Tensor) -> tuple[Tensor, Tenso
         f_t: ``(..., 3)`` tangential force in N.
         mu: friction coefficient, broadcastable to ``f_n``.
     Returns:
-        ``(relu(f_n), min(1, mu relu(f_n) / |f_t|) f_t)``. The tangential scale is computed as a ratio of
-        clamped quantities, so it is finite with finite gradients for ``f_t = 0`` and ``f_n = 0``.
+        ``(relu(f_n), min(1, mu relu(f_n) / |f_t|) f_t)``. The ratio is only formed where it is below 1 (the force
+        slips), so it is finite with finite gradients for ``f_t = 0``, ``f_n = 0`` and a tiny ``f_t`` under a large
+        limit: a clamped ratio ``limit / |f_t|`` had the gradient ``0 * limit / |f_t|^2``, which is NaN once
+        ``limit / |f_t|^2`` overflows (float32: a 1e-18 N shear under a 250 N limit).
     """
     f_n = torch.relu(f_n)
     limit = mu * f_n
-    scale = torch.clamp(limit / safe_norm(f_t), max=1.0)
+    norm = safe_norm(f_t)
+    slips = norm > limit
+    scale = torch.where(slips, limit / torch.where(slips, norm, torch.ones_like(norm)), torch.ones_like(norm))
     return f_n, scale.unsqueeze(-1) * f_t

@@ -54,3 +54,23 @@ def test_forces_and_gradients_finite_and_inside_cone(scenario):
     grads = torch.autograd.grad(out.sum(), (displacement, phi_prev, phi_next, forces), allow_unused=True)
     for g in grads:
         assert g is None or torch.isfinite(g).all()
+
+
+def test_a_tiny_shear_under_a_large_limit_has_finite_gradients_in_float32():
+    """Found by the property test above: a point pressed 5 cm deep (50 N) moved by 1e-20 m carries a ~1e-18 N shear
+    under a 250 N friction limit. The cone's clamped ratio ``limit / |f_t|`` had the gradient ``0 * limit / |f_t|^2``,
+    and ``limit / |f_t|^2`` overflows float32: NaN gradients for every input of the point."""
+    dtype = torch.float32
+    material = Material(*(torch.tensor([v], dtype=dtype) for v in (1e7, 1e6, 5.0)))
+    normal = torch.tensor([0.0, 0.0, 1.0], dtype=dtype).expand(1, 1, 1, 3)
+    displacement = (1e-20 * torch.tensor([-0.4742, 0.5238, 0.7077])).view(1, 1, 1, 3).requires_grad_(True)
+    phi_prev = torch.full((1, 1, 1), -0.05, dtype=dtype, requires_grad=True)
+    phi_next = torch.zeros(1, 1, 1, dtype=dtype, requires_grad=True)
+    forces = torch.tensor([0.0, 0.0, 50.0], dtype=dtype).view(1, 1, 1, 3).requires_grad_(True)
+    for name in sorted(MODELS):
+        geometry = ContactStep(phi_prev, phi_next, displacement, normal, torch.full((1,), 1e-4, dtype=dtype))
+        out = make(name).step(geometry, forces, material)
+        f_n, f_t = split_normal(out.detach(), normal)
+        assert torch.isfinite(out).all() and (f_t.norm(dim=-1) <= 5.0 * f_n).all()
+        grads = torch.autograd.grad(out.sum(), (displacement, phi_prev, phi_next, forces), allow_unused=True)
+        assert all(g is None or torch.isfinite(g).all() for g in grads), name
