@@ -283,11 +283,13 @@ class URArm:
             raise DeviceFault(f"{self}: the controller refused setWatchdog({min_hz})")
 
     async def _wait_running(self) -> None:
+        """Wait until the control client sees the program running. Its RTDE stream is its own: the receive client
+        may report PLAYING a few packages earlier, and a command sent in between returns False (``sendCommand``
+        refuses while its own ``runtime_state`` still reads STOPPED)."""
         deadline_ns = time.monotonic_ns() + int(SETUP_CALL_TIMEOUT_S * 1e9)
         while time.monotonic_ns() < deadline_ns:
-            with contextlib.suppress(Stale):
-                if (await self.read_state()).running:
-                    return
+            if await self._control_call(lambda c: c.isProgramRunning(), REALTIME_CALL_TIMEOUT_S):
+                return
             await asyncio.sleep(self.config.servo_period_s)
         raise DeviceFault(f"{self}: the control script did not start within {SETUP_CALL_TIMEOUT_S} s")
 

@@ -20,13 +20,15 @@ TCP, ``add_tick_listener(fn)`` calls ``fn(now_ns, pose (7,), twist (6,))`` after
 overwrites the TCP pose (the active command carries on from there). Call them from the simulator's loop.
 
 Fault knobs, each counted in ``faults`` (injected) and mirrored on the control endpoint: ``stall_stream(duration_s)``
-(RTDE outputs stop, connections stay open), ``trigger_protective_stop()``, ``stop_script()`` (the program ends, as a
-pendant stop), ``drop(duration_s)`` (every socket closed, connections refused, then the controller comes back).
+(RTDE outputs stop, connections stay open), ``stall_control_stream(duration_s)`` (only the outputs to connections
+that own input registers stop: the control client falls behind the receive client), ``trigger_protective_stop()``,
+``stop_script()`` (the program ends, as a pendant stop), ``drop(duration_s)`` (every socket closed, connections
+refused, then the controller comes back).
 
 Control endpoint: one JSON object per line, one reply line ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
 Requests: ``{"op": "state"}`` (pose, twist, runtime_state, protective_stop, watchdog_period_s, faults, counters),
-``{"op": "stall", "duration_s": s}``, ``{"op": "protective_stop"}``, ``{"op": "stop_script"}``,
-``{"op": "drop", "duration_s": s}``, ``{"op": "impose_pose", "pose": [7 floats]}``.
+``{"op": "stall", "duration_s": s}``, ``{"op": "stall_control", "duration_s": s}``, ``{"op": "protective_stop"}``,
+``{"op": "stop_script"}``, ``{"op": "drop", "duration_s": s}``, ``{"op": "impose_pose", "pose": [7 floats]}``.
 """
 
 from __future__ import annotations
@@ -104,6 +106,7 @@ class SimulatedURController:
         self._tick_task: asyncio.Task | None = None
         self._next_session_id = 1
         self._stall_until_ns = 0
+        self._stall_control_until_ns = 0
         self._dropped = False
 
     # -- life cycle ------------------------------------------------------------------------------------------
@@ -185,6 +188,13 @@ class SimulatedURController:
         self.faults["stall"] += 1
         self._stall_until_ns = time.monotonic_ns() + int(duration_s * 1e9)
 
+    def stall_control_stream(self, duration_s: float) -> None:
+        """Send no RTDE data packages to connections that own input registers (ur_rtde's control client) for
+        ``duration_s`` s; other streams go on. A real controller's streams reach the two clients on separate sockets
+        and threads, so the control client's copy of the state can lag the receive client's by a few packages."""
+        self.faults["stall_control"] += 1
+        self._stall_control_until_ns = time.monotonic_ns() + int(duration_s * 1e9)
+
     def trigger_protective_stop(self) -> None:
         """Protective stop: the TCP stops, motion is refused until the dashboard unlocks it."""
         self.faults["protective_stop"] += 1
@@ -258,7 +268,10 @@ class SimulatedURController:
         if not self.streaming:
             return
         values: dict[str, object] | None = None
+        control_stalled = now_ns < self._stall_control_until_ns
         for session, writer in self._sessions.values():
+            if control_stalled and session.inputs:
+                continue
             if session.due(now_ns):
                 if values is None:
                     values = self.model.output_values()
@@ -373,6 +386,8 @@ class SimulatedURController:
             return self.snapshot()
         if op == "stall":
             self.stall_stream(_duration(request))
+        elif op == "stall_control":
+            self.stall_control_stream(_duration(request))
         elif op == "protective_stop":
             self.trigger_protective_stop()
         elif op == "stop_script":
@@ -385,8 +400,8 @@ class SimulatedURController:
         elif op == "impose_pose":
             self.impose_tcp_pose(check_pose(request["pose"]))
         else:
-            raise ValueError(f"unknown op {op!r}; expected state, stall, protective_stop, stop_script, drop, "
-                             "impose_pose")
+            raise ValueError(f"unknown op {op!r}; expected state, stall, stall_control, protective_stop, stop_script, "
+                             "drop, impose_pose")
         return {}
 
 

@@ -262,6 +262,25 @@ def test_stopped_script_is_detected_and_restarted(sim, arm, loop_thread):
     assert wait_servo_count(sim, before + 1) == before + 1
 
 
+def test_restart_waits_until_the_control_client_sees_the_program_running(sim, arm, loop_thread):
+    """The receive and control clients get the controller's stream on separate sockets. When the control client's
+    copy lags, it still reads STOPPED after the receive client reads PLAYING, and it refuses setWatchdog. Here its
+    stream is held back for the whole restart: ``restart_script`` must wait for it, not for the receive client."""
+    sim.request("stop_script")
+    state = loop_thread.run(wait_for_state(arm, lambda s: not s.running, 1.0), CALL_TIMEOUT_S)
+    time.sleep(0.1)  # a dozen packages or more: the control client has seen the stop too
+    lag_s = 0.4
+    sim.request("stall_control", duration_s=lag_s)
+    started = time.monotonic()
+    loop_thread.run(arm.restart_script(), CALL_TIMEOUT_S)
+    assert time.monotonic() - started >= 0.9 * lag_s
+    assert sim.state()["faults"]["stall_control"] == 1
+    assert sim.state()["watchdog_period_s"] == pytest.approx(0.25)
+    before = servo_count(sim)
+    loop_thread.run(arm.servo_to(state.tcp_pose), CALL_TIMEOUT_S)
+    assert wait_servo_count(sim, before + 1) == before + 1
+
+
 def test_controller_gone_raises_not_connected_then_reconnects(sim, arm, loop_thread):
     async def drop_and_recover():
         sim.request("drop", duration_s=1.0)
