@@ -30,14 +30,14 @@ def project_to_cone(f_n: Tensor, f_t: Tensor, mu: Tensor) -> tuple[Tensor, Tenso
         f_t: ``(..., 3)`` tangential force in N.
         mu: friction coefficient, broadcastable to ``f_n``.
     Returns:
-        ``(relu(f_n), min(1, mu relu(f_n) / |f_t|) f_t)``. The ratio is only formed where it is below 1 (the force
-        slips), so it is finite with finite gradients for ``f_t = 0``, ``f_n = 0`` and a tiny ``f_t`` under a large
-        limit: a clamped ratio ``limit / |f_t|`` had the gradient ``0 * limit / |f_t|^2``, which is NaN once
-        ``limit / |f_t|^2`` overflows (float32: a 1e-18 N shear under a 250 N limit).
+        ``(relu(f_n), min(1, mu relu(f_n) / |f_t|) f_t)``, the scale formed as ``limit / max(|f_t|, limit)``: finite
+        with finite gradients for ``f_t = 0``, ``f_n = 0`` and any shear under any limit, because every quotient in
+        it and in its gradient has a denominator of at least ``|f_t|``, and ``safe_norm`` keeps that above
+        ``sqrt(tiny)``. A ratio ``limit / |f_t|`` clamped at 1 instead had, where it was clamped, the gradient
+        ``0 * limit / |f_t|^2``: NaN once ``limit / |f_t|^2`` overflows (float32: a 1e-18 N shear under a 250 N
+        limit). Where ``|f_t|`` equals the limit exactly, ``max`` splits the gradient between the two.
     """
     f_n = torch.relu(f_n)
     limit = mu * f_n
-    norm = safe_norm(f_t)
-    slips = norm > limit
-    scale = torch.where(slips, limit / torch.where(slips, norm, torch.ones_like(norm)), torch.ones_like(norm))
+    scale = limit / torch.maximum(safe_norm(f_t), limit)
     return f_n, scale.unsqueeze(-1) * f_t
