@@ -311,3 +311,29 @@ def test_ellipsoid_fixed_solver_steps_fewer_is_less_accurate_and_gradients_stay_
 def test_ellipsoid_rejects_out_of_range_solver_steps(steps):
     with pytest.raises(ValueError, match="solver_steps"):
         sdf.Ellipsoid((0.06, 0.045, 0.03), solver_steps=steps)
+
+
+def test_ellipsoid_gradient_is_the_normal_at_the_closest_point_also_in_fixed_steps_and_deep_inside():
+    """The solve runs without autograd and its gradient is attached as the closest point's normal: it must still be
+    the derivative of the value (central differences), deep inside near the medial surface and the centre too, and
+    a fixed step count near the membrane must give the converged solve's gradient."""
+    radii = (0.06, 0.045, 0.03)
+    points, _ = _bubble_band(0.01)
+    points = points[:2000].clone().requires_grad_(True)
+    (converged,) = torch.autograd.grad(sdf.Ellipsoid(radii)(points).sum(), points)
+    (fixed,) = torch.autograd.grad(sdf.Ellipsoid(radii, solver_steps=2)(points).sum(), points)
+    assert (fixed - converged).abs().max() <= 1e-9
+    assert (converged.norm(dim=-1) - 1).abs().max() <= 1e-12
+
+    g = torch.Generator().manual_seed(5)
+    deep = (2 * torch.rand(400, 3, generator=g, dtype=F64) - 1) * torch.tensor([0.05, 0.02, 0.004], dtype=F64)
+    deep = deep.requires_grad_(True)
+    ellipsoid = sdf.Ellipsoid(radii)
+    (grad,) = torch.autograd.grad(ellipsoid(deep).sum(), deep)
+    step = 1e-7
+    for axis in range(3):
+        offset = torch.zeros(3, dtype=F64)
+        offset[axis] = step
+        with torch.no_grad():
+            central = (ellipsoid(deep + offset) - ellipsoid(deep - offset)) / (2 * step)
+        assert (central - grad[:, axis]).abs().max() <= 1e-6
