@@ -197,7 +197,8 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     plant's sensors and the planner's prediction of this instant (``observed_state``; ``estimate_ms``), the solve,
     and the prediction of the applied action for the next estimate (``predict_ms``: taken from the solve's own
     rollout of its plan, ``PlanResult.states``, it costs next to nothing; an eager step took 4.7 ms). Only the first
-    estimate, with no prediction yet, presses the bodies in from contact-free (``dynamics.press_in``)."""
+    estimate, with no prediction yet, presses the bodies in from contact-free (``dynamics.press_in``). ``plan_costs``:
+    each timed solve's plan cost ``J``, in order, so that two settings' plans can be compared along the same loop."""
     import msgspec
     import torch
 
@@ -240,7 +241,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         else:
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
                           "cost_s": stage_calls.seconds + terminal_calls.seconds, "estimate_s": estimated - tic,
-                          "predict_s": wall - (solved - tic)})
+                          "predict_s": wall - (solved - tic), "plan_cost": result.cost})
         _log(f"[rate] {dtype}, {workers} worker(s), {object_update} object update, solve {k}"
              f"{' (warm-up)' if k < warmups else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
@@ -258,6 +259,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         "object_update": object_update,
         "step_forward_ms": 1e3 * mean["step_s"], "cost_forward_ms": 1e3 * mean["cost_s"],
         "estimate_ms": 1e3 * mean["estimate_s"], "predict_ms": 1e3 * mean["predict_s"],
+        "plan_costs": [t["plan_cost"] for t in times],
     }
 
 
@@ -496,7 +498,8 @@ def run(args: argparse.Namespace) -> int:
                   f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
                   f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f}, "
                   f"state estimate {r['estimate_ms']:.1f}, prediction {r['predict_ms']:.1f} ms; median "
-                  f"{r['median_solve_ms']:.0f} ms, slowest {r['slowest_solve_ms']:.0f} ms; warm-up solves "
+                  f"{r['median_solve_ms']:.0f} ms, slowest {r['slowest_solve_ms']:.0f} ms; plan costs "
+                  f"{', '.join(f'{c:.4g}' for c in r['plan_costs'])}; warm-up solves "
                   f"{', '.join(f'{t / 1e3:.1f}' for t in r['warmup_solves_ms'])} s{compiling})")
         print(f"\n{total} episodes in {settings['wall_s']:.0f} s"
               + (f" ({reused} of them reused from {args.episodes}; the episodes' own wall times add up to "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import math
 
 import torch
 
@@ -55,6 +56,7 @@ def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsy
         # a closed-loop cycle: the estimate (carrying the last prediction) and the prediction are timed with the solve
         assert rate["estimate_ms"] > 0 and rate["predict_ms"] > 0
         assert rate["solve_ms"] >= rate["rollout_ms"] + rate["backward_ms"] + rate["estimate_ms"] + rate["predict_ms"]
+        assert len(rate["plan_costs"]) == rate["solves"] and all(0 <= cost < math.inf for cost in rate["plan_costs"])
     assert document["settings"]["compile"] is False
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in_hand.png", "pushing.png"]
     assert (tmp_path / "pushing.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
