@@ -238,7 +238,7 @@ class Ellipsoid:
                 done = (G.abs() <= 4 * eps) | (hi - lo <= 4 * eps * (t.abs() + r2_min))
                 step = t - 2 * G * G1 / (2 * G1 * G1 - G * G2)
                 step = torch.where((step >= lo) & (step <= hi), step, (lo + hi) / 2)
-                # converged x stay: rounding must not restart them
+                # converged points stay: rounding must not restart them
                 return k + 1, torch.where(done, t, step), lo, hi, ~done.all()
 
             carry = (torch.zeros((), dtype=torch.int64, device=x.device), t, lo, hi,
