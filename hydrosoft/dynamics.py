@@ -32,8 +32,6 @@ from __future__ import annotations
 import functools
 import math
 import threading
-import types
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
@@ -41,6 +39,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from hydrosoft.compilation import CompiledCopies, private_copy, with_default_options
 from hydrosoft.contact import ContactModel, ContactStep, Material, PressureFieldFrictionless, wrench
 from hydrosoft.geometry import se3
 
@@ -976,48 +975,6 @@ def _bound_substep(model: Model, friction_move=None):
     return compiled_friction_substep
 
 
-def _private_copy(fn):
-    """``fn`` with a code object of its own.
-
-    Dynamo keeps compiled graphs, and counts recompilations against ``torch._dynamo.config.recompile_limit``
-    (8), per code object. Every ``CompiledStep`` would otherwise compile the same code: the third model
-    compiled in a process (4 signatures each) would pass the limit and silently run eager.
-    """
-    return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
-
-
-class _RaisePastRecompileLimit:
-    """A context in which dynamo raises past its recompile limit instead of silently running eager, entered by every
-    running ``CompiledStep`` call. The setting is process-wide and solver workers run steps on several threads at
-    once, so the contexts are counted under a lock: the first to enter sets it, the last to leave restores it.
-    (Set by hand: ``torch._dynamo.config.patch`` costs ~16 us per call.)"""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._running = 0
-        self._previous = False
-
-    def __enter__(self) -> None:
-        config = torch._dynamo.config
-        with self._lock:
-            if self._running == 0:
-                self._previous, config.fail_on_recompile_limit_hit = config.fail_on_recompile_limit_hit, True
-            self._running += 1
-
-    def __exit__(self, *exc_info) -> None:
-        with self._lock:
-            self._running -= 1
-            if self._running == 0:
-                torch._dynamo.config.fail_on_recompile_limit_hit = self._previous
-
-
-_RAISE_PAST_RECOMPILE_LIMIT = _RaisePastRecompileLimit()
-
-
-DEFAULT_OPTIONS = {"cpp_wrapper": True, "assert_indirect_indexing": False, "cpp.enable_loop_tail_vec": False}
-"""Inductor's options for a ``CompiledStep`` given none (its docstring says why)."""
-
-
 class CompiledStep:
     """``step(model, state, u)`` with its sub-step compiled by ``torch.compile`` (inductor), and an eager fallback.
 
@@ -1033,7 +990,8 @@ class CompiledStep:
     first call for each new input signature (dtype, device, shape, whether ``state.phi`` is cached, whether
     gradients are needed) compiles: tens of seconds on a CPU, which pays off over long rollouts or many planner
     iterations. ``options`` go to ``torch.compile`` (e.g. ``dynamic=True`` to compile once for all batch sizes).
-    With the default inductor backend and no ``mode``/``options`` given, the options are ``DEFAULT_OPTIONS``:
+    With the default inductor backend and no ``mode``/``options`` given, the options are
+    ``compilation.DEFAULT_OPTIONS``:
     inductor's C++ wrapper, which launches the kernels from C++ instead of Python and halves a batch-1 step
     (0.27 -> 0.14 ms measured on the pushing scene) for a few more seconds of compilation; and no bounds check on
     each indirect index. The step's indices are the model's own point subsets (``touchable_points``), arg-minima
@@ -1047,7 +1005,8 @@ class CompiledStep:
     If compilation fails (no C++ compiler, an unsupported platform, more than dynamo's ``recompile_limit`` of 8
     input signatures on one instance), it warns once and runs the eager ``step`` from then on;
     ``fallback_reason`` then says why: dynamo's own fallback past its limit would be silent. Each instance
-    compiles a private copy of the sub-step's code, so any number of instances (one per model) stay compiled.
+    compiles a private copy of the sub-step's code (``compilation.private_copy``), so any number of instances (one
+    per model) stay compiled.
     A step from the very state this instance returned last (a rollout) takes its start stability check from
     that step's end check instead of repeating it: one ``substeps_needed`` per step instead of two, the same
     sub-step counts. Nothing in the library requires it.
@@ -1057,29 +1016,23 @@ class CompiledStep:
     and this step's are many and small: with 0 the full pushing planner's solve took 0.89 of the time with 1, for
     the same compile time (float32, one thread; ``hydrosoft-stack bench control --compile
     --rate-activation-budgets 1,0`` measures it).
-    An instance may be called from several threads at once (``CemGdConfig.workers``). A call checks out a compiled
-    copy of the sub-step that no other call is using, with its own dynamo cache and guards, and returns it after:
-    with one copy used by two solver workers at once, dynamo's guards failed spuriously in the middle of a run
-    ("runtime guards failed even though they passed during recompilation-reason analysis"), twice in two runs,
-    each time a 23-26 s recompile that also spent one of the copy's 8 graphs. So there are as many copies as calls
-    ever ran at once (the solver's workers), each compiled once, mostly from inductor's cache after the first;
-    calls one after another, from any threads (a service's executor), share one. The first step from each input
-    signature a copy has not run from runs alone: dynamo compiling in two threads at once failed. Its backward
-    graph compiles then too, not lazily at its first backward, which ran outside the lock.
+    An instance may be called from several threads at once (``CemGdConfig.workers``): each running call steps
+    through a compiled copy of the sub-step of its own, and the first step from each new input signature runs
+    alone, its backward graph compiled with it (``compilation.CompiledCopies`` says why).
     """
 
     def __init__(self, model: Model, activation_memory_budget: float = 0.0, **options) -> None:
         self.model = model
         self.activation_memory_budget = activation_memory_budget
-        self.fallback_reason: str | None = None
-        if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
-            options["options"] = dict(DEFAULT_OPTIONS)
-        self._options = options
-        self._copies: list[_CompiledCopy] = []  # all made so far
-        self._idle: list[_CompiledCopy] = []  # those no call is using
-        self._copies_lock = threading.Lock()
-        # a step from a signature its copy has not run from compiles, under this lock, one at a time
-        self._first_steps = threading.Lock()
+        options = with_default_options(options)
+        implicit_friction = getattr(model.contact, "implicit_friction", False)
+
+        def build() -> Callable:
+            friction_move = torch.compile(private_copy(_newton_move), **options) if implicit_friction else None
+            return torch.compile(private_copy(_bound_substep(model, friction_move)), **options)
+
+        self._copies = CompiledCopies(build, activation_memory_budget, passthrough=(UnstableStepError,))
+        self._eager_substep = functools.partial(_substep, model)
         # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
         # next step starts from that state, so its start check is already known (one stability check per step)
         self._end_check = threading.local()
@@ -1087,83 +1040,39 @@ class CompiledStep:
     @property
     def compiled(self) -> bool:
         """True while the compiled path is in use (False after a fallback to eager)."""
-        return self.fallback_reason is None
+        return self._copies.fallback_reason is None
+
+    @property
+    def fallback_reason(self) -> str | None:
+        """Why compiling failed (None while compiled)."""
+        return self._copies.fallback_reason
 
     def __call__(self, state: State, u: Tensor) -> State:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
-        if self.fallback_reason is None:
-            # one layout for every u: a planner's u[:, k] is a view whose strides depend on its horizon, and each
-            # new stride would compile the step again (an open-loop plan of each episode's length passed the limit)
-            u = u.contiguous()
-            key = _signature(state, u)
-            copy = self._check_out(key)
-            try:
-                if key in copy.warm:
-                    return self._compiled_step(copy, state, u)
-                # the backward graph compiles with the forward, under the lock: lazily, at the first backward, it
-                # compiled outside it while another worker ran or compiled, and dynamo failed ("FX to symbolically
-                # trace a dynamo-optimized function"), leaving the process unable to compile
-                settings = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget,
-                                                         force_non_lazy_backward_lowering=True)
-                with self._first_steps, settings:
-                    out = self._compiled_step(copy, state, u)
-                    copy.warm.add(key)
-                    return out
-            except UnstableStepError:
-                raise
-            except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager step
-                self.fallback_reason = f"{type(err).__name__}: {err}"
-                warnings.warn(f"torch.compile of the step failed, running eager: {self.fallback_reason}",
-                              RuntimeWarning, stacklevel=2)
-            finally:
-                with self._copies_lock:
-                    self._idle.append(copy)
-        return step(self.model, state, u)
+        # one layout for every u: a planner's u[:, k] is a view whose strides depend on its horizon, and each new
+        # stride would compile the step again (an open-loop plan of each episode's length passed the limit)
+        u = u.contiguous()
+        return self._copies.run(_signature(state, u), lambda substep: self._checked_step(substep, state, u),
+                                self._eager_substep)
 
     @property
     def compiled_substep(self):
         """A compiled sub-step ``(state, u_sub, dt_sub) -> state`` alone (no stability check, no lock), for timing it
         from one thread (``bench model``)."""
-        copy = self._check_out()
-        with self._copies_lock:
-            self._idle.append(copy)
-        return copy.compiled
+        return self._copies.any_copy()
 
-    def _check_out(self, key: tuple | None = None) -> _CompiledCopy:
-        """A copy no call is using, one compiled for the input signature ``key`` if there is one (a new copy when
-        all are in use); the caller returns it to ``_idle``."""
-        with self._copies_lock:
-            if self._idle:
-                warm = [i for i, copy in enumerate(self._idle) if key in copy.warm]
-                return self._idle.pop(warm[-1] if warm else -1)
-            friction_move = None
-            if getattr(self.model.contact, "implicit_friction", False):
-                friction_move = torch.compile(_private_copy(_newton_move), **self._options)
-            copy = _CompiledCopy(torch.compile(_private_copy(_bound_substep(self.model, friction_move)),
-                                               **self._options), set())
-            self._copies.append(copy)
-            return copy
-
-    def _compiled_step(self, copy: _CompiledCopy, state: State, u: Tensor) -> State:
-        with _RAISE_PAST_RECOMPILE_LIMIT:
-            known = getattr(self._end_check, "last", None)
-            same = known is not None and state.phi is not None and state.phi is known[0]
-            out, needed = _checked_step(self.model, state, u, copy.compiled, known[1] if same else None)
+    def _checked_step(self, substep: Callable, state: State, u: Tensor) -> State:
+        """``_checked_step`` through ``substep``, its start check taken from the last step's end check on this thread
+        when ``state`` is the state that step returned."""
+        known = getattr(self._end_check, "last", None)
+        same = known is not None and state.phi is not None and state.phi is known[0]
+        out, needed = _checked_step(self.model, state, u, substep, known[1] if same else None)
         self._end_check.last = None if needed is None else (out.phi, needed)
         return out
 
 
-class _CompiledCopy(NamedTuple):
-    """One compiled copy of a ``CompiledStep``'s sub-step and the input signatures (``_signature``) it has run from,
-    whose graphs are compiled."""
-
-    compiled: Callable
-    warm: set
-
-
 def _signature(state: State, u: Tensor) -> tuple:
-    """What tells the compiled graphs of a step apart: grad mode, and each input's dtype, device, shape, strides and
-    whether it requires grad (``state.phi`` absent or not)."""
+    """``compilation.signature(state, u)`` spelled out for a step's inputs (a third of its time per call)."""
     tensors = (*state, u)
     return (torch.is_grad_enabled(),
             *(None if t is None else (t.dtype, t.device, t.shape, t.stride(), t.requires_grad) for t in tensors))

@@ -66,7 +66,7 @@ interleaved: ``forward_ms`` (no grad) and ``forward_backward_ms`` (forward plus 
 sum(forces)`` to the controls) of each, their ratios (slices / gathers), ``compile_s`` of each compiled variant,
 and the largest force difference between the two after the step (N).
 
-``loop-tails``: the same model and batches, always compiled: the step with ``dynamics.DEFAULT_OPTIONS`` (inductor's
+``loop-tails``: the same model and batches, always compiled: the step with ``compilation.DEFAULT_OPTIONS`` (inductor's
 loop tails as scalar loops) against the same options with inductor's masked tail vectorisation
 (``cpp.enable_loop_tail_vec``, its default), timed and reported as ``point-sets`` is (``scalar`` / ``masked``).
 Only with ``--compile`` (it compiles both variants: minutes); without it the section is skipped with a note.
@@ -539,7 +539,8 @@ class _Bench:
         """Pose-to-wrench query times at batch 1 (``dynamics.pressure_wrenches``), per object, dtype and mode."""
         torch = self.torch
         from hydrosoft.bench.wrench_scenes import BUBBLE_RADII_M, SPACING_M, bench_object, start_pose, wrench_scene
-        from hydrosoft.dynamics import DEFAULT_OPTIONS, pressure_wrenches
+        from hydrosoft.compilation import DEFAULT_OPTIONS
+        from hydrosoft.dynamics import pressure_wrenches
         from hydrosoft.scene import compile_scene
 
         out = []
@@ -733,7 +734,8 @@ class _Bench:
         return self._step_pair("point-sets", variants, state, compiled)
 
     def loop_tails(self) -> list[dict]:
-        from hydrosoft.dynamics import DEFAULT_OPTIONS, CompiledStep
+        from hydrosoft.compilation import DEFAULT_OPTIONS
+        from hydrosoft.dynamics import CompiledStep
 
         model, state = self._planner_model()
         masked = {**DEFAULT_OPTIONS, "cpp.enable_loop_tail_vec": True}

@@ -309,7 +309,7 @@ def test_threads_stepping_at_once_each_compile_their_own_copy_once(fresh_dynamo)
     assert not errors and len(results) == 4, errors
     assert fast.compiled, fast.fallback_reason
     assert counters["stats"]["unique_graphs"] - before == 2 * graphs_alone
-    assert len(fast._copies) == 4
+    assert len(fast._copies.copies) == 4
 
     def later_rollouts() -> None:
         for grad in (False, True):
@@ -320,7 +320,7 @@ def test_threads_stepping_at_once_each_compile_their_own_copy_once(fresh_dynamo)
     later = threading.Thread(target=later_rollouts)
     later.start()
     later.join(timeout=300)
-    assert len(results) == 6 and counters["stats"]["unique_graphs"] == before and len(fast._copies) == 4
+    assert len(results) == 6 and counters["stats"]["unique_graphs"] == before and len(fast._copies.copies) == 4
     for out in results:
         torch.testing.assert_close(out.forces.detach(), expected.forces, rtol=0, atol=1e-14)
         torch.testing.assert_close(out.object_pose.detach(), expected.object_pose, rtol=0, atol=1e-14)

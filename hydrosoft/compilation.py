@@ -1,0 +1,191 @@
+"""``torch.compile`` for the model library's pure functions, safe to call from the planner's worker threads.
+
+``CompiledCopies`` keeps compiled copies of one function: a call checks out a copy no other call is using and
+returns it after, so two threads never run one copy's guards at once; the first call from each new input signature
+runs alone under a lock, since dynamo compiling in two threads at once fails; and if compiling fails, it warns once
+and runs the eager function from then on (``fallback_reason`` says why). ``CompiledFunction`` is that for a plain
+function of tensors (the planner's costs); ``dynamics.CompiledStep`` uses it for the sub-step inside its own
+stability-checked loop.
+
+Why copies. With one compiled copy used by two solver workers at once, dynamo's guards failed spuriously in the
+middle of a run ("runtime guards failed even though they passed during recompilation-reason analysis"), twice in
+two runs, each time a 23-26 s recompile that also spent one of the copy's graphs. So there are as many copies as
+calls ever ran at once (the solver's workers), each compiled once, mostly from inductor's cache after the first;
+calls one after another, from any threads (a service's executor), share one.
+
+Why private code. Dynamo keeps compiled graphs, and counts recompilations against
+``torch._dynamo.config.recompile_limit`` (8), per code object. Every copy compiles a private copy of the function's
+code (``private_copy``), so any number of copies and instances stay compiled; past its limit a copy raises instead
+of silently running eager (``RAISE_PAST_RECOMPILE_LIMIT``), and the instance then falls back with a warning.
+"""
+from __future__ import annotations
+
+import threading
+import types
+import warnings
+from collections.abc import Callable
+from typing import Any, NamedTuple, TypeVar
+
+import torch
+from torch import Tensor
+from torch.utils._pytree import tree_flatten
+
+T = TypeVar("T")
+
+DEFAULT_OPTIONS = {"cpp_wrapper": True, "assert_indirect_indexing": False, "cpp.enable_loop_tail_vec": False}
+"""Inductor's options when a caller gives none (``dynamics.CompiledStep``'s docstring says why each is set)."""
+
+
+def with_default_options(options: dict) -> dict:
+    """``torch.compile`` keyword arguments ``options`` with ``DEFAULT_OPTIONS`` as inductor's options when the
+    backend is inductor and neither ``mode`` nor ``options`` is given."""
+    if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
+        return {**options, "options": dict(DEFAULT_OPTIONS)}
+    return dict(options)
+
+
+def private_copy(fn: Callable) -> Callable:
+    """``fn`` with a code object of its own, so that dynamo counts its graphs against a recompile limit of its own."""
+    return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+
+
+class _RaisePastRecompileLimit:
+    """A context in which dynamo raises past its recompile limit instead of silently running eager, entered by every
+    compiled call. The setting is process-wide and solver workers run compiled calls on several threads at once, so
+    the contexts are counted under a lock: the first to enter sets it, the last to leave restores it.
+    (Set by hand: ``torch._dynamo.config.patch`` costs ~16 us per call.)"""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._running = 0
+        self._previous = False
+
+    def __enter__(self) -> None:
+        config = torch._dynamo.config
+        with self._lock:
+            if self._running == 0:
+                self._previous, config.fail_on_recompile_limit_hit = config.fail_on_recompile_limit_hit, True
+            self._running += 1
+
+    def __exit__(self, *exc_info) -> None:
+        with self._lock:
+            self._running -= 1
+            if self._running == 0:
+                torch._dynamo.config.fail_on_recompile_limit_hit = self._previous
+
+
+RAISE_PAST_RECOMPILE_LIMIT = _RaisePastRecompileLimit()
+
+
+def signature(*args: Any) -> tuple:
+    """What tells the compiled graphs of a call apart: grad mode, and for each leaf of ``args`` (pytrees of tensors and
+    constants) a tensor's dtype, device, shape, strides and whether it requires grad, or the constant itself (None
+    included: an absent optional tensor)."""
+    leaves, spec = tree_flatten(args)
+    return (torch.is_grad_enabled(), spec,
+            *((t.dtype, t.device, t.shape, t.stride(), t.requires_grad) if isinstance(t, Tensor) else t
+              for t in leaves))
+
+
+class _Copy(NamedTuple):
+    """One compiled copy and the input signatures (``signature``) it has run from, whose graphs are compiled."""
+
+    compiled: Callable
+    warm: set
+
+
+class CompiledCopies:
+    """Compiled copies of one function, made by ``build() -> compiled callable`` (a fresh ``torch.compile`` of private
+    code), checked out one per running call (module docstring).
+
+    ``run(key, body, eager)`` returns ``body(compiled)`` for a copy compiled for the input signature ``key``, or
+    ``body(eager)`` once compiling has failed. Errors of the types in ``passthrough`` are the body's own and are
+    raised; any other error of a compiled call is taken for a compiler failure: it warns once and falls back (a
+    genuine error recurs in the eager call). The first call from a signature a copy has not run from compiles its
+    backward graph too (``force_non_lazy_backward_lowering``), under the lock: lazily, at the first backward, it
+    compiled outside the lock while another worker ran or compiled, and dynamo failed ("FX to symbolically trace a
+    dynamo-optimized function"), leaving the process unable to compile. ``activation_memory_budget`` is AOT
+    autograd's, set while a graph compiles (``dynamics.CompiledStep`` says what it does).
+    """
+
+    def __init__(self, build: Callable[[], Callable], activation_memory_budget: float = 0.0,
+                 passthrough: tuple[type[BaseException], ...] = ()) -> None:
+        self.activation_memory_budget = activation_memory_budget
+        self.fallback_reason: str | None = None
+        self._build = build
+        self._passthrough = passthrough
+        self.copies: list[_Copy] = []  # all made so far
+        self._idle: list[_Copy] = []  # those no call is using
+        self._copies_lock = threading.Lock()
+        self._first_calls = threading.Lock()  # a call from a signature its copy has not run from compiles under it
+
+    def run(self, key: tuple, body: Callable[[Callable], T], eager: Callable) -> T:
+        """``body(compiled)`` through a copy compiled for ``key``, or ``body(eager)`` after a fallback."""
+        if self.fallback_reason is None:
+            copy = self._check_out(key)
+            try:
+                with RAISE_PAST_RECOMPILE_LIMIT:
+                    if key in copy.warm:
+                        return body(copy.compiled)
+                    settings = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget,
+                                                             force_non_lazy_backward_lowering=True)
+                    with self._first_calls, settings:
+                        out = body(copy.compiled)
+                        copy.warm.add(key)
+                        return out
+            except self._passthrough:
+                raise
+            except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager call
+                self.fallback_reason = f"{type(err).__name__}: {err}"
+                warnings.warn(f"torch.compile failed, running eager: {self.fallback_reason}", RuntimeWarning,
+                              stacklevel=3)
+            finally:
+                with self._copies_lock:
+                    self._idle.append(copy)
+        return body(eager)
+
+    def any_copy(self) -> Callable:
+        """A compiled copy, for timing it alone from one thread (no lock, no signature bookkeeping)."""
+        copy = self._check_out()
+        with self._copies_lock:
+            self._idle.append(copy)
+        return copy.compiled
+
+    def _check_out(self, key: tuple | None = None) -> _Copy:
+        """A copy no call is using, one compiled for ``key`` if there is one (a new copy when all are in use); the
+        caller returns it to ``_idle``."""
+        with self._copies_lock:
+            if self._idle:
+                warm = [i for i, copy in enumerate(self._idle) if key in copy.warm]
+                return self._idle.pop(warm[-1] if warm else -1)
+            copy = _Copy(self._build(), set())
+            self.copies.append(copy)
+            return copy
+
+
+class CompiledFunction:
+    """``fn(*args)`` compiled by ``torch.compile``, callable from several threads at once, with an eager fallback.
+
+    ``fn`` is a pure function of pytrees of tensors and hashable constants; each new ``signature`` of its arguments
+    compiles once (constants are baked into the graph). ``options`` go to ``torch.compile``, with
+    ``DEFAULT_OPTIONS`` for inductor when none are given (``with_default_options``); ``activation_memory_budget``
+    is AOT autograd's (``CompiledCopies``).
+    """
+
+    def __init__(self, fn: Callable, activation_memory_budget: float = 0.0, **options) -> None:
+        self.fn = fn
+        options = with_default_options(options)
+        self._copies = CompiledCopies(lambda: torch.compile(private_copy(fn), **options), activation_memory_budget)
+
+    @property
+    def compiled(self) -> bool:
+        """True while the compiled path is in use (False after a fallback to eager)."""
+        return self._copies.fallback_reason is None
+
+    @property
+    def fallback_reason(self) -> str | None:
+        """Why compiling failed (None while compiled)."""
+        return self._copies.fallback_reason
+
+    def __call__(self, *args: Any) -> Any:
+        return self._copies.run(signature(*args), lambda compiled: compiled(*args), self.fn)
