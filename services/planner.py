@@ -50,7 +50,7 @@ from hydrosoft.geometry.sdf import Ellipsoid
 from hydrosoft.scene import Scene, build_surface, compile_scene
 from hydrosoft.tactile import TactileObservation, carry_over, estimate_state, sensor_bodies
 from hydrosoft.tasks import Task, make_task
-from hydrosoft.tasks.base import mean_point_distance
+from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, compiled_cost_terms, mean_point_distance
 from hydrosoft.tasks.evaluation import METRIC_SPACING_M, PlannerSettings, with_contact, with_solver_steps
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Stale
@@ -95,7 +95,8 @@ class PlannerCore:
     ``(M, 7)`` the scene's body poses (unactuated bodies stay there). metric_points: ``(N, 3)`` object-frame
     points (5 mm spacing) on which the ADD error is measured. frame: the task frame in the base frame.
     grasp_offset: ``(3,)`` m, the one arm's TCP position relative to the object in the scene (``reapproach``), or
-    ``None`` in a scene with several arms (no re-approach). Poses are in the task frame unless a name says base.
+    ``None`` in a scene with several arms (no re-approach). cost_terms: what evaluates the costs of every goal
+    (``Task.costs``), compiled with the step. Poses are in the task frame unless a name says base.
     """
 
     config: StackConfig
@@ -110,6 +111,7 @@ class PlannerCore:
     membranes: dict[str, Ellipsoid] = field(default_factory=dict)
     frame: TaskFrame = field(default_factory=lambda: TaskFrame.from_pose(se3.identity()))
     grasp_offset: torch.Tensor | None = None
+    cost_terms: CostTerms = EAGER_COST_TERMS
 
     @classmethod
     def build(cls, config: StackConfig) -> PlannerCore:
@@ -136,14 +138,16 @@ class PlannerCore:
             (index,) = arms.values()
             offset = grasp_offset(state.object_pose[0].double(), state.body_poses[0, index].double())
         return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
-                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset)
+                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset,
+                   compiled_cost_terms() if pc.compile else EAGER_COST_TERMS)
 
     def solver(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]) -> CemGd:
         """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode), its drift
         cost anchored at the object pose ``(7,)`` and TCP poses ``(7,)`` the goal starts from (``Task.costs``)."""
         task = self.task
         low, high = task.bounds(self.model.body_names, self.model.dtype)
-        stage, terminal = task.costs(self.model, goal_pose, anchor=(object_pose, self.body_poses(arm_poses)))
+        stage, terminal = task.costs(self.model, goal_pose, anchor=(object_pose, self.body_poses(arm_poses)),
+                                     terms=self.cost_terms)
         return CemGd(self.dynamics, stage, terminal, low, high, config=self.settings.config(self.settings.horizon, 1),
                      dtype=self.model.dtype)
 

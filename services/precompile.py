@@ -1,5 +1,5 @@
-"""``hydrosoft-stack compile CONFIG``: fill torch's compile cache with the config's compiled planner step, so that
-the stack's first launch reports ready in seconds instead of minutes.
+"""``hydrosoft-stack compile CONFIG``: fill torch's compile cache with the config's compiled planner step and costs,
+so that the stack's first launch reports ready in seconds instead of minutes.
 
 With ``planner.compile`` the planner compiles its step before it reports ready: 2.5-6.5 minutes on a 2-core
 machine the first time, 6-15 s once torch's compile cache (``compile_cache_dir``, or ``TORCHINDUCTOR_CACHE_DIR``)
@@ -7,7 +7,7 @@ holds it. Run this once after an install or a torch upgrade, as the user the sta
 directory), and before the first ``launch``. It opens no device and no socket. sim_world's plant is not compiled
 here: it solves the bubble to convergence (a ``torch.while_loop``), which torch cannot cache, so it compiles at
 every launch (20-60 s). Exit codes: 0 compiled (or nothing to compile: ``planner.compile`` is false), 1 the step
-fell back to eager, 2 a config that cannot be used.
+or a cost fell back to eager (each named with its reason), 2 a config that cannot be used.
 """
 
 from __future__ import annotations
@@ -44,8 +44,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"compile: compiling the planner step into {cache} (minutes the first time, seconds when the cache holds "
           f"it)", flush=True)
     seconds = compile_step(core)
-    if not getattr(core.dynamics, "compiled", False):
-        print(f"compile: the planner step fell back to eager: {core.dynamics.fallback_reason}", file=sys.stderr)
+    parts = {"step": core.dynamics, "stage cost": core.cost_terms.stage, "terminal cost": core.cost_terms.terminal}
+    failed = [f"{name}: {part.fallback_reason}" for name, part in parts.items() if not part.compiled]
+    if failed:
+        print(f"compile: the planner fell back to eager ({'; '.join(failed)})", file=sys.stderr)
         return 1
-    print(f"compile: planner step compiled in {seconds:.1f} s")
+    print(f"compile: planner step and costs compiled in {seconds:.1f} s")
     return 0

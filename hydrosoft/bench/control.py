@@ -128,6 +128,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --compile: the compiled step's activation_memory_budget for the replanning rate "
                              "(0: the backward recomputes the forward's intermediates, the default; 1: torch's "
                              "default saving), one measurement each in the same run")
+    parser.add_argument("--rate-costs", type=_csv, default=["compiled"], metavar="C1,C2",
+                        help="with --compile: the planner's costs for the replanning rate, 'compiled' (the default, "
+                             "as the planner runs them) or 'eager', one measurement each in the same run")
     parser.add_argument("--object-update", default="explicit",
                         help="the episode planners' object update (PlannerSettings.object_update): explicit, "
                              "sub-stepped as the scene needs (default), or linearly_implicit, one sub-step per "
@@ -178,7 +181,8 @@ def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
 
 def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
                     sdf_solver_steps: int | None = None, workers: int = 1,
-                    activation_budget: float = 0.0, object_update: str = "explicit") -> dict:
+                    activation_budget: float = 0.0, object_update: str = "explicit", compiled_costs: bool = True
+                    ) -> dict:
     """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
     first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), with
@@ -191,13 +195,16 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     the workers' threads; the backward passes through both are in ``backward_ms``. ``sdf_solver_steps``: the
     planner's bubble ellipsoid solve; ``workers``: the solver's threads, each rolling out a share of the samples
     (both ``PlannerSettings``); ``activation_budget``: the compiled step's ``activation_memory_budget``;
-    ``object_update``: the planner model's (``PlannerSettings.object_update``).
+    ``object_update``: the planner model's (``PlannerSettings.object_update``); ``compiled_costs``: with ``compile``,
+    the costs through the setup's compiled cost terms (as the planner runs them) or eager.
 
     A timed solve is one cycle of the closed loop, as ``evaluation.run_episode`` runs it: the state estimate from the
     plant's sensors and the planner's prediction of this instant (``observed_state``; ``estimate_ms``), the solve,
     and the prediction of the applied action for the next estimate (``predict_ms``: taken from the solve's own
     rollout of its plan, ``PlanResult.states``, it costs next to nothing; an eager step took 4.7 ms). Only the first
-    estimate, with no prediction yet, presses the bodies in from contact-free (``dynamics.press_in``). ``plan_costs``:
+    estimate, with no prediction yet, presses the bodies in from contact-free (``dynamics.press_in``). The costs'
+    drift is anchored at the plant's initial state, as an episode's is (and the stack's, at the state its goal
+    started from), through the setup's cost terms (compiled with ``compile``). ``plan_costs``:
     each timed solve's plan cost ``J``, in order, so that two settings' plans can be compared along the same loop."""
     import msgspec
     import torch
@@ -207,6 +214,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     from hydrosoft.scene import build_surface
     from hydrosoft.tactile import carry_over
     from hydrosoft.tasks import make_task
+    from hydrosoft.tasks.base import EAGER_COST_TERMS
     from hydrosoft.tasks.evaluation import PlannerSettings, observed_state, prepare
 
     task = make_task("pushing")
@@ -218,7 +226,10 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
     pairs = sum(pair_counts(model))
     low, high = task.bounds(model.body_names, model.dtype)
-    stage, terminal = task.costs(model, task.sample_goal(0))
+    plant = setup.plant
+    anchor = (plant.initial.object_pose[0], plant.initial.body_poses[0, setup.body_index])  # as run_episode's
+    terms = setup.cost_terms if compiled_costs else EAGER_COST_TERMS
+    stage, terminal = task.costs(model, task.sample_goal(0), anchor=anchor, terms=terms)
     step_calls, stage_calls, terminal_calls = Stopwatch(setup.dynamics), Stopwatch(stage), Stopwatch(terminal)
     solver = CemGd(step_calls, stage_calls, terminal_calls, low, high,
                    config=settings.config(settings.horizon, 1), dtype=model.dtype)
@@ -256,7 +267,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
         "workers": workers, "activation_budget": activation_budget if compile else None,
-        "object_update": object_update,
+        "object_update": object_update, "compiled_costs": compiled and compiled_costs,
         "step_forward_ms": 1e3 * mean["step_s"], "cost_forward_ms": 1e3 * mean["cost_s"],
         "estimate_ms": 1e3 * mean["estimate_s"], "predict_ms": 1e3 * mean["predict_s"],
         "plan_costs": [t["plan_cost"] for t in times],
@@ -358,9 +369,11 @@ def run(args: argparse.Namespace) -> int:
     bad = ([t for t in args.tasks if t not in TASKS] + [m for m in args.models if m not in MODEL_TITLES]
            + [loop for loop in args.loops if loop not in ("open", "closed")]
            + [p for p in args.plants if p not in ("finer", "same")]
-           + [d for d in args.rate_dtypes if d not in ("float64", "float32")])
+           + [d for d in args.rate_dtypes if d not in ("float64", "float32")]
+           + [c for c in args.rate_costs if c not in ("compiled", "eager")])
     if bad or args.plant not in (*MODEL_TITLES, "same"):
-        _log(f"bench control: unknown task, model, loop, rate dtype or plant: {', '.join(bad) or args.plant}")
+        _log(f"bench control: unknown task, model, loop, rate dtype, rate costs or plant: "
+             f"{', '.join(bad) or args.plant}")
         return 2
     try:
         rate_sdf = ([args.sdf_solver_steps] if args.rate_sdf_solver_steps is None else
@@ -430,17 +443,17 @@ def run(args: argparse.Namespace) -> int:
                                       object_update=args.object_update, **{k: preset[k] for k in planner_keys})
             plants = {"finer": PlantSettings(model=model if args.plant == "same" else args.plant, **noise),
                       "same": replace(PlantSettings.same_as_planner(model), **noise)}
-            compiled_step = None
+            compiled = None
             for plant_name in [plant for plant, m in runs if m == model]:
                 keys = [(plant_name, name, model, loop, g) for loop in args.loops for g in indices]
                 setup = None
                 if log is None or any(log.get(key) is None for key in keys):
                     setup = prepare(task, planner, plants[plant_name])
-                    if compiled_step is not None:  # one compiled planner step per task and model, shared by plants
-                        setup = replace(setup, dynamics=compiled_step)
+                    if compiled is not None:  # one compiled planner step and costs per task and model, for all plants
+                        setup = replace(setup, dynamics=compiled[0], cost_terms=compiled[1])
                     elif args.compile:  # compile outside the timed episodes: a one-step closed-loop warm-up
                         run_episode(setup, task.sample_goal(0), "closed", steps=1)
-                        compiled_step = setup.dynamics
+                        compiled = setup.dynamics, setup.cost_terms
                 for loop in args.loops:
                     results, walls = [], []
                     for g in indices:
@@ -462,8 +475,9 @@ def run(args: argparse.Namespace) -> int:
                              f"{result.initial_error_mm:.1f} -> {result.error_mm:.2f} mm ({result.status}, "
                              f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
                     rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
-    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers), budget, update)
-                  for update in rate_updates
+    replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers), budget, update,
+                                  costs == "compiled")
+                  for costs in (args.rate_costs if args.compile else ["eager"]) for update in rate_updates
                   for budget in (budgets if args.compile else budgets[:1]) for workers in args.rate_workers
                   for sdf in rate_sdf for dtype in args.rate_dtypes] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
@@ -490,10 +504,11 @@ def run(args: argparse.Namespace) -> int:
             compiling = ", compiling the step unless a planner of the same shapes did before" if r["compiled"] else ""
             sdf = "converged" if r["sdf_solver_steps"] is None else f"in {r['sdf_solver_steps']} solver steps"
             budget = "" if r["activation_budget"] is None else f"activation budget {r['activation_budget']:g}, "
+            costs = "compiled costs, " if r["compiled_costs"] else ""
             print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
                   f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
                   f"point-body pairs), {r['substeps']} sub-steps, bubble SDF {sdf}, {r['threads']} thread(s), "
-                  f"{r['workers']} solver worker(s), {r['object_update']} object update, {budget}"
+                  f"{r['workers']} solver worker(s), {r['object_update']} object update, {budget}{costs}"
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
                   f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f}, "

@@ -12,11 +12,12 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import torch
 from torch import Tensor
 
+from hydrosoft.compilation import CompiledFunction
 from hydrosoft.control.costs import hinge_cost, orientation_error, position_error
 from hydrosoft.dynamics import Model, State
 from hydrosoft.geometry import se3
@@ -48,8 +49,7 @@ def mean_point_distance(points: Tensor, pose: Tensor, goal: Tensor) -> Tensor:
     return diff.norm(dim=-1).mean(-1)
 
 
-@dataclass(frozen=True)
-class PointTracking:
+class PointTracking(NamedTuple):
     """The mean squared distance (m^2) between an object's points at a pose and at a fixed goal pose, as a few
     products with constants: the MPC's tracking term, smooth everywhere (no square root).
 
@@ -64,6 +64,7 @@ class PointTracking:
 
     Build it with ``PointTracking.of(points (N, 3), goal (7,))``; ``tracking(pose (..., 7)) -> (...)``. Quaternions
     need not be unit, and ``q`` and ``-q`` give the same value: the term is that of the rotation they represent.
+    A named tuple of tensors, so that compiled cost terms take it as an input (a new goal reuses their graphs).
     """
 
     inertia: Tensor  # (3, 3) m^2: tr S I - S, the quadratic form of the rotation's part
@@ -116,6 +117,70 @@ class CostWeights:
     drift: float = 1e4
     drift_limit: float = 0.015
     drift_width: float = 0.002
+
+
+def plan_anchor(state: State, actuated: tuple[int, ...]) -> tuple[Tensor, Tensor]:
+    """The drift's anchor at a plan's first state (batch ``B``): the object's position ``(B, 1, 1, 3)`` and the
+    ``actuated`` bodies' offsets from it ``(B, 1, M', 3)`` (m), detached (``Task.costs``)."""
+    origin = state.object_pose[:, None, None, :3].detach()
+    return origin, (state.body_poses[:, None, list(actuated), :3].detach() - origin)
+
+
+def slip(object_poses: Tensor, body_poses: Tensor, anchor: tuple[Tensor, Tensor], actuated: tuple[int, ...],
+         rolling: float) -> Tensor:
+    """Slip ``(B, K, M')`` (m) of the ``actuated`` bodies at ``object_poses (B, K, 7)`` and ``body_poses (B, K, M,
+    7)`` since ``anchor = (origin, offsets)`` (broadcast against ``(B, K, 1, 3)`` and ``(B, K, M', 3)``): the change
+    of each body's offset from the object's centre less ``rolling`` times the object's displacement."""
+    origin, offset0 = anchor
+    moved = object_poses[:, :, None, :3] - origin
+    offset = body_poses[:, :, list(actuated), :3] - object_poses[:, :, None, :3]
+    return safe_norm(offset - offset0 - rolling * moved)
+
+
+def stage_terms(object_poses: Tensor, body_poses: Tensor, u: Tensor, tracking: PointTracking,
+                anchor: tuple[Tensor, Tensor], scale: Tensor, actuated: tuple[int, ...], weights: CostWeights,
+                rolling: float) -> Tensor:
+    """A rollout's summed stage costs ``(B,)`` (``Task.costs``): tracking, effort and drift over its ``K`` steps.
+
+    ``object_poses (B, K, 7)``, ``body_poses (B, K, M, 7)``, ``u (B, K, M, 6)``; ``scale (M, 6)`` the per-step
+    action bounds that normalise the effort; ``actuated`` the indices of the bodies that move; ``rolling`` the
+    drift's share of the object's displacement (``slip``)."""
+    track = tracking(object_poses).sum(1) / weights.scale**2
+    effort = (u[:, :, list(actuated)] / scale[list(actuated)]).square().flatten(1).sum(-1)
+    drift = hinge_cost(slip(object_poses, body_poses, anchor, actuated, rolling), weights.drift_limit, weights.drift,
+                       width=weights.drift_width)
+    return weights.stage * track + weights.effort * effort + drift
+
+
+def terminal_terms(object_pose: Tensor, body_poses: Tensor, tracking: PointTracking, anchor: tuple[Tensor, Tensor],
+                   actuated: tuple[int, ...], weights: CostWeights, rolling: float) -> Tensor:
+    """The terminal cost ``(B,)`` at ``object_pose (B, 7)`` and ``body_poses (B, M, 7)``: tracking and drift
+    (``stage_terms``)."""
+    track = tracking(object_pose) / weights.scale**2
+    drift = slip(object_pose.unsqueeze(1), body_poses.unsqueeze(1), anchor, actuated, rolling)
+    return weights.terminal * track + hinge_cost(drift, weights.drift_limit, weights.drift, width=weights.drift_width)
+
+
+class CostTerms(NamedTuple):
+    """The functions that evaluate ``Task.costs``' arithmetic: ``EAGER_COST_TERMS``, or ``compiled_cost_terms()``."""
+
+    stage: Callable[..., Tensor]  # stage_terms
+    terminal: Callable[..., Tensor]  # terminal_terms
+
+
+EAGER_COST_TERMS = CostTerms(stage_terms, terminal_terms)
+
+
+def compiled_cost_terms(activation_memory_budget: float = 0.0, **options) -> CostTerms:
+    """``stage_terms`` and ``terminal_terms`` compiled (``compilation.CompiledFunction``; ``options`` go to
+    ``torch.compile``), for the planner to keep across goals.
+
+    Eager, the costs were dozens of small operations per rollout, forward and backward, each paying the interpreter
+    and, with two solver workers, waiting for it: 0.92 of the two-worker planning cycle with them compiled
+    (README, "The costs compiled"). Each new rollout length compiles once more; past the first, with dynamo's
+    default ``dynamic=None``, a symbolic one serves all others (open-loop plans of each episode's length)."""
+    return CostTerms(CompiledFunction(stage_terms, activation_memory_budget, **options),
+                     CompiledFunction(terminal_terms, activation_memory_budget, **options))
 
 
 @dataclass(frozen=True)
@@ -196,8 +261,8 @@ class Task:
         angle = float(orientation_error(start, goal))
         return distance <= steps * trans + 1e-9 and angle <= steps * rot + 1e-9
 
-    def costs(self, model: Model, goal: Tensor,
-              anchor: tuple[Tensor, Tensor] | None = None) -> tuple[Callable, Callable]:
+    def costs(self, model: Model, goal: Tensor, anchor: tuple[Tensor, Tensor] | None = None,
+              terms: CostTerms = EAGER_COST_TERMS) -> tuple[Callable, Callable]:
         """``(stage_cost(states, u) -> (B,), terminal_cost(state) -> (B,))`` for ``goal (7,)`` on ``model``, as
         ``control.CemGd`` calls them: ``stage_cost`` sums the stage costs of a rollout's ``K`` states
         ``x_0 .. x_{K-1}`` (a list of ``State``, batch ``B``) under ``u (B, K, M, 6)``, all steps in one batch of
@@ -212,43 +277,30 @@ class Task:
         the cube). Without it, the anchor is each plan's first state ``x_0``, which ``stage_cost`` sees; it is kept
         per thread for the ``terminal_cost`` call that follows (solver workers roll out their shares of the rows on
         threads of their own).
+
+        ``terms`` evaluates the costs' tensor arithmetic: eager, or compiled (``compiled_cost_terms``, kept by a
+        planner for all its goals: the goal and the anchor are inputs of its graphs, not constants).
         """
-        w = self.weights
         goal = goal.to(model.dtype)
         tracking = PointTracking.of(model.points, goal)
         scale = self.bounds(model.body_names, model.dtype)[1].clamp_min(torch.finfo(model.dtype).eps)
-        actuated = (scale > 10 * torch.finfo(model.dtype).eps).any(-1)
-        rolling = 1.0 / self.travel_ratio - 1.0
-        # the anchor (object position, body offsets): fixed, or each plan's first state, kept per thread for the
-        # terminal cost (solver workers roll out their shares of the rows on threads of their own)
+        actuated = tuple(i for i, moves in enumerate((scale > 10 * torch.finfo(model.dtype).eps).any(-1).tolist())
+                         if moves)
+        constants = (actuated, self.weights, 1.0 / self.travel_ratio - 1.0)
         fixed: tuple[Tensor, Tensor] | None = None
         if anchor is not None:
             origin = anchor[0].to(model.dtype)[:3]
-            fixed = (origin, anchor[1].to(model.dtype)[actuated, :3] - origin)
+            fixed = (origin, anchor[1].to(model.dtype)[list(actuated), :3] - origin)
         first = threading.local()
 
-        def slip(object_poses: Tensor, body_poses: Tensor) -> Tensor:
-            """Slip ``(B, K, M')`` (m) of the actuated bodies at ``object_poses (B, K, 7)`` and
-            ``body_poses (B, K, M, 7)``."""
-            origin, offset0 = fixed if fixed is not None else first.anchor
-            moved = object_poses[:, :, None, :3] - origin
-            offset = body_poses[:, :, actuated, :3] - object_poses[:, :, None, :3]
-            return safe_norm(offset - offset0 - rolling * moved)
-
         def stage_cost(states: list[State], u: Tensor) -> Tensor:
+            first.anchor = fixed if fixed is not None else plan_anchor(states[0], actuated)
             object_poses = torch.stack([state.object_pose for state in states], 1)
             body_poses = torch.stack([state.body_poses for state in states], 1)
-            if fixed is None:  # (B, 1, 1, 3) and (B, 1, M', 3): broadcast over the steps
-                origin = object_poses[:, :1, None, :3].detach()
-                first.anchor = (origin, (body_poses[:, :1, actuated, :3] - origin).detach())
-            track = tracking(object_poses).sum(1) / w.scale**2
-            effort = ((u / scale) * actuated.view(-1, 1)).square().flatten(1).sum(-1)
-            return w.stage * track + w.effort * effort + hinge_cost(slip(object_poses, body_poses), w.drift_limit,
-                                                                    w.drift, width=w.drift_width)
+            return terms.stage(object_poses, body_poses, u, tracking, first.anchor, scale, *constants)
 
         def terminal_cost(state: State) -> Tensor:
-            track = tracking(state.object_pose) / w.scale**2
-            drift = slip(state.object_pose.unsqueeze(1), state.body_poses.unsqueeze(1))
-            return w.terminal * track + hinge_cost(drift, w.drift_limit, w.drift, width=w.drift_width)
+            anchor = fixed if fixed is not None else first.anchor
+            return terms.terminal(state.object_pose, state.body_poses, tracking, anchor, *constants)
 
         return stage_cost, terminal_cost

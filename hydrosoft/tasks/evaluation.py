@@ -48,7 +48,7 @@ from hydrosoft.dynamics import CompiledStep, Model, State, step, with_object_upd
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, build_surface, compile_scene
 from hydrosoft.tactile import TactileObservation, carry_over, estimate_state, membrane_penetration, sensor_bodies
-from hydrosoft.tasks.base import Task, mean_point_distance
+from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, Task, compiled_cost_terms, mean_point_distance
 
 METRIC_SPACING_M = 0.005  # surface spacing of the points the ADD error is measured on (fixed for all settings)
 Loop = Literal["open", "closed"]
@@ -210,7 +210,8 @@ class Setup:
     planner and actions to the plant. sensors ``(S,)``: the planner's sensor bodies (``tactile.sensor_bodies``). metric_points ``(N, 3)``: object-frame points (5 mm
     spacing, the same for every setting) on which the ADD error is measured. dynamics: the planner's step
     ``(state, u) -> state`` on planner_model, a ``CompiledStep`` when ``planner.compile`` is set (one per setup,
-    shared by every solve on it, so it compiles once).
+    shared by every solve on it, so it compiles once). cost_terms: what evaluates the costs (``Task.costs``),
+    compiled with the step, and as it is shared by every goal.
     """
 
     task: Task
@@ -221,6 +222,7 @@ class Setup:
     body_index: Tensor
     sensors: Tensor
     metric_points: Tensor
+    cost_terms: CostTerms = EAGER_COST_TERMS
 
 
 def prepare(
@@ -233,7 +235,9 @@ def prepare(
 
     ``compile_options`` go to ``CompiledStep`` (``torch.compile`` options, e.g. ``backend="eager"``) when
     ``planner.compile`` is set, on top of ``dynamic=False``: the planner's shapes are fixed per setup, and static
-    kernels are the fast ones (inductor with its C++ wrapper by default).
+    kernels are the fast ones (inductor with its C++ wrapper by default). They go to the compiled cost terms
+    (``compiled_cost_terms``) too, where dynamo's automatic dynamic shapes stay on: an open-loop plan's horizon
+    is each episode's length.
     """
     spacing = planner.spacing or task.scene.object.spacing
     scene = with_solver_steps(with_contact(task.scene, planner.model, spacing), planner.sdf_solver_steps)
@@ -246,11 +250,12 @@ def prepare(
         raise ValueError(f"the plant has no body {missing} that the planner moves")
     body_index = torch.tensor([world.model.body_names.index(name) for name in model.body_names])
     metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
-    if planner.compile:
-        dynamics = CompiledStep(model, **{"dynamic": False, **(compile_options or {})})
-    else:
-        dynamics = functools.partial(step, model)
-    return Setup(task, planner, model, dynamics, world, body_index, sensor_bodies(model), metric)
+    if not planner.compile:
+        return Setup(task, planner, model, functools.partial(step, model), world, body_index, sensor_bodies(model),
+                     metric)
+    dynamics = CompiledStep(model, **{"dynamic": False, **(compile_options or {})})
+    costs = compiled_cost_terms(**(compile_options or {}))
+    return Setup(task, planner, model, dynamics, world, body_index, sensor_bodies(model), metric, costs)
 
 
 def observed_state(setup: Setup, prediction: State | None = None) -> State:
@@ -332,7 +337,7 @@ def run_episode(
         )
     low, high = task.bounds(model.body_names, model.dtype)
     anchor = (plant.initial.object_pose[0], plant.initial.body_poses[0, setup.body_index])
-    stage, terminal = task.costs(model, goal, anchor=anchor)
+    stage, terminal = task.costs(model, goal, anchor=anchor, terms=setup.cost_terms)
     horizon, iterations = (steps, planner.open_loop_iterations) if loop == "open" else (
         planner.horizon, planner.cem_iterations)
     solver = CemGd(

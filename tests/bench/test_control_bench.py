@@ -12,6 +12,7 @@ import torch
 from hydrosoft.bench import control
 from hydrosoft.dynamics import CompiledStep
 from hydrosoft.tasks import evaluation
+from hydrosoft.tasks.base import compiled_cost_terms
 
 KEYS = {"task", "model", "loop", "error_mm_mean", "error_mm_std", "solve_ms", "success_rate", "goals"}
 
@@ -141,14 +142,16 @@ def test_unknown_names_are_refused(tmp_path, capsys):
 def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp_path, capsys, monkeypatch):
     """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes)."""
     monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend="eager"))
+    monkeypatch.setattr(evaluation, "compiled_cost_terms", functools.partial(compiled_cost_terms, backend="eager"))
     args = parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--quick", "--steps", "1", "--goals",
                  "1", "--rate-solves", "1", "--rate-dtypes", "float32", "--compile", "--sdf-solver-steps", "3",
-                 "--out", str(tmp_path))
+                 "--rate-costs", "compiled,eager", "--out", str(tmp_path))
     try:
         assert control.run(args) == 0
     finally:
         torch._dynamo.reset()
     out = capsys.readouterr().out
     assert "float32" in out and ("sub-steps, bubble SDF in 3 solver steps, 1 thread(s), 1 solver worker(s), "
-                                 "explicit object update, activation budget 0, compiled:") in out
+                                 "explicit object update, activation budget 0, compiled costs, compiled:") in out
+    assert "explicit object update, activation budget 0, compiled:" in out  # --rate-costs eager
     assert "compiling the step" in out

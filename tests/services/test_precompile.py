@@ -12,6 +12,7 @@ from hydrosoft.dynamics import CompiledStep
 from hydrosoft.services import planner
 from hydrosoft.services.cli import main
 from hydrosoft.services.service_main import CACHE_ENV
+from hydrosoft.tasks.base import compiled_cost_terms
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 
@@ -56,21 +57,36 @@ def test_it_compiles_the_planner_step_into_the_configs_cache(tmp_path, capsys, m
         return graph.forward
 
     monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend=recording_backend))
+    monkeypatch.setattr(planner, "compiled_cost_terms", functools.partial(compiled_cost_terms, backend="eager"))
     try:
         assert main(["compile", str(compiled_config(tmp_path))]) == 0
     finally:
         torch._dynamo.reset()
     out = capsys.readouterr().out
-    assert f"into {tmp_path}/cache" in out and "planner step compiled in" in out
+    assert f"into {tmp_path}/cache" in out and "planner step and costs compiled in" in out
     assert len(backends) >= 2  # a solve's signatures: gradient-enabled and no-grad rollouts at least
 
 
 def test_a_step_that_falls_back_to_eager_fails(tmp_path, capsys, monkeypatch, no_cache_env):
     monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend=failing_backend))
+    monkeypatch.setattr(planner, "compiled_cost_terms", functools.partial(compiled_cost_terms, backend="eager"))
     try:
         with pytest.warns(RuntimeWarning, match="running eager"):
             assert main(["compile", str(compiled_config(tmp_path))]) == 1
     finally:
         torch._dynamo.reset()
     err = capsys.readouterr().err
-    assert "fell back to eager" in err and "no C++ compiler" in err
+    assert "fell back to eager (step: " in err and "no C++ compiler" in err and "cost:" not in err
+
+
+def test_costs_that_fall_back_to_eager_fail_too(tmp_path, capsys, monkeypatch, no_cache_env):
+    monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend="eager"))
+    monkeypatch.setattr(planner, "compiled_cost_terms",
+                        functools.partial(compiled_cost_terms, backend=failing_backend))
+    try:
+        with pytest.warns(RuntimeWarning, match="running eager"):
+            assert main(["compile", str(compiled_config(tmp_path))]) == 1
+    finally:
+        torch._dynamo.reset()
+    err = capsys.readouterr().err
+    assert "(stage cost: " in err and "; terminal cost: " in err and "no C++ compiler" in err and "step:" not in err

@@ -75,8 +75,8 @@ def test_object_starting_out_of_contact_gives_a_clear_status_and_no_nan(name):
 class NaNCostTask(Task):
     """A task whose cost is NaN for every sample: the planner never has a finite plan."""
 
-    def costs(self, model, goal, anchor=None):
-        stage, terminal = super().costs(model, goal, anchor)
+    def costs(self, model, goal, anchor=None, **terms):
+        stage, terminal = super().costs(model, goal, anchor, **terms)
         return (lambda states, u: stage(states, u) * math.nan), terminal
 
 

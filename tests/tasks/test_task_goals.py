@@ -273,3 +273,57 @@ def test_a_rollouts_stage_cost_is_the_sum_of_its_steps(name):
     assert torch.allclose(free_terminal(states[-1]), terminal(states[-1]), rtol=1e-12, atol=0)
     elsewhere, _ = task.costs(model, goal, anchor=(states[1].object_pose[0], states[1].body_poses[0]))
     assert not torch.allclose(elsewhere(states, u), whole, rtol=1e-6, atol=0)  # the anchor counts
+
+
+def rollout_inputs(model, state, task, batch: int, horizon: int, seed: int):
+    """``horizon`` random states near ``state`` (batch ``batch``) and actions within the task's bounds."""
+    g = torch.Generator().manual_seed(seed)
+
+    def near(t, size):
+        return t.expand(batch, *t.shape[1:]) + size * torch.randn(batch, *t.shape[1:], generator=g, dtype=F64)
+
+    states = [state._replace(object_pose=near(state.object_pose, 1e-3), body_poses=near(state.body_poses, 2e-2),
+                             forces=state.forces.expand(batch, *state.forces.shape[1:]), phi=None)
+              for _ in range(horizon)]
+    high = task.bounds(model.body_names, F64)[1]
+    return states, high * (2 * torch.rand(batch, horizon, *high.shape, generator=g, dtype=F64) - 1)
+
+
+def costs_and_gradients(task, model, goal, anchor, terms, states, u):
+    """A rollout's total cost ``(B,)`` and its gradient with respect to the actions and the states' poses."""
+    stage, terminal = task.costs(model, goal, anchor=anchor, terms=terms)
+    u = u.clone().requires_grad_(True)
+    poses = [s.object_pose.clone().requires_grad_(True) for s in states]
+    states = [s._replace(object_pose=p) for s, p in zip(states, poses)]
+    cost = stage(states[:-1], u[:, :-1]) + terminal(states[-1])
+    return cost.detach(), torch.autograd.grad(cost.sum(), [u, *poses])
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_compiled_cost_terms_give_the_eager_costs_and_gradients_and_new_goals_reuse_their_graphs(name, fresh_dynamo):
+    """The planner compiles the costs once and keeps them for every goal: with the goal and the anchor as inputs of
+    the graphs, a new goal and a new anchor compile nothing, and the costs and their gradients are the eager ones
+    (AOT autograd's graphs run eagerly: ``aot_eager``). A second rollout length compiles once more; a third is
+    served by that (dynamic) graph, as open-loop plans of each episode's length are."""
+    from hydrosoft.tasks.base import EAGER_COST_TERMS, compiled_cost_terms
+
+    task = make_task(name)
+    model, state, _ = compile_scene(task.scene)
+    compiled = compiled_cost_terms(backend="aot_eager")
+    counters = torch._dynamo.utils.counters
+    graphs = []
+    for k, horizon in enumerate((4, 4, 4, 6, 7)):
+        states, u = rollout_inputs(model, state, task, 3, horizon + 1, seed=k)
+        goal = task.sample_goal(k)
+        anchor = None if k == 1 else (states[0].object_pose[k % 3], states[0].body_poses[k % 3])
+        before = counters["stats"]["unique_graphs"]
+        got = costs_and_gradients(task, model, goal, anchor, compiled, states, u)
+        graphs.append(counters["stats"]["unique_graphs"] - before)
+        expected = costs_and_gradients(task, model, goal, anchor, EAGER_COST_TERMS, states, u)
+        torch.testing.assert_close(got[0], expected[0], rtol=1e-12, atol=0)
+        for grad, eager in zip(got[1], expected[1]):
+            torch.testing.assert_close(grad, eager, rtol=1e-9, atol=1e-12)
+    assert compiled.stage.compiled and compiled.terminal.compiled
+    # the first rollout compiles stage and terminal; an unanchored one anchors at its first state (other shapes)
+    assert graphs[0] == 2 and graphs[1] >= 1 and graphs[2] == 0
+    assert graphs[3] == 1 and graphs[4] == 0  # the stage cost's horizon: once more, then dynamic
