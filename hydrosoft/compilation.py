@@ -104,39 +104,52 @@ class CompiledCopies:
     """Compiled copies of one function, made by ``build() -> compiled callable`` (a fresh ``torch.compile`` of private
     code), checked out one per running call (module docstring).
 
-    ``run(key, body, eager)`` returns ``body(compiled)`` for a copy compiled for the input signature ``key``, or
-    ``body(eager)`` once compiling has failed. Errors of the types in ``passthrough`` are the body's own and are
-    raised; any other error of a compiled call is taken for a compiler failure: it warns once and falls back (a
-    genuine error recurs in the eager call). The first call from a signature a copy has not run from compiles its
-    backward graph too (``force_non_lazy_backward_lowering``), under the lock: lazily, at the first backward, it
-    compiled outside the lock while another worker ran or compiled, and dynamo failed ("FX to symbolically trace a
-    dynamo-optimized function"), leaving the process unable to compile. ``activation_memory_budget`` is AOT
-    autograd's, set while a graph compiles (``dynamics.CompiledStep`` says what it does).
+    ``run(args, body, eager)`` returns ``body(compiled, *args)`` for a copy compiled for the input signature
+    ``signature(*args)``, or ``body(eager, *args)`` once compiling has failed. Errors of the types in
+    ``passthrough`` are the body's own and are raised; any other error of a compiled call is taken for a compiler
+    failure: it warns once and falls back (a genuine error recurs in the eager call).
+
+    The first call from a signature a copy has not run from compiles, under a lock, with its backward graph
+    (``force_non_lazy_backward_lowering``): lazily, at the first backward, it compiled outside the lock while another
+    worker ran or compiled, and dynamo failed ("FX to symbolically trace a dynamo-optimized function"), leaving the
+    process unable to compile. ``activation_memory_budget`` is AOT autograd's, set while a graph compiles
+    (``dynamics.CompiledStep`` says what it does). The arguments of each signature's first call are kept (detached)
+    as its example; a copy checked out without every signature seen so far first compiles the missing ones by
+    running ``warm(compiled, *example)`` (a side-effect-free ``body``). Without that, a copy compiled a signature
+    the first time two calls needed it at once: a solver's two workers stalled 19 s in their third solve, after two
+    warm-up solves, when one of them first took the copy that had not run the no-grad rollout.
     """
 
-    def __init__(self, build: Callable[[], Callable], activation_memory_budget: float = 0.0,
+    def __init__(self, build: Callable[[], Callable], warm: Callable[..., Any], activation_memory_budget: float = 0.0,
                  passthrough: tuple[type[BaseException], ...] = ()) -> None:
         self.activation_memory_budget = activation_memory_budget
         self.fallback_reason: str | None = None
         self._build = build
+        self._warm = warm
         self._passthrough = passthrough
         self.copies: list[_Copy] = []  # all made so far
         self._idle: list[_Copy] = []  # those no call is using
+        self._examples: dict[tuple, tuple] = {}  # signature -> the (detached) arguments of its first call
         self._copies_lock = threading.Lock()
-        self._first_calls = threading.Lock()  # a call from a signature its copy has not run from compiles under it
+        self._first_calls = threading.Lock()  # a copy compiles under it
 
-    def run(self, key: tuple, body: Callable[[Callable], T], eager: Callable) -> T:
-        """``body(compiled)`` through a copy compiled for ``key``, or ``body(eager)`` after a fallback."""
+    def run(self, args: tuple, body: Callable[..., T], eager: Callable) -> T:
+        """``body(compiled, *args)`` through a copy compiled for ``args``' signature, or ``body(eager, *args)`` after a
+        fallback."""
         if self.fallback_reason is None:
+            key = signature(*args)
             copy = self._check_out(key)
             try:
                 with RAISE_PAST_RECOMPILE_LIMIT:
-                    if key in copy.warm:
-                        return body(copy.compiled)
+                    if key in copy.warm and len(copy.warm) == len(self._examples):
+                        return body(copy.compiled, *args)
                     settings = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget,
                                                              force_non_lazy_backward_lowering=True)
                     with self._first_calls, settings:
-                        out = body(copy.compiled)
+                        self._catch_up(copy)
+                        out = body(copy.compiled, *args)
+                        if key not in self._examples:
+                            self._examples[key] = _detached(args)
                         copy.warm.add(key)
                         return out
             except self._passthrough:
@@ -148,7 +161,7 @@ class CompiledCopies:
             finally:
                 with self._copies_lock:
                     self._idle.append(copy)
-        return body(eager)
+        return body(eager, *args)
 
     def any_copy(self) -> Callable:
         """A compiled copy, for timing it alone from one thread (no lock, no signature bookkeeping)."""
@@ -156,6 +169,14 @@ class CompiledCopies:
         with self._copies_lock:
             self._idle.append(copy)
         return copy.compiled
+
+    def _catch_up(self, copy: _Copy) -> None:
+        """Compile ``copy`` for every signature another copy has run from, on its example (under the lock)."""
+        for key, example in list(self._examples.items()):
+            if key not in copy.warm:
+                with torch.set_grad_enabled(key[0]):
+                    self._warm(copy.compiled, *example)
+                copy.warm.add(key)
 
     def _check_out(self, key: tuple | None = None) -> _Copy:
         """A copy no call is using, one compiled for ``key`` if there is one (a new copy when all are in use); the
@@ -167,6 +188,22 @@ class CompiledCopies:
             copy = _Copy(self._build(), set())
             self.copies.append(copy)
             return copy
+
+
+def _detached(arg: Any) -> Any:
+    """``arg`` (as ``signature`` takes it) with each tensor detached from autograd's graph, its ``requires_grad``
+    kept: the same signature, without holding a rollout's graph alive."""
+    if isinstance(arg, Tensor):
+        return arg.detach().requires_grad_(arg.requires_grad)
+    if isinstance(arg, tuple) and hasattr(arg, "_fields"):
+        return type(arg)(*map(_detached, arg))
+    if isinstance(arg, (tuple, list)):
+        return type(arg)(map(_detached, arg))
+    return arg
+
+
+def _call(fn: Callable, *args: Any) -> Any:
+    return fn(*args)
 
 
 class CompiledFunction:
@@ -181,7 +218,8 @@ class CompiledFunction:
     def __init__(self, fn: Callable, activation_memory_budget: float = 0.0, **options) -> None:
         self.fn = fn
         options = with_default_options(options)
-        self._copies = CompiledCopies(lambda: torch.compile(private_copy(fn), **options), activation_memory_budget)
+        self._copies = CompiledCopies(lambda: torch.compile(private_copy(fn), **options), _call,
+                                      activation_memory_budget)
 
     @property
     def compiled(self) -> bool:
@@ -194,4 +232,4 @@ class CompiledFunction:
         return self._copies.fallback_reason
 
     def __call__(self, *args: Any) -> Any:
-        return self._copies.run(signature(*args), lambda compiled: compiled(*args), self.fn)
+        return self._copies.run(args, _call, self.fn)

@@ -39,7 +39,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from hydrosoft.compilation import CompiledCopies, private_copy, signature, with_default_options
+from hydrosoft.compilation import CompiledCopies, private_copy, with_default_options
 from hydrosoft.contact import ContactModel, ContactStep, Material, PressureFieldFrictionless, wrench
 from hydrosoft.geometry import se3
 
@@ -1017,8 +1017,9 @@ class CompiledStep:
     the same compile time (float32, one thread; ``hydrosoft-stack bench control --compile
     --rate-activation-budgets 1,0`` measures it).
     An instance may be called from several threads at once (``CemGdConfig.workers``): each running call steps
-    through a compiled copy of the sub-step of its own, and the first step from each new input signature runs
-    alone, its backward graph compiled with it (``compilation.CompiledCopies`` says why).
+    through a compiled copy of the sub-step of its own, the first step from each new input signature runs alone, its
+    backward graph compiled with it, and a copy compiles the signatures that other copies ran before it steps
+    (``compilation.CompiledCopies`` says why).
     """
 
     def __init__(self, model: Model, activation_memory_budget: float = 0.0, **options) -> None:
@@ -1031,7 +1032,10 @@ class CompiledStep:
             friction_move = torch.compile(private_copy(_newton_move), **options) if implicit_friction else None
             return torch.compile(private_copy(_bound_substep(model, friction_move)), **options)
 
-        self._copies = CompiledCopies(build, activation_memory_budget, passthrough=(UnstableStepError,))
+        def warm(substep: Callable, state: State, u: Tensor) -> State:
+            return _checked_step(model, state, u, substep)[0]
+
+        self._copies = CompiledCopies(build, warm, activation_memory_budget, passthrough=(UnstableStepError,))
         self._eager_substep = functools.partial(_substep, model)
         # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
         # next step starts from that state, so its start check is already known (one stability check per step)
@@ -1052,8 +1056,7 @@ class CompiledStep:
         # one layout for every u: a planner's u[:, k] is a view whose strides depend on its horizon, and each new
         # stride would compile the step again (an open-loop plan of each episode's length passed the limit)
         u = u.contiguous()
-        return self._copies.run(signature(state, u), lambda substep: self._checked_step(substep, state, u),
-                                self._eager_substep)
+        return self._copies.run((state, u), self._checked_step, self._eager_substep)
 
     @property
     def compiled_substep(self):

@@ -68,3 +68,31 @@ def test_calls_at_once_from_threads_each_run_a_copy_of_their_own_and_agree_with_
     before = counters["stats"]["unique_graphs"]
     fast(torch.randn(5, 3), (torch.randn(3), torch.randn(3)), 0.5)  # later calls, one at a time: no new graph
     assert counters["stats"]["unique_graphs"] == before and len(fast._copies.copies) == 3
+
+
+def test_a_copy_made_later_compiles_every_signature_seen_before_it_runs(fresh_dynamo):
+    """Solver workers take whichever copy is idle, so one copy may miss a signature that another ran; it then
+    compiled the first time both were needed at once, in the middle of a run. A copy now catches up, on the kept
+    examples, as soon as it is checked out: here a second copy, made while the first is busy, compiles both
+    signatures before its first call, and then runs either without compiling."""
+    fast = CompiledFunction(scaled_norm, backend="eager")
+    copies = fast._copies
+    x, pair = torch.randn(4, 3), (torch.randn(3), torch.randn(3))
+    with torch.no_grad():
+        fast(x, pair, 2.0)
+    fast(x.clone().requires_grad_(True), pair, 2.0)
+    assert len(copies.copies) == 1 and len(copies._examples) == 2
+    first = copies._check_out()  # busy: the next call needs a new copy
+    counters = torch._dynamo.utils.counters
+    before = counters["stats"]["unique_graphs"]
+    with torch.no_grad():
+        out = fast(x, pair, 2.0)
+    assert len(copies.copies) == 2 and counters["stats"]["unique_graphs"] - before == 2
+    second = copies.copies[1]
+    assert second.warm == first.warm == set(copies._examples)
+    torch.testing.assert_close(out, scaled_norm(x, pair, 2.0), rtol=0, atol=0)
+    before = counters["stats"]["unique_graphs"]
+    leaf = x.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(fast(leaf, pair, 2.0).sum(), leaf)  # the second copy, already compiled
+    assert counters["stats"]["unique_graphs"] == before and torch.isfinite(grad).all()
+    copies._idle.append(first)
