@@ -20,10 +20,11 @@ of silently running eager (``RAISE_PAST_RECOMPILE_LIMIT``), and the instance the
 """
 from __future__ import annotations
 
+import contextlib
 import threading
 import types
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple, TypeVar
 
 import torch
@@ -113,20 +114,25 @@ class CompiledCopies:
     (``force_non_lazy_backward_lowering``): lazily, at the first backward, it compiled outside the lock while another
     worker ran or compiled, and dynamo failed ("FX to symbolically trace a dynamo-optimized function"), leaving the
     process unable to compile. ``activation_memory_budget`` is AOT autograd's, set while a graph compiles
-    (``dynamics.CompiledStep`` says what it does). The arguments of each signature's first call are kept (detached)
-    as its example; a copy checked out without every signature seen so far first compiles the missing ones by
-    running ``warm(compiled, *example)`` (a side-effect-free ``body``). Without that, a copy compiled a signature
-    the first time two calls needed it at once: a solver's two workers stalled 19 s in their third solve, after two
-    warm-up solves, when one of them first took the copy that had not run the no-grad rollout.
+    (``dynamics.CompiledStep`` says what it does).
+
+    All copies compile every signature when it first appears, so that none compiles later in the middle of a run:
+    the arguments of each signature's first call are kept (detached) as its example, and that call then compiles
+    every idle copy on it (``warm(compiled, *example)``, a side-effect-free ``body``), making new copies up to
+    ``workers`` (the calls that may run at once: the solver's workers); a copy busy at that moment compiles what it
+    missed before it is returned. Before, a copy was made the first time two calls ran at once and compiled each
+    signature the first time it met it: the two solver workers' short cost calls first overlapped in the third solve,
+    after two warm-up solves, and that solve stalled while a copy compiled (0.5 s for a cost, 19 s for the step).
     """
 
     def __init__(self, build: Callable[[], Callable], warm: Callable[..., Any], activation_memory_budget: float = 0.0,
-                 passthrough: tuple[type[BaseException], ...] = ()) -> None:
+                 passthrough: tuple[type[BaseException], ...] = (), workers: int = 1) -> None:
         self.activation_memory_budget = activation_memory_budget
         self.fallback_reason: str | None = None
         self._build = build
         self._warm = warm
         self._passthrough = passthrough
+        self._workers = workers
         self.copies: list[_Copy] = []  # all made so far
         self._idle: list[_Copy] = []  # those no call is using
         self._examples: dict[tuple, tuple] = {}  # signature -> the (detached) arguments of its first call
@@ -141,17 +147,20 @@ class CompiledCopies:
             copy = self._check_out(key)
             try:
                 with RAISE_PAST_RECOMPILE_LIMIT:
-                    if key in copy.warm and len(copy.warm) == len(self._examples):
-                        return body(copy.compiled, *args)
-                    settings = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget,
-                                                             force_non_lazy_backward_lowering=True)
-                    with self._first_calls, settings:
-                        self._catch_up(copy)
+                    if key in copy.warm:
                         out = body(copy.compiled, *args)
-                        if key not in self._examples:
-                            self._examples[key] = _detached(args)
-                        copy.warm.add(key)
-                        return out
+                    else:
+                        with self._compiling():
+                            self._catch_up(copy)  # the signatures other copies ran, this call's among them if it was
+                            out = body(copy.compiled, *args)
+                            copy.warm.add(key)
+                            if key not in self._examples:
+                                self._examples[key] = _detached(args)
+                                self._catch_up_idle()
+                    if len(copy.warm) < len(self._examples):  # a signature appeared while this copy ran
+                        with self._compiling():
+                            self._catch_up(copy)
+                    return out
             except self._passthrough:
                 raise
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager call
@@ -162,6 +171,26 @@ class CompiledCopies:
                 with self._copies_lock:
                     self._idle.append(copy)
         return body(eager, *args)
+
+    @contextlib.contextmanager
+    def _compiling(self) -> Iterator[None]:
+        """The context a copy compiles in: the lock, and AOT autograd's settings."""
+        settings = torch._functorch.config.patch(activation_memory_budget=self.activation_memory_budget,
+                                                 force_non_lazy_backward_lowering=True)
+        with self._first_calls, settings:
+            yield
+
+    def _catch_up_idle(self) -> None:
+        """Compile every idle copy, and new ones up to ``workers``, for every kept example (under the lock). Calls
+        that want a copy meanwhile wait for it here instead of making one more."""
+        with self._copies_lock:
+            for copy in self._idle:
+                self._catch_up(copy)
+            while len(self.copies) < self._workers:
+                copy = _Copy(self._build(), set())
+                self._catch_up(copy)
+                self.copies.append(copy)
+                self._idle.append(copy)
 
     def any_copy(self) -> Callable:
         """A compiled copy, for timing it alone from one thread (no lock, no signature bookkeeping)."""
@@ -210,16 +239,16 @@ class CompiledFunction:
     """``fn(*args)`` compiled by ``torch.compile``, callable from several threads at once, with an eager fallback.
 
     ``fn`` is a pure function of tensors and hashable constants, in tuples, named tuples and lists; each new
-    ``signature`` of its arguments compiles once (constants are baked into the graph). ``options`` go to ``torch.compile``, with
-    ``DEFAULT_OPTIONS`` for inductor when none are given (``with_default_options``); ``activation_memory_budget``
-    is AOT autograd's (``CompiledCopies``).
+    ``signature`` of its arguments compiles once (constants are baked into the graph). ``options`` go to
+    ``torch.compile``, with ``DEFAULT_OPTIONS`` for inductor when none are given (``with_default_options``);
+    ``activation_memory_budget`` is AOT autograd's; ``workers`` the calls that may run at once (``CompiledCopies``).
     """
 
-    def __init__(self, fn: Callable, activation_memory_budget: float = 0.0, **options) -> None:
+    def __init__(self, fn: Callable, activation_memory_budget: float = 0.0, workers: int = 1, **options) -> None:
         self.fn = fn
         options = with_default_options(options)
         self._copies = CompiledCopies(lambda: torch.compile(private_copy(fn), **options), _call,
-                                      activation_memory_budget)
+                                      activation_memory_budget, workers=workers)
 
     @property
     def compiled(self) -> bool:

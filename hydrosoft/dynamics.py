@@ -1016,13 +1016,14 @@ class CompiledStep:
     and this step's are many and small: with 0 the full pushing planner's solve took 0.89 of the time with 1, for
     the same compile time (float32, one thread; ``hydrosoft-stack bench control --compile
     --rate-activation-budgets 1,0`` measures it).
-    An instance may be called from several threads at once (``CemGdConfig.workers``): each running call steps
+    An instance may be called from several threads at once (``CemGdConfig.workers``; give that count as
+    ``workers``, so that as many copies compile up front): each running call steps
     through a compiled copy of the sub-step of its own, the first step from each new input signature runs alone, its
     backward graph compiled with it, and a copy compiles the signatures that other copies ran before it steps
     (``compilation.CompiledCopies`` says why).
     """
 
-    def __init__(self, model: Model, activation_memory_budget: float = 0.0, **options) -> None:
+    def __init__(self, model: Model, activation_memory_budget: float = 0.0, workers: int = 1, **options) -> None:
         self.model = model
         self.activation_memory_budget = activation_memory_budget
         options = with_default_options(options)
@@ -1035,7 +1036,8 @@ class CompiledStep:
         def warm(substep: Callable, state: State, u: Tensor) -> State:
             return _checked_step(model, state, u, substep)[0]
 
-        self._copies = CompiledCopies(build, warm, activation_memory_budget, passthrough=(UnstableStepError,))
+        self._copies = CompiledCopies(build, warm, activation_memory_budget, passthrough=(UnstableStepError,),
+                                      workers=workers)
         self._eager_substep = functools.partial(_substep, model)
         # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
         # next step starts from that state, so its start check is already known (one stability check per step)

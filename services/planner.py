@@ -130,7 +130,8 @@ class PlannerCore:
                 raise ValueError(f"arms: {arm.name!r} is not a body of the {task.name} scene "
                                  f"(bodies: {', '.join(model.body_names)})")
             arms[arm.name] = model.body_names.index(arm.name)
-        dynamics = CompiledStep(model, dynamic=False) if pc.compile else functools.partial(step, model)
+        dynamics = (CompiledStep(model, dynamic=False, workers=pc.workers) if pc.compile
+                    else functools.partial(step, model))
         metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
         membranes = {name: model.bodies[index] for name, index in arms.items()}
         offset = None
@@ -139,7 +140,7 @@ class PlannerCore:
             offset = grasp_offset(state.object_pose[0].double(), state.body_poses[0, index].double())
         return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
                    metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset,
-                   compiled_cost_terms() if pc.compile else EAGER_COST_TERMS)
+                   compiled_cost_terms(workers=pc.workers) if pc.compile else EAGER_COST_TERMS)
 
     def solver(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]) -> CemGd:
         """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode), its drift

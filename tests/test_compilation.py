@@ -96,3 +96,22 @@ def test_a_copy_made_later_compiles_every_signature_seen_before_it_runs(fresh_dy
     (grad,) = torch.autograd.grad(fast(leaf, pair, 2.0).sum(), leaf)  # the second copy, already compiled
     assert counters["stats"]["unique_graphs"] == before and torch.isfinite(grad).all()
     copies._idle.append(first)
+
+
+def test_each_signature_compiles_on_as_many_copies_as_workers_when_it_first_appears(fresh_dynamo):
+    """With ``workers = 3`` the first call of each signature leaves three copies compiled for it, so that three
+    workers calling at once later compile nothing."""
+    fast = CompiledFunction(scaled_norm, workers=3, backend="eager")
+    x, pair = torch.randn(4, 3), (torch.randn(3), torch.randn(3))
+    counters = torch._dynamo.utils.counters
+    before = counters["stats"]["unique_graphs"]
+    fast(x, pair, 2.0)
+    with torch.no_grad():
+        fast(x, pair, 2.0)
+    assert counters["stats"]["unique_graphs"] - before == 6
+    assert len(fast._copies.copies) == 3 and all(len(copy.warm) == 2 for copy in fast._copies.copies)
+    held = [fast._copies._check_out() for _ in range(2)]  # two workers busy: a third call takes the third copy
+    before = counters["stats"]["unique_graphs"]
+    fast(x, pair, 2.0)
+    assert counters["stats"]["unique_graphs"] == before and len(fast._copies.copies) == 3
+    fast._copies._idle.extend(held)

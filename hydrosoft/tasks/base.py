@@ -171,16 +171,16 @@ class CostTerms(NamedTuple):
 EAGER_COST_TERMS = CostTerms(stage_terms, terminal_terms)
 
 
-def compiled_cost_terms(activation_memory_budget: float = 0.0, **options) -> CostTerms:
+def compiled_cost_terms(activation_memory_budget: float = 0.0, workers: int = 1, **options) -> CostTerms:
     """``stage_terms`` and ``terminal_terms`` compiled (``compilation.CompiledFunction``; ``options`` go to
-    ``torch.compile``), for the planner to keep across goals.
+    ``torch.compile``; ``workers``: the solver's, ``CompiledCopies``), for the planner to keep across goals.
 
     Eager, the costs were dozens of small operations per rollout, forward and backward, each paying the interpreter
     and, with two solver workers, waiting for it: 0.92 of the two-worker planning cycle with them compiled
     (README, "The costs compiled"). Each new rollout length compiles once more; past the first, with dynamo's
     default ``dynamic=None``, a symbolic one serves all others (open-loop plans of each episode's length)."""
-    return CostTerms(CompiledFunction(stage_terms, activation_memory_budget, **options),
-                     CompiledFunction(terminal_terms, activation_memory_budget, **options))
+    return CostTerms(CompiledFunction(stage_terms, activation_memory_budget, workers, **options),
+                     CompiledFunction(terminal_terms, activation_memory_budget, workers, **options))
 
 
 @dataclass(frozen=True)

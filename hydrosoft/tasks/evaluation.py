@@ -253,8 +253,8 @@ def prepare(
     if not planner.compile:
         return Setup(task, planner, model, functools.partial(step, model), world, body_index, sensor_bodies(model),
                      metric)
-    dynamics = CompiledStep(model, **{"dynamic": False, **(compile_options or {})})
-    costs = compiled_cost_terms(**(compile_options or {}))
+    dynamics = CompiledStep(model, workers=planner.workers, **{"dynamic": False, **(compile_options or {})})
+    costs = compiled_cost_terms(workers=planner.workers, **(compile_options or {}))
     return Setup(task, planner, model, dynamics, world, body_index, sensor_bodies(model), metric, costs)
 
 
