@@ -235,7 +235,23 @@ def _call(fn: Callable, *args: Any) -> Any:
     return fn(*args)
 
 
-class CompiledFunction:
+class FallsBack:
+    """A callable compiled through ``CompiledCopies`` (in ``_copies``) that says whether it still runs compiled."""
+
+    _copies: CompiledCopies
+
+    @property
+    def compiled(self) -> bool:
+        """True while the compiled path is in use (False after a fallback to eager)."""
+        return self._copies.fallback_reason is None
+
+    @property
+    def fallback_reason(self) -> str | None:
+        """Why compiling failed (None while compiled)."""
+        return self._copies.fallback_reason
+
+
+class CompiledFunction(FallsBack):
     """``fn(*args)`` compiled by ``torch.compile``, callable from several threads at once, with an eager fallback.
 
     ``fn`` is a pure function of tensors and hashable constants, in tuples, named tuples and lists; each new
@@ -249,16 +265,6 @@ class CompiledFunction:
         options = with_default_options(options)
         self._copies = CompiledCopies(lambda: torch.compile(private_copy(fn), **options), _call,
                                       activation_memory_budget, workers=workers)
-
-    @property
-    def compiled(self) -> bool:
-        """True while the compiled path is in use (False after a fallback to eager)."""
-        return self._copies.fallback_reason is None
-
-    @property
-    def fallback_reason(self) -> str | None:
-        """Why compiling failed (None while compiled)."""
-        return self._copies.fallback_reason
 
     def __call__(self, *args: Any) -> Any:
         return self._copies.run(args, _call, self.fn)

@@ -39,7 +39,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from hydrosoft.compilation import CompiledCopies, private_copy, with_default_options
+from hydrosoft.compilation import CompiledCopies, FallsBack, private_copy, with_default_options
 from hydrosoft.contact import ContactModel, ContactStep, Material, PressureFieldFrictionless, wrench
 from hydrosoft.geometry import se3
 
@@ -975,7 +975,7 @@ def _bound_substep(model: Model, friction_move=None):
     return compiled_friction_substep
 
 
-class CompiledStep:
+class CompiledStep(FallsBack):
     """``step(model, state, u)`` with its sub-step compiled by ``torch.compile`` (inductor), and an eager fallback.
 
     Only one sub-step is compiled and the sub-step loop (with its stability check) stays in Python, so the graphs
@@ -1042,16 +1042,6 @@ class CompiledStep:
         # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
         # next step starts from that state, so its start check is already known (one stability check per step)
         self._end_check = threading.local()
-
-    @property
-    def compiled(self) -> bool:
-        """True while the compiled path is in use (False after a fallback to eager)."""
-        return self._copies.fallback_reason is None
-
-    @property
-    def fallback_reason(self) -> str | None:
-        """Why compiling failed (None while compiled)."""
-        return self._copies.fallback_reason
 
     def __call__(self, state: State, u: Tensor) -> State:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""

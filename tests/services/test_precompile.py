@@ -67,26 +67,21 @@ def test_it_compiles_the_planner_step_into_the_configs_cache(tmp_path, capsys, m
     assert len(backends) >= 2  # a solve's signatures: gradient-enabled and no-grad rollouts at least
 
 
-def test_a_step_that_falls_back_to_eager_fails(tmp_path, capsys, monkeypatch, no_cache_env):
-    monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend=failing_backend))
-    monkeypatch.setattr(planner, "compiled_cost_terms", functools.partial(compiled_cost_terms, backend="eager"))
+@pytest.mark.parametrize("failing, named, unnamed", [
+    ("step", ["(step: "], "cost:"),
+    ("costs", ["(stage cost: ", "; terminal cost: "], "step:"),
+])
+def test_a_part_that_falls_back_to_eager_fails_and_is_named(failing, named, unnamed, tmp_path, capsys, monkeypatch,
+                                                            no_cache_env):
+    backends = {"step": "eager", "costs": "eager", failing: failing_backend}
+    monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend=backends["step"]))
+    monkeypatch.setattr(planner, "compiled_cost_terms", functools.partial(compiled_cost_terms,
+                                                                          backend=backends["costs"]))
     try:
         with pytest.warns(RuntimeWarning, match="running eager"):
             assert main(["compile", str(compiled_config(tmp_path))]) == 1
     finally:
         torch._dynamo.reset()
     err = capsys.readouterr().err
-    assert "fell back to eager (step: " in err and "no C++ compiler" in err and "cost:" not in err
-
-
-def test_costs_that_fall_back_to_eager_fail_too(tmp_path, capsys, monkeypatch, no_cache_env):
-    monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend="eager"))
-    monkeypatch.setattr(planner, "compiled_cost_terms",
-                        functools.partial(compiled_cost_terms, backend=failing_backend))
-    try:
-        with pytest.warns(RuntimeWarning, match="running eager"):
-            assert main(["compile", str(compiled_config(tmp_path))]) == 1
-    finally:
-        torch._dynamo.reset()
-    err = capsys.readouterr().err
-    assert "(stage cost: " in err and "; terminal cost: " in err and "no C++ compiler" in err and "step:" not in err
+    assert "fell back to eager" in err and "no C++ compiler" in err and unnamed not in err
+    assert all(text in err for text in named)
