@@ -10,8 +10,9 @@ stability-checked loop.
 Why copies. With one compiled copy used by two solver workers at once, dynamo's guards failed spuriously in the
 middle of a run ("runtime guards failed even though they passed during recompilation-reason analysis"), twice in
 two runs, each time a 23-26 s recompile that also spent one of the copy's graphs. So there are as many copies as
-calls ever ran at once (the solver's workers), each compiled once, mostly from inductor's cache after the first;
-calls one after another, from any threads (a service's executor), share one.
+the solver has workers (more if more calls ever ran at once), each compiled for every signature as it first
+appears, mostly from inductor's cache after the first; calls one after another, from any threads (a service's
+executor), share one.
 
 Why private code. Dynamo keeps compiled graphs, and counts recompilations against
 ``torch._dynamo.config.recompile_limit`` (8), per code object. Every copy compiles a private copy of the function's
