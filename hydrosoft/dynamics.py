@@ -1025,7 +1025,6 @@ class CompiledStep(FallsBack):
 
     def __init__(self, model: Model, activation_memory_budget: float = 0.0, workers: int = 1, **options) -> None:
         self.model = model
-        self.activation_memory_budget = activation_memory_budget
         options = with_default_options(options)
         implicit_friction = getattr(model.contact, "implicit_friction", False)
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import functools
 import math
 import os
 import time
@@ -44,14 +43,15 @@ import torch
 from hydrosoft.control import CemGd, PlanResult
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
-from hydrosoft.dynamics import CompiledStep, State, step, with_object_update
+from hydrosoft.dynamics import State, with_object_update
 from hydrosoft.geometry import se3
 from hydrosoft.geometry.sdf import Ellipsoid
 from hydrosoft.scene import Scene, build_surface, compile_scene
 from hydrosoft.tactile import TactileObservation, carry_over, estimate_state, sensor_bodies
 from hydrosoft.tasks import Task, make_task
-from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, compiled_cost_terms, mean_point_distance
-from hydrosoft.tasks.evaluation import METRIC_SPACING_M, PlannerSettings, with_contact, with_solver_steps
+from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, mean_point_distance
+from hydrosoft.tasks.evaluation import (METRIC_SPACING_M, PlannerSettings, planner_calls, with_contact,
+                                        with_solver_steps)
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Stale
 from hydrosoft.services import service_main
@@ -130,8 +130,7 @@ class PlannerCore:
                 raise ValueError(f"arms: {arm.name!r} is not a body of the {task.name} scene "
                                  f"(bodies: {', '.join(model.body_names)})")
             arms[arm.name] = model.body_names.index(arm.name)
-        dynamics = (CompiledStep(model, dynamic=False, workers=pc.workers) if pc.compile
-                    else functools.partial(step, model))
+        dynamics, cost_terms = planner_calls(model, settings)
         metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
         membranes = {name: model.bodies[index] for name, index in arms.items()}
         offset = None
@@ -139,8 +138,7 @@ class PlannerCore:
             (index,) = arms.values()
             offset = grasp_offset(state.object_pose[0].double(), state.body_poses[0, index].double())
         return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
-                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset,
-                   compiled_cost_terms(workers=pc.workers) if pc.compile else EAGER_COST_TERMS)
+                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset, cost_terms)
 
     def solver(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]) -> CemGd:
         """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode), its drift

@@ -250,12 +250,20 @@ def prepare(
         raise ValueError(f"the plant has no body {missing} that the planner moves")
     body_index = torch.tensor([world.model.body_names.index(name) for name in model.body_names])
     metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
-    if not planner.compile:
-        return Setup(task, planner, model, functools.partial(step, model), world, body_index, sensor_bodies(model),
-                     metric)
-    dynamics = CompiledStep(model, workers=planner.workers, **{"dynamic": False, **(compile_options or {})})
-    costs = compiled_cost_terms(workers=planner.workers, **(compile_options or {}))
+    dynamics, costs = planner_calls(model, planner, compile_options)
     return Setup(task, planner, model, dynamics, world, body_index, sensor_bodies(model), metric, costs)
+
+
+def planner_calls(model: Model, planner: PlannerSettings, compile_options: dict | None = None
+                  ) -> tuple[Callable[[State, Tensor], State], CostTerms]:
+    """The planner's step on ``model`` and its cost terms: compiled together when ``planner.compile`` is set (a
+    ``CompiledStep`` with ``dynamic=False`` and ``compiled_cost_terms``, both for the solver's ``workers`` and with
+    ``compile_options``, as ``prepare`` says), else the eager ``step`` and ``EAGER_COST_TERMS``."""
+    if not planner.compile:
+        return functools.partial(step, model), EAGER_COST_TERMS
+    options = compile_options or {}
+    return (CompiledStep(model, workers=planner.workers, **{"dynamic": False, **options}),
+            compiled_cost_terms(workers=planner.workers, **options))
 
 
 def observed_state(setup: Setup, prediction: State | None = None) -> State:

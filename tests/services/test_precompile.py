@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from hydrosoft.dynamics import CompiledStep
-from hydrosoft.services import planner
 from hydrosoft.services.cli import main
 from hydrosoft.services.service_main import CACHE_ENV
+from hydrosoft.tasks import evaluation
 from hydrosoft.tasks.base import compiled_cost_terms
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
@@ -56,8 +56,8 @@ def test_it_compiles_the_planner_step_into_the_configs_cache(tmp_path, capsys, m
         backends.append(len(example_inputs))
         return graph.forward
 
-    monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend=recording_backend))
-    monkeypatch.setattr(planner, "compiled_cost_terms", functools.partial(compiled_cost_terms, backend="eager"))
+    monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend=recording_backend))
+    monkeypatch.setattr(evaluation, "compiled_cost_terms", functools.partial(compiled_cost_terms, backend="eager"))
     try:
         assert main(["compile", str(compiled_config(tmp_path))]) == 0
     finally:
@@ -74,8 +74,8 @@ def test_it_compiles_the_planner_step_into_the_configs_cache(tmp_path, capsys, m
 def test_a_part_that_falls_back_to_eager_fails_and_is_named(failing, named, unnamed, tmp_path, capsys, monkeypatch,
                                                             no_cache_env):
     backends = {"step": "eager", "costs": "eager", failing: failing_backend}
-    monkeypatch.setattr(planner, "CompiledStep", functools.partial(CompiledStep, backend=backends["step"]))
-    monkeypatch.setattr(planner, "compiled_cost_terms", functools.partial(compiled_cost_terms,
+    monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend=backends["step"]))
+    monkeypatch.setattr(evaluation, "compiled_cost_terms", functools.partial(compiled_cost_terms,
                                                                           backend=backends["costs"]))
     try:
         with pytest.warns(RuntimeWarning, match="running eager"):
