@@ -17,7 +17,7 @@ executor), share one.
 Why private code. Dynamo keeps compiled graphs, and counts recompilations against
 ``torch._dynamo.config.recompile_limit`` (8), per code object. Every copy compiles a private copy of the function's
 code (``private_copy``), so any number of copies and instances stay compiled; past its limit a copy raises instead
-of silently running eager (``RAISE_PAST_RECOMPILE_LIMIT``), and the instance then falls back with a warning.
+of silently running eager (``raise_past_recompile_limit``), and the instance then falls back with a warning.
 """
 from __future__ import annotations
 
@@ -50,32 +50,14 @@ def private_copy(fn: Callable) -> Callable:
     return types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
 
 
-class _RaisePastRecompileLimit:
-    """A context in which dynamo raises past its recompile limit instead of silently running eager, entered by every
-    compiled call. The setting is process-wide and solver workers run compiled calls on several threads at once, so
-    the contexts are counted under a lock: the first to enter sets it, the last to leave restores it.
-    (Set by hand: ``torch._dynamo.config.patch`` costs ~16 us per call.)"""
+def raise_past_recompile_limit() -> None:
+    """Have dynamo raise past its recompile limit instead of silently running eager, in this whole process.
 
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._running = 0
-        self._previous = False
-
-    def __enter__(self) -> None:
-        config = torch._dynamo.config
-        with self._lock:
-            if self._running == 0:
-                self._previous, config.fail_on_recompile_limit_hit = config.fail_on_recompile_limit_hit, True
-            self._running += 1
-
-    def __exit__(self, *exc_info) -> None:
-        with self._lock:
-            self._running -= 1
-            if self._running == 0:
-                torch._dynamo.config.fail_on_recompile_limit_hit = self._previous
-
-
-RAISE_PAST_RECOMPILE_LIMIT = _RaisePastRecompileLimit()
+    Every ``CompiledCopies`` sets it when it is made, and it stays set: a process that compiles the model library
+    wants every compiled call either compiled or failed loudly. (It was set around each compiled call and restored
+    after, under a lock, since solver workers call at once; but each change of dynamo's config marks its cached
+    settings stale, which the next compiled call rebuilds: that cost about 20 us of a 0.6-0.7 ms step.)"""
+    torch._dynamo.config.fail_on_recompile_limit_hit = True
 
 
 def signature(*args: Any) -> tuple:
@@ -139,6 +121,7 @@ class CompiledCopies:
         self._examples: dict[tuple, tuple] = {}  # signature -> the (detached) arguments of its first call
         self._copies_lock = threading.Lock()
         self._first_calls = threading.Lock()  # a copy compiles under it
+        raise_past_recompile_limit()
 
     def run(self, args: tuple, body: Callable[..., T], eager: Callable) -> T:
         """``body(compiled, *args)`` through a copy compiled for ``args``' signature, or ``body(eager, *args)`` after a
@@ -147,21 +130,20 @@ class CompiledCopies:
             key = signature(*args)
             copy = self._check_out(key)
             try:
-                with RAISE_PAST_RECOMPILE_LIMIT:
-                    if key in copy.warm:
+                if key in copy.warm:
+                    out = body(copy.compiled, *args)
+                else:
+                    with self._compiling():
+                        self._catch_up(copy)  # the signatures other copies ran, this call's among them if it was
                         out = body(copy.compiled, *args)
-                    else:
-                        with self._compiling():
-                            self._catch_up(copy)  # the signatures other copies ran, this call's among them if it was
-                            out = body(copy.compiled, *args)
-                            copy.warm.add(key)
-                            if key not in self._examples:
-                                self._examples[key] = _detached(args)
-                                self._catch_up_idle()
-                    if len(copy.warm) < len(self._examples):  # a signature appeared while this copy ran
-                        with self._compiling():
-                            self._catch_up(copy)
-                    return out
+                        copy.warm.add(key)
+                        if key not in self._examples:
+                            self._examples[key] = _detached(args)
+                            self._catch_up_idle()
+                if len(copy.warm) < len(self._examples):  # a signature appeared while this copy ran
+                    with self._compiling():
+                        self._catch_up(copy)
+                return out
             except self._passthrough:
                 raise
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager call

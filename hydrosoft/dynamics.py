@@ -917,10 +917,19 @@ def _moved_bodies(model: Model, state: State, u: Tensor) -> Tensor:
     return se3.retract(state.body_poses, torch.where(model.actuated.view(1, -1, 1) > 0, u, 0.0))
 
 
+@functools.lru_cache(maxsize=256)
+def _substep_length(dt_sub: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The sub-step length ``dt_sub`` (s) as a 0-d tensor, made once per value, dtype and device (a new tensor per call
+    took 3-15 us of a 0.6 ms compiled step). Callers only read it. Made outside inference mode, so that a step with
+    gradients may use it whatever mode the first step ran in."""
+    with torch.inference_mode(False):
+        return torch.tensor(dt_sub, dtype=dtype, device=device)
+
+
 def _integrate(model: Model, state: State, u: Tensor, substep, n: int) -> State:
     """``n`` applications of ``substep(state, u / n, h / n)``: one step of length ``model.dt``."""
     u_sub = u if n == 1 else u / n
-    dt_sub = torch.tensor(model.dt / n, dtype=u.dtype, device=u.device)
+    dt_sub = _substep_length(model.dt / n, u.dtype, u.device)
     for _ in range(n):
         state = substep(state, u_sub, dt_sub)
     return state
