@@ -920,8 +920,8 @@ def _moved_bodies(model: Model, state: State, u: Tensor) -> Tensor:
 @functools.lru_cache(maxsize=256)
 def _substep_length(dt_sub: float, dtype: torch.dtype, device: torch.device) -> Tensor:
     """The sub-step length ``dt_sub`` (s) as a 0-d tensor, made once per value, dtype and device (a new tensor per call
-    took 3-15 us of a 0.6 ms compiled step). Callers only read it. Made outside inference mode, so that a step with
-    gradients may use it whatever mode the first step ran in."""
+    took 3-15 us of a 0.6 ms compiled step). Callers only read it. Made outside inference mode, so that it is an
+    ordinary tensor whatever mode the first step ran in (a compiled graph with gradients may save its inputs)."""
     with torch.inference_mode(False):
         return torch.tensor(dt_sub, dtype=dtype, device=device)
 
