@@ -49,7 +49,9 @@ class State(NamedTuple):
 
     object_pose: ``(B, 7)`` pose of the rigid object (origin at its centre of mass).
     body_poses: ``(B, M, 7)`` poses of the compliant bodies.
-    forces: ``(B, M, N, 3)`` force each body applies to each object surface point, N.
+    forces: ``(B, M, N, 3)`` force each body applies to each object surface point, N. ``step`` and
+        ``advance_forces`` return it laid out coordinate-major (strides of a ``(B, M, 3, N)`` tensor), the layout its
+        next step's compiled kernels read fastest; any layout is accepted.
     phi: optional cache ``(B, P)`` of the signed distances (m) at these poses of the points each body can touch,
         body after body (``touchable_points``; ``P = M N`` when the model was not pruned per body). ``step`` and ``advance_forces`` fill it, and the next step uses it as ``phi_prev`` instead of
         evaluating the SDFs again; ``None`` means "compute it". It must describe this state's poses: build a new
@@ -80,7 +82,8 @@ from there on), so that a point crossing the surface does not switch the update 
 class Model:
     """A compiled scene: the minimal tensors and callables one step needs, in one dtype and device.
 
-    points, normals: ``(N, 3)`` object-frame surface points (m) and outward unit normals; areas ``(N,)`` m^2.
+    points, normals: ``(N, 3)`` object-frame surface points (m) and outward unit normals, stored coordinate-major
+    (``_coordinate_major``); areas ``(N,)`` m^2.
     bodies: ``M`` signed distance functions, each mapping body-frame points ``(..., 3)`` to ``(...)`` metres.
     material: per-body ``E, K, mu``, each ``(M,)``. actuated: ``(M,)`` bool, bodies the controls move.
     mass (kg), inertia ``(3, 3)`` (kg m^2, object frame, about the centre of mass), gravity ``(3,)`` m/s^2.
@@ -128,6 +131,8 @@ class Model:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "point_sets", tuple(_point_set(index) for index in self.touchable))
+        for name in ("points", "normals"):
+            object.__setattr__(self, name, _coordinate_major(getattr(self, name)))
         if self.object_update not in OBJECT_UPDATES:
             raise ValueError(f"object_update: one of {', '.join(OBJECT_UPDATES)}, got {self.object_update!r}")
         if self.object_update == "linearly_implicit" and self.contact.name not in LINEARLY_IMPLICIT_CONTACTS:
@@ -169,6 +174,12 @@ class Model:
             gravity=cast(self.gravity),
             touchable=tuple(cast(t) for t in self.touchable),
         )
+
+
+def _coordinate_major(vectors: Tensor) -> Tensor:
+    """``vectors (..., N, 3)`` as a transposed view of a contiguous ``(..., 3, N)`` tensor: each coordinate contiguous
+    over the points, the layout in which compiled kernels run over the points (``contact_geometry``)."""
+    return vectors.mT.contiguous().mT
 
 
 def with_object_update(model: Model, object_update: str) -> Model:
@@ -556,21 +567,25 @@ def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: 
         previous = state.forces[:, bodies]
         if index is not None:
             previous = previous[:, :, index]
-        previous = se3.small_matmul(previous, turns[:, bodies].mT)
+        previous = se3.small_matmul(turns[:, bodies], previous.mT).mT
         is_support = bodies.start == support
         if is_support:
-            load = support_load(model, torch.cat([f for f in forces if f is not None], dim=1))
+            load = support_load(model, torch.cat([f.mT for f in forces if f is not None], dim=1))
             previous = _with_support_normal(previous, geometry, load)
         f = model.contact.step(geometry, previous, material)
         if is_support:
             f = _with_support_normal(f, geometry, load, getattr(model.contact, "implicit_friction", False))
+        f = f.mT  # (B, g, 3, n): kept coordinate-major from here on (see the return)
         if isinstance(index, slice):
-            f = torch.nn.functional.pad(f, (0, 0, index.start, n - index.stop))
+            f = torch.nn.functional.pad(f, (index.start, n - index.stop))
         elif index is not None:
-            f = f.new_zeros(f.shape[0], f.shape[1], n, 3).index_copy(2, index, f)
+            f = f.new_zeros(f.shape[0], f.shape[1], 3, n).index_copy(3, index, f)
         forces[g] = f
         phis[g] = geometry.phi_next.flatten(1)
-    return State(object_pose, body_poses, torch.cat(forces, dim=1), torch.cat(phis, dim=-1))
+    # The forces leave laid out as a (B, M, 3, N) tensor: each coordinate contiguous over the points, so that the next
+    # step's kernels read them over the points (a (B, M, N, 3) buffer is read three floats apart). A copy, not the
+    # transposed view: a view would bring its base into a compiled step's guards and inputs.
+    return State(object_pose, body_poses, torch.cat(forces, dim=1).mT.clone(), torch.cat(phis, dim=-1))
 
 
 def _planar_jacobian(lever: Tensor) -> Tensor:
@@ -880,7 +895,7 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
         lever_b = x - t_b0[:, m].mT
         carried = (se3.small_matmul(turns[:, m], lever_b.mT) + t_b1[:, m] - t_b0[:, m]).mT - lever_b
         load = k_t.unsqueeze(-1) * carried + (k_n * (carried * n).sum(-1)).unsqueeze(-1) * n
-        load = load + se3.small_matmul(f, turns[:, m].mT) - f  # the stored forces turn with the body
+        load = load + se3.small_matmul(turns[:, m], f.mT).mT - f  # the stored forces turn with the body
         lever = (x - t_o.mT).unbind(-1)
         push = push + torch.stack([term.sum(-1) for term in _generalised(lever, load.unbind(-1), model.planar)], -1)
         stiffness = stiffness + _contact_stiffness(lever, n.unbind(-1), k_t, k_n, model.planar)

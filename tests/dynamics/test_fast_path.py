@@ -40,6 +40,23 @@ def pushing(dtype=torch.float64, spacing=None, batch=3):
     return model, state, u.to(dtype)
 
 
+def test_forces_and_model_points_are_coordinate_major_and_any_layout_steps_alike():
+    """The step returns its forces, and the model keeps its points and normals, laid out coordinate-major (each
+    coordinate contiguous over the points: what compiled kernels read fastest), as fresh tensors rather than views;
+    a state whose forces are laid out point-major, as a caller may build it, steps to the same state (to rounding)."""
+    model, state, u = pushing()
+    out = step(model, state, u)
+    B, M, N, _ = out.forces.shape
+    assert out.forces.stride() == (M * 3 * N, 3 * N, 1, N) and out.forces._base is None
+    for points in (model.points, model.normals):
+        assert points.stride() == (1, N)
+    point_major = out._replace(forces=out.forces.contiguous())
+    assert point_major.forces.stride() == (M * N * 3, N * 3, 3, 1)
+    a, b = step(model, out, u), step(model, point_major, u)  # sums over the points may run in another order
+    assert torch.allclose(a.forces, b.forces, rtol=1e-12, atol=1e-15)
+    assert torch.allclose(a.object_pose, b.object_pose, rtol=1e-12, atol=1e-15)
+
+
 def test_cached_phi_gives_identical_rollout():
     model, state, u = pushing()
     cached, uncached = state, state
