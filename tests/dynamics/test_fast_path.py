@@ -42,8 +42,9 @@ def pushing(dtype=torch.float64, spacing=None, batch=3):
 
 def test_forces_and_model_points_are_coordinate_major_and_any_layout_steps_alike():
     """The step returns its forces, and the model keeps its points and normals, laid out coordinate-major (each
-    coordinate contiguous over the points: what compiled kernels read fastest), as fresh tensors rather than views;
-    a state whose forces are laid out point-major, as a caller may build it, steps to the same state (to rounding)."""
+    coordinate contiguous over the points: what compiled kernels read fastest), the forces as a fresh tensor rather
+    than a view; a state whose forces are laid out point-major, as a caller may build it, steps to the same state (to
+    rounding)."""
     model, state, u = pushing()
     out = step(model, state, u)
     B, M, N, _ = out.forces.shape
