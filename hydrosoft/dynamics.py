@@ -880,25 +880,27 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
     t_b0, t_b1 = state.body_poses[..., :3, None], body_poses[..., :3, None]
     turns = _body_turns(model, state.body_poses, body_poses)
     stiffness, push = 0.0, 0.0
+    # every point vector below is coordinate-major, (B, 3, n): compiled, the per-point loads the kernels keep are then
+    # laid out over the points, as the forces and points they are read with
     for m, (index, phi) in enumerate(zip(_point_sets(model), state.phi.split(pair_counts(model), dim=-1))):
-        x, n, area, f = points, normals, model.areas, state.forces[:, m]
+        x, n, area, f = points.mT, normals.mT, model.areas, state.forces[:, m].mT
         if index is not None:
-            x, n, area, f = x[:, index], n[:, index], area[index], f[:, index]
-        f_n = (f * n).sum(-1)
+            x, n, area, f = x[..., index], n[..., index], area[index], f[..., index]
+        f_n = (f * n).sum(-2)
         capacity = model.material.mu[m] * f_n  # friction limit (N)
-        spare = capacity - se3.safe_norm(f - f_n.unsqueeze(-1) * n)
+        spare = capacity - se3.safe_norm(f - f_n.unsqueeze(-2) * n, dim=-2)
         ramp = (1 - STICKING_SHARE) * capacity
         sticking = torch.where(ramp > 0, spare / torch.where(ramp > 0, ramp, torch.ones_like(ramp)), 0.0).clamp(0, 1)
         contact = area * (-phi / STIFFNESS_DEPTH).clamp(0, 1)  # (B, n) m^2
         k_t = model.material.K[m] * sticking * contact  # (B, n) N/m
         k_n = model.material.E[m] * contact - k_t
-        lever_b = x - t_b0[:, m].mT
-        carried = (se3.small_matmul(turns[:, m], lever_b.mT) + t_b1[:, m] - t_b0[:, m]).mT - lever_b
-        load = k_t.unsqueeze(-1) * carried + (k_n * (carried * n).sum(-1)).unsqueeze(-1) * n
-        load = load + se3.small_matmul(turns[:, m], f.mT).mT - f  # the stored forces turn with the body
-        lever = (x - t_o.mT).unbind(-1)
-        push = push + torch.stack([term.sum(-1) for term in _generalised(lever, load.unbind(-1), model.planar)], -1)
-        stiffness = stiffness + _contact_stiffness(lever, n.unbind(-1), k_t, k_n, model.planar)
+        lever_b = x - t_b0[:, m]
+        carried = se3.small_matmul(turns[:, m], lever_b) + t_b1[:, m] - t_b0[:, m] - lever_b
+        load = k_t.unsqueeze(-2) * carried + (k_n * (carried * n).sum(-2)).unsqueeze(-2) * n
+        load = load + se3.small_matmul(turns[:, m], f) - f  # the stored forces turn with the body
+        lever = (x - t_o).unbind(-2)
+        push = push + torch.stack([term.sum(-1) for term in _generalised(lever, load.unbind(-2), model.planar)], -1)
+        stiffness = stiffness + _contact_stiffness(lever, n.unbind(-2), k_t, k_n, model.planar)
     mass, w_v = _generalised_mass(model, R_o, w)
     return _displacement(model, se3.small_spd_solve(mass / gain + stiffness, w_v + push))
 

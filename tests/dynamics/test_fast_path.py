@@ -40,12 +40,16 @@ def pushing(dtype=torch.float64, spacing=None, batch=3):
     return model, state, u.to(dtype)
 
 
-def test_forces_and_model_points_are_coordinate_major_and_any_layout_steps_alike():
+@pytest.mark.parametrize("object_update", ["explicit", "linearly_implicit"])
+def test_forces_and_model_points_are_coordinate_major_and_any_layout_steps_alike(object_update):
     """The step returns its forces, and the model keeps its points and normals, laid out coordinate-major (each
     coordinate contiguous over the points: what compiled kernels read fastest), the forces as a fresh tensor rather
     than a view; a state whose forces are laid out point-major, as a caller may build it, steps to the same state (to
-    rounding)."""
+    rounding), with either object update (the linearly implicit one reads the forces and points coordinate-major
+    too, each body's on the points it can touch)."""
     model, state, u = pushing()
+    model = with_object_update(model, object_update)
+    assert model.object_update == object_update
     out = step(model, state, u)
     B, M, N, _ = out.forces.shape
     assert out.forces.stride() == (M * 3 * N, 3 * N, 1, N) and out.forces._base is None
