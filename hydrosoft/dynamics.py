@@ -516,17 +516,19 @@ def support_load(model: Model, forces: Tensor) -> Tensor:
     return torch.relu(weight - forces[..., 2].sum((1, 2)))
 
 
-def _with_support_normal(forces: Tensor, geometry: ContactStep, load: Tensor, scale_friction: bool = False) -> Tensor:
+def _with_support_normal(forces: Tensor, geometry: ContactStep, load: Tensor, scale_friction: bool = False,
+                         axis: int = -1) -> Tensor:
     """The support body's forces ``(B, 1, n, 3)`` with their normal parts replaced by ``load (B,)`` (N) spread over
     its contact patch in proportion to ``A_i max(-phi_i, 0)`` (the pressure-field distribution; uniform on a flat
     face). Tangential parts are kept, or with ``scale_friction`` (a model whose friction is a multiple of the
-    normal force it computed: PF) scaled with their normal force. A patch that does not touch carries nothing."""
+    normal force it computed: PF) scaled with their normal force. A patch that does not touch carries nothing.
+    ``axis`` is the coordinate axis of the forces and ``geometry``'s vectors, as in ``ContactModel.step``."""
     normal = geometry.normal
     weights = geometry.area * torch.relu(-geometry.phi_next)
     total = weights.sum(-1, keepdim=True)
     share = weights / torch.where(total > 0, total, torch.ones_like(total))
-    f_n = (forces * normal).sum(-1, keepdim=True)
-    supported = load.view(-1, 1, 1, 1) * share.unsqueeze(-1)
+    f_n = (forces * normal).sum(axis, keepdim=True)
+    supported = load.view(-1, 1, 1, 1) * share.unsqueeze(axis)
     tangential = forces - f_n * normal
     if scale_friction:
         tangential = tangential * torch.where(f_n > 0, supported / torch.where(f_n > 0, f_n, torch.ones_like(f_n)),
@@ -563,19 +565,21 @@ def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: 
     forces, phis = [None] * len(groups), [None] * len(groups)
     for g in order:
         geometry, (bodies, index) = geometries[g], groups[g]
+        # the contact update runs coordinate-major, on (B, g, 3, n) vectors (axis -2), as the forces leave it (see
+        # the return): compiled, the buffers its backward keeps are then laid out over the points
+        geometry = geometry._replace(displacement=geometry.displacement.mT, normal=geometry.normal.mT)
         material = Material(*(t[bodies] for t in model.material))
         previous = state.forces[:, bodies]
         if index is not None:
             previous = previous[:, :, index]
-        previous = se3.small_matmul(turns[:, bodies], previous.mT).mT
+        previous = se3.small_matmul(turns[:, bodies], previous.mT)
         is_support = bodies.start == support
         if is_support:
             load = support_load(model, torch.cat([f.mT for f in forces if f is not None], dim=1))
-            previous = _with_support_normal(previous, geometry, load)
-        f = model.contact.step(geometry, previous, material)
+            previous = _with_support_normal(previous, geometry, load, axis=-2)
+        f = model.contact.step(geometry, previous, material, axis=-2)
         if is_support:
-            f = _with_support_normal(f, geometry, load, getattr(model.contact, "implicit_friction", False))
-        f = f.mT  # (B, g, 3, n): kept coordinate-major from here on (see the return)
+            f = _with_support_normal(f, geometry, load, getattr(model.contact, "implicit_friction", False), axis=-2)
         if isinstance(index, slice):
             f = torch.nn.functional.pad(f, (index.start, n - index.stop))
         elif index is not None:

@@ -42,8 +42,13 @@ class ContactModel(Protocol):
 
     ``step(geometry, forces, material) -> forces_next``, forces ``(B, M, N, 3)`` in newtons, world frame, the
     force each body applies to each object point. Path-independent models ignore ``forces``.
+
+    ``step(..., axis=-2)`` takes and returns every vector coordinate-major instead: forces and
+    ``geometry.displacement`` ``(B, M, 3, N)``, ``geometry.normal`` ``(B, 1 or M, 3, N)`` (the distances and areas
+    are unchanged). The arithmetic is the same; compiled, the buffers the backward keeps are then laid out over the
+    points (``dynamics.advance_forces`` steps this way).
     """
 
     name: str
 
-    def step(self, geometry: ContactStep, forces: Tensor, material: Material) -> Tensor: ...
+    def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor: ...

@@ -13,22 +13,25 @@ from torch import Tensor
 from hydrosoft.geometry.se3 import safe_norm
 
 
-def split_normal(v: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
+def split_normal(v: Tensor, normal: Tensor, axis: int = -1) -> tuple[Tensor, Tensor]:
     """Split ``v (..., 3)`` into its component along ``normal (..., 3)`` (unit) and the tangential rest.
 
-    Returns ``(v_n (...), v_t (..., 3))`` with ``v = v_n * normal + v_t``.
+    Returns ``(v_n (...), v_t (..., 3))`` with ``v = v_n * normal + v_t``. ``axis`` is the coordinate axis (a
+    negative index): -1 as written, -2 for vectors laid out ``(..., 3, n)`` (then ``v_n`` is ``(..., n)``).
     """
-    v_n = (v * normal).sum(-1)
-    return v_n, v - v_n.unsqueeze(-1) * normal
+    v_n = (v * normal).sum(axis)
+    return v_n, v - v_n.unsqueeze(axis) * normal
 
 
-def project_to_cone(f_n: Tensor, f_t: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
+def project_to_cone(f_n: Tensor, f_t: Tensor, mu: Tensor, axis: int = -1) -> tuple[Tensor, Tensor]:
     """Project a contact force onto the Coulomb cone (paper eq. 9 and 18-19).
 
     Args:
         f_n: ``(...)`` normal force in N (any sign).
         f_t: ``(..., 3)`` tangential force in N.
         mu: friction coefficient, broadcastable to ``f_n``.
+        axis: ``f_t``'s coordinate axis (a negative index): -1 as written, -2 for ``f_t (..., 3, n)`` beside
+            ``f_n (..., n)``.
     Returns:
         ``(relu(f_n), min(1, mu relu(f_n) / |f_t|) f_t)``, the scale formed as ``limit / max(|f_t|, limit)``: finite
         with finite gradients for ``f_t = 0``, ``f_n = 0`` and any shear under any limit, because every quotient in
@@ -39,5 +42,5 @@ def project_to_cone(f_n: Tensor, f_t: Tensor, mu: Tensor) -> tuple[Tensor, Tenso
     """
     f_n = torch.relu(f_n)
     limit = mu * f_n
-    scale = limit / torch.maximum(safe_norm(f_t), limit)
-    return f_n, scale.unsqueeze(-1) * f_t
+    scale = limit / torch.maximum(safe_norm(f_t, axis), limit)
+    return f_n, scale.unsqueeze(axis) * f_t

@@ -37,7 +37,8 @@ def inside_fraction(phi_prev: Tensor, phi_next: Tensor) -> Tensor:
     return torch.where(flat, inside, crossing).clamp(0.0, 1.0)
 
 
-def _accumulate(forces: Tensor, d: Tensor, geometry: ContactStep, material: Material) -> tuple[Tensor, Tensor]:
+def _accumulate(forces: Tensor, d: Tensor, geometry: ContactStep, material: Material, axis: int
+                ) -> tuple[Tensor, Tensor]:
     """Eq. 16-19: add ``E A d_n`` and ``K A d_t`` to the split previous force and project onto the cone.
 
     Written with one tangential split: ``g = F + K A d`` has normal part ``g_n = f_n + K A d_n``, so the new
@@ -47,10 +48,10 @@ def _accumulate(forces: Tensor, d: Tensor, geometry: ContactStep, material: Mate
     area = geometry.area
     EA = material.E.view(1, -1, 1) * area
     KA = material.K.view(1, -1, 1) * area
-    g = forces + KA.unsqueeze(-1) * d
-    g_n = (g * normal).sum(-1)
-    f_n = g_n + (EA - KA) * (d * normal).sum(-1)
-    return project_to_cone(f_n, g - g_n.unsqueeze(-1) * normal, material.mu.view(1, -1, 1))
+    g = forces + KA.unsqueeze(axis) * d
+    g_n = (g * normal).sum(axis)
+    f_n = g_n + (EA - KA) * (d * normal).sum(axis)
+    return project_to_cone(f_n, g - g_n.unsqueeze(axis) * normal, material.mu.view(1, -1, 1), axis)
 
 
 @dataclass(frozen=True)
@@ -59,12 +60,12 @@ class NonHolonomic:
 
     name: ClassVar[str] = "nh"
 
-    def step(self, geometry: ContactStep, forces: Tensor, material: Material) -> Tensor:
-        """Next forces ``(B, M, N, 3)`` from the previous ``forces (B, M, N, 3)``."""
+    def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
+        """Next forces ``(B, M, N, 3)`` from the previous ``forces (B, M, N, 3)`` (``ContactModel`` on ``axis``)."""
         alpha = inside_fraction(geometry.phi_prev, geometry.phi_next)
-        f_n, f_t = _accumulate(forces, alpha.unsqueeze(-1) * geometry.displacement, geometry, material)
+        f_n, f_t = _accumulate(forces, alpha.unsqueeze(axis) * geometry.displacement, geometry, material, axis)
         inside = (geometry.phi_next <= 0).to(f_n.dtype)
-        return inside.unsqueeze(-1) * (f_n.unsqueeze(-1) * geometry.normal + f_t)
+        return inside.unsqueeze(axis) * (f_n.unsqueeze(axis) * geometry.normal + f_t)
 
 
 @dataclass(frozen=True)
@@ -81,8 +82,8 @@ class SmoothedNonHolonomic:
     beta: float = 1e4
     name: ClassVar[str] = "snh"
 
-    def step(self, geometry: ContactStep, forces: Tensor, material: Material) -> Tensor:
-        """Next forces ``(B, M, N, 3)`` from the previous ``forces (B, M, N, 3)``."""
-        f_n, f_t = _accumulate(forces, geometry.displacement, geometry, material)
+    def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
+        """Next forces ``(B, M, N, 3)`` from the previous ``forces (B, M, N, 3)`` (``ContactModel`` on ``axis``)."""
+        f_n, f_t = _accumulate(forces, geometry.displacement, geometry, material, axis)
         weight = torch.sigmoid(-self.beta * geometry.phi_next)
-        return weight.unsqueeze(-1) * (f_n.unsqueeze(-1) * geometry.normal + f_t)
+        return weight.unsqueeze(axis) * (f_n.unsqueeze(axis) * geometry.normal + f_t)

@@ -25,9 +25,9 @@ class PressureFieldFrictionless:
 
     name: ClassVar[str] = "pff"
 
-    def step(self, geometry: ContactStep, forces: Tensor, material: Material) -> Tensor:
-        """Forces ``(B, M, N, 3)``; ``forces`` (the previous state) is ignored."""
-        return _normal_force(geometry, material).unsqueeze(-1) * geometry.normal
+    def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
+        """Forces ``(B, M, N, 3)``; ``forces`` (the previous state) is ignored (``ContactModel`` on ``axis``)."""
+        return _normal_force(geometry, material).unsqueeze(axis) * geometry.normal
 
 
 @dataclass(frozen=True)
@@ -50,11 +50,11 @@ class PressureField:
     name: ClassVar[str] = "pf"
     implicit_friction: ClassVar[bool] = True
 
-    def step(self, geometry: ContactStep, forces: Tensor, material: Material) -> Tensor:
-        """Forces ``(B, M, N, 3)``; ``forces`` (the previous state) is ignored."""
+    def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
+        """Forces ``(B, M, N, 3)``; ``forces`` (the previous state) is ignored (``ContactModel`` on ``axis``)."""
         f_n = _normal_force(geometry, material)
-        _, r_t = split_normal(geometry.displacement, geometry.normal)
-        slip = torch.sqrt(safe_norm(r_t) ** 2 + self.slip_tolerance**2)
+        _, r_t = split_normal(geometry.displacement, geometry.normal, axis)
+        slip = torch.sqrt(safe_norm(r_t, axis) ** 2 + self.slip_tolerance**2)
         mu = material.mu.view(1, -1, 1)
-        f_t = (mu * f_n / slip).unsqueeze(-1) * r_t
-        return f_n.unsqueeze(-1) * geometry.normal + f_t
+        f_t = (mu * f_n / slip).unsqueeze(axis) * r_t
+        return f_n.unsqueeze(axis) * geometry.normal + f_t

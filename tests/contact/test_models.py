@@ -12,6 +12,7 @@ from hydrosoft.contact import (
     inside_fraction,
     make,
 )
+from hydrosoft.contact.base import ContactStep, Material
 
 E, K, MU, AREA = 1e5, 3e4, 0.5, 1e-4
 
@@ -146,3 +147,24 @@ def test_smoothed_nh_has_gradient_just_outside_pf_does_not():
 def test_make_rejects_unknown_model():
     with pytest.raises(ValueError, match="known models: nh, snh, pf, pff"):
         make("hydro")
+
+
+@pytest.mark.parametrize("name", ["pf", "pff", "nh", "snh"])
+def test_every_model_steps_coordinate_major_vectors_alike(name):
+    """``step(..., axis=-2)`` on ``(B, M, 3, N)`` vectors is ``step`` on their ``(B, M, N, 3)`` transposes: the same
+    forces, transposed, for random depths (in, out and crossing), displacements, normals and forces, some of them
+    pushed past the friction cone."""
+    g = torch.Generator().manual_seed(5)
+    B, M, N = 3, 2, 11
+    f64 = dict(generator=g, dtype=torch.float64)
+    normal = torch.nn.functional.normalize(torch.randn(B, 1, N, 3, **f64), dim=-1)
+    geometry = ContactStep(phi_prev=2e-3 * torch.randn(B, M, N, **f64), phi_next=2e-3 * torch.randn(B, M, N, **f64),
+                           displacement=1e-3 * torch.randn(B, M, N, 3, **f64), normal=normal,
+                           area=torch.rand(N, **f64) * AREA)
+    forces = torch.randn(B, M, N, 3, **f64)
+    mat = Material(*(torch.tensor([v, 2 * v], dtype=torch.float64) for v in (E, K, MU)))
+    transposed = geometry._replace(displacement=geometry.displacement.mT, normal=geometry.normal.mT)
+    model = make(name)
+    expected = model.step(geometry, forces, mat)
+    assert torch.count_nonzero(expected) > 0
+    torch.testing.assert_close(model.step(transposed, forces.mT, mat, axis=-2).mT, expected, rtol=1e-14, atol=0.0)
