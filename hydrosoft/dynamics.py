@@ -516,19 +516,19 @@ def support_load(model: Model, forces: Tensor) -> Tensor:
     return torch.relu(weight - forces[..., 2].sum((1, 2)))
 
 
-def _with_support_normal(forces: Tensor, geometry: ContactStep, load: Tensor, scale_friction: bool = False,
-                         axis: int = -1) -> Tensor:
-    """The support body's forces ``(B, 1, n, 3)`` with their normal parts replaced by ``load (B,)`` (N) spread over
+def _with_support_normal(forces: Tensor, geometry: ContactStep, load: Tensor, scale_friction: bool = False) -> Tensor:
+    """The support body's forces ``(B, 1, 3, n)`` with their normal parts replaced by ``load (B,)`` (N) spread over
     its contact patch in proportion to ``A_i max(-phi_i, 0)`` (the pressure-field distribution; uniform on a flat
     face). Tangential parts are kept, or with ``scale_friction`` (a model whose friction is a multiple of the
     normal force it computed: PF) scaled with their normal force. A patch that does not touch carries nothing.
-    ``axis`` is the coordinate axis of the forces and ``geometry``'s vectors, as in ``ContactModel.step``."""
+    Coordinate-major, as ``advance_forces`` steps: the forces and ``geometry``'s vectors ``(B, 1, 3, n)``
+    (``ContactModel.step`` with ``axis=-2``)."""
     normal = geometry.normal
     weights = geometry.area * torch.relu(-geometry.phi_next)
     total = weights.sum(-1, keepdim=True)
     share = weights / torch.where(total > 0, total, torch.ones_like(total))
-    f_n = (forces * normal).sum(axis, keepdim=True)
-    supported = load.view(-1, 1, 1, 1) * share.unsqueeze(axis)
+    f_n = (forces * normal).sum(-2, keepdim=True)
+    supported = load.view(-1, 1, 1, 1) * share.unsqueeze(-2)
     tangential = forces - f_n * normal
     if scale_friction:
         tangential = tangential * torch.where(f_n > 0, supported / torch.where(f_n > 0, f_n, torch.ones_like(f_n)),
@@ -576,10 +576,10 @@ def advance_forces(model: Model, state: State, object_pose: Tensor, body_poses: 
         is_support = bodies.start == support
         if is_support:
             load = support_load(model, torch.cat([f.mT for f in forces if f is not None], dim=1))
-            previous = _with_support_normal(previous, geometry, load, axis=-2)
+            previous = _with_support_normal(previous, geometry, load)
         f = model.contact.step(geometry, previous, material, axis=-2)
         if is_support:
-            f = _with_support_normal(f, geometry, load, getattr(model.contact, "implicit_friction", False), axis=-2)
+            f = _with_support_normal(f, geometry, load, getattr(model.contact, "implicit_friction", False))
         if isinstance(index, slice):
             f = torch.nn.functional.pad(f, (index.start, n - index.stop))
         elif index is not None:
@@ -880,14 +880,14 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
     gain = model.dt / model.epsilon * dt_sub
     R_o, t_o = _frame(state.object_pose)
     points = _world_points(model, state.object_pose)
-    normals = se3.small_matmul(R_o, -model.normals.mT).mT
+    normals = se3.small_matmul(R_o, -model.normals.mT)  # (B, 3, N)
     t_b0, t_b1 = state.body_poses[..., :3, None], body_poses[..., :3, None]
     turns = _body_turns(model, state.body_poses, body_poses)
     stiffness, push = 0.0, 0.0
     # every point vector below is coordinate-major, (B, 3, n): compiled, the per-point loads the kernels keep are then
     # laid out over the points, as the forces and points they are read with
     for m, (index, phi) in enumerate(zip(_point_sets(model), state.phi.split(pair_counts(model), dim=-1))):
-        x, n, area, f = points.mT, normals.mT, model.areas, state.forces[:, m].mT
+        x, n, area, f = points.mT, normals, model.areas, state.forces[:, m].mT
         if index is not None:
             x, n, area, f = x[..., index], n[..., index], area[index], f[..., index]
         f_n = (f * n).sum(-2)

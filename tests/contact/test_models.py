@@ -5,6 +5,8 @@ import torch
 
 from contact_patch import drive, material, patch_step
 from hydrosoft.contact import (
+    ContactStep,
+    Material,
     NonHolonomic,
     PressureField,
     PressureFieldFrictionless,
@@ -12,7 +14,6 @@ from hydrosoft.contact import (
     inside_fraction,
     make,
 )
-from hydrosoft.contact.base import ContactStep, Material
 
 E, K, MU, AREA = 1e5, 3e4, 0.5, 1e-4
 
