@@ -9,6 +9,8 @@ import argparse
 import importlib
 import sys
 
+from hydrosoft.services.allocator import reexec_with_allocator
+
 # group -> (group help, {subcommand -> (module with add_arguments(parser) and run(args) -> int, one-line help)})
 GROUPS = {
     "bench": ("benchmarks that print figures (see `bench COMMAND --help`)", {
@@ -93,5 +95,11 @@ def main(argv: list[str] | None = None) -> int:
     return importlib.import_module(args.command_module).run(args)
 
 
-if __name__ == "__main__":
+def entry() -> None:
+    """The ``hydrosoft-stack`` script: ``main`` on the faster allocator when one is installed (``allocator``)."""
+    reexec_with_allocator()
     sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()

@@ -40,6 +40,7 @@ import msgspec
 import numpy as np
 import torch
 
+from hydrosoft.compilation import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
@@ -488,12 +489,14 @@ class Planner:
 
 def compile_step(core: PlannerCore) -> float:
     """Compile the planner's step for every input signature a solve uses, by one solve from the scene's initial
-    state (its result is dropped); the seconds it took. With torch's compile cache warm this loads the compiled
+    state (its result is dropped), then settle the garbage collector (``compilation.settle_garbage_collector``: the
+    compiler's objects out of its way); the seconds it took. With torch's compile cache warm this loads the compiled
     code instead (seconds, not minutes)."""
     started = time.monotonic()
     _, initial, _ = compile_scene(planner_scene(core.task, core.config.planner), dtype=core.model.dtype)
     arm_poses = {name: initial.body_poses[0, index].double() for name, index in core.arms.items()}
     core.solver(core.task.initial_pose(), initial.object_pose[0].double(), arm_poses).solve(initial)
+    settle_garbage_collector()
     return time.monotonic() - started
 
 

@@ -58,6 +58,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import statistics
 import sys
 import threading
@@ -124,6 +125,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="solver worker threads for the replanning rate (each rolls out a share of the 64 "
                              "samples; PlannerSettings.workers), one measurement each in the same run (default 1); "
                              "give each worker one torch thread: --threads 1")
+    parser.add_argument("--rate-worker-kinds", type=_csv, default=["threads"], metavar="threads,processes",
+                        help="where the --rate-workers shares run: threads of the planner's process, or processes "
+                             "of their own (control.WorkerProcesses, each with its own copy of the step, compiled "
+                             "there); one measurement each (default threads)")
     parser.add_argument("--rate-activation-budgets", type=_csv, default=["0"], metavar="B1,B2",
                         help="with --compile: the compiled step's activation_memory_budget for the replanning rate "
                              "(0: the backward recomputes the forward's intermediates, the default; 1: torch's "
@@ -181,8 +186,8 @@ def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
 
 def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
                     sdf_solver_steps: int | None = None, workers: int = 1,
-                    activation_budget: float = 0.0, object_update: str = "explicit", compiled_costs: bool = True
-                    ) -> dict:
+                    activation_budget: float = 0.0, object_update: str = "explicit", compiled_costs: bool = True,
+                    worker_kind: str = "threads") -> dict:
     """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
     first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), with
@@ -196,32 +201,56 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     planner's bubble ellipsoid solve; ``workers``: the solver's threads, each rolling out a share of the samples
     (both ``PlannerSettings``); ``activation_budget``: the compiled step's ``activation_memory_budget``;
     ``object_update``: the planner model's (``PlannerSettings.object_update``); ``compiled_costs``: with ``compile``,
-    the costs through the setup's compiled cost terms (as the planner runs them) or eager.
+    the costs through the setup's compiled cost terms (as the planner runs them) or eager; ``preloaded``: the
+    process's ``LD_PRELOAD`` (the allocator ``hydrosoft-stack`` preloads, ``hydrosoft.services.allocator``), or None.
 
-    A timed solve is one cycle of the closed loop, as ``evaluation.run_episode`` runs it: the state estimate from the
-    plant's sensors and the planner's prediction of this instant (``observed_state``; ``estimate_ms``), the solve,
-    and the prediction of the applied action for the next estimate (``predict_ms``: taken from the solve's own
-    rollout of its plan, ``PlanResult.states``, it costs next to nothing; an eager step took 4.7 ms). Only the first
-    estimate, with no prediction yet, presses the bodies in from contact-free (``dynamics.press_in``). The costs'
+    After the warm-up solves the process's garbage collector is settled (``compilation.settle_garbage_collector``), as
+    the stack's planner does once it has compiled. A timed solve is one cycle of the closed loop, as
+    ``evaluation.run_episode`` runs it: the state estimate from the plant's sensors and the planner's prediction of this
+    instant (``observed_state``; ``estimate_ms``), the solve, and the prediction of the applied action for the next
+    estimate (``predict_ms``: taken from the solve's own rollout of its plan, ``PlanResult.states``, it costs next to
+    nothing; an eager step took 4.7 ms). Only the first estimate, with no prediction yet, presses the bodies in from
+    contact-free (``dynamics.press_in``). The costs'
     drift is anchored at the plant's initial state, as an episode's is (and the stack's, at the state its goal
     started from), through the setup's cost terms (compiled with ``compile``). ``plan_costs``:
-    each timed solve's plan cost ``J``, in order, so that two settings' plans can be compared along the same loop."""
+    each timed solve's plan cost ``J``, in order, so that two settings' plans can be compared along the same loop.
+    ``worker_kind``: ``threads`` or ``processes`` (``PlannerSettings.worker_processes``); with processes the step and
+    cost calls run there, and ``step_forward_ms`` and ``cost_forward_ms`` are None."""
+    import torch
+
+    from hydrosoft.tasks import make_task
+    from hydrosoft.tasks.evaluation import PlannerSettings, prepare
+
+    if worker_kind not in ("threads", "processes"):
+        raise ValueError(f"worker_kind is threads or processes, got {worker_kind!r}")
+    task = make_task("pushing")
+    settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
+                               compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps,
+                               workers=workers, object_update=object_update,
+                               worker_processes=worker_kind == "processes")
+    setup = prepare(task, settings, compile_options={"activation_memory_budget": activation_budget})
+    try:
+        return _timed_solves(setup, solves, compile, dtype, sdf_solver_steps, activation_budget, compiled_costs)
+    finally:
+        setup.close()
+
+
+def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_steps: int | None,
+                  activation_budget: float, compiled_costs: bool) -> dict:
+    """``replanning_rate``'s solves on its prepared ``setup``."""
     import msgspec
     import torch
 
+    from hydrosoft.compilation import settle_garbage_collector
     from hydrosoft.control import CemGd
     from hydrosoft.dynamics import pair_counts
     from hydrosoft.scene import build_surface
     from hydrosoft.tactile import carry_over
-    from hydrosoft.tasks import make_task
     from hydrosoft.tasks.base import EAGER_COST_TERMS
-    from hydrosoft.tasks.evaluation import PlannerSettings, observed_state, prepare
+    from hydrosoft.tasks.evaluation import observed_state, solver_processes
 
-    task = make_task("pushing")
-    settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
-                               compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps,
-                               workers=workers, object_update=object_update)
-    setup = prepare(task, settings, compile_options={"activation_memory_budget": activation_budget})
+    task, settings = setup.task, setup.planner
+    workers, kind = settings.workers, "processes" if settings.worker_processes else "threads"
     model = setup.planner_model
     surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
     pairs = sum(pair_counts(model))
@@ -229,10 +258,12 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     plant = setup.plant
     anchor = (plant.initial.object_pose[0], plant.initial.body_poses[0, setup.body_index])  # as run_episode's
     terms = setup.cost_terms if compiled_costs else EAGER_COST_TERMS
-    stage, terminal = task.costs(model, task.sample_goal(0), anchor=anchor, terms=terms)
+    goal = task.sample_goal(0)
+    stage, terminal = task.costs(model, goal, anchor=anchor, terms=terms)
     step_calls, stage_calls, terminal_calls = Stopwatch(setup.dynamics), Stopwatch(stage), Stopwatch(terminal)
     solver = CemGd(step_calls, stage_calls, terminal_calls, low, high,
-                   config=settings.config(settings.horizon, 1), dtype=model.dtype)
+                   config=settings.config(settings.horizon, 1), dtype=model.dtype,
+                   processes=solver_processes(setup, goal, anchor, eager_costs=not compiled_costs))
     warmups = 1 if workers == 1 else 2
     warmup_s, times, prediction = [], [], None
     for k in range(solves + warmups):
@@ -249,11 +280,13 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
             0, setup.body_index, result.action.double()))
         if k < warmups:
             warmup_s.append(wall)
+            if k == warmups - 1:
+                settle_garbage_collector()
         else:
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
                           "cost_s": stage_calls.seconds + terminal_calls.seconds, "estimate_s": estimated - tic,
                           "predict_s": wall - (solved - tic), "plan_cost": result.cost})
-        _log(f"[rate] {dtype}, {workers} worker(s), {object_update} object update, solve {k}"
+        _log(f"[rate] {dtype}, {workers} worker {kind}, {settings.object_update} object update, solve {k}"
              f"{' (warm-up)' if k < warmups else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
     compiled = getattr(setup.dynamics, "compiled", False)
@@ -266,12 +299,21 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         "slowest_solve_ms": 1e3 * max(t["solve_s"] for t in times),
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
-        "workers": workers, "activation_budget": activation_budget if compile else None,
-        "object_update": object_update, "compiled_costs": compiled and compiled_costs,
-        "step_forward_ms": 1e3 * mean["step_s"], "cost_forward_ms": 1e3 * mean["cost_s"],
+        "preloaded": os.environ.get("LD_PRELOAD") or None, "workers": workers, "worker_kind": kind,
+        "activation_budget": activation_budget if compile else None, "object_update": settings.object_update,
+        "compiled_costs": compiled and compiled_costs,
+        "step_forward_ms": None if settings.worker_processes else 1e3 * mean["step_s"],
+        "cost_forward_ms": None if settings.worker_processes else 1e3 * mean["cost_s"],
         "estimate_ms": 1e3 * mean["estimate_s"], "predict_ms": 1e3 * mean["predict_s"],
         "plan_costs": [t["plan_cost"] for t in times],
     }
+
+
+def _call_split(row: dict) -> str:
+    """`` (step calls X, cost calls Y)`` of a replanning row, or nothing where they ran in worker processes."""
+    if row["step_forward_ms"] is None:
+        return ""
+    return f" (step calls {row['step_forward_ms']:.0f}, cost calls {row['cost_forward_ms']:.0f})"
 
 
 class Stopwatch:
@@ -385,6 +427,10 @@ def run(args: argparse.Namespace) -> int:
     if not all(text.isdigit() and int(text) >= 1 for text in args.rate_workers):
         _log(f"bench control: --rate-workers takes positive counts, got {','.join(args.rate_workers)!r}")
         return 2
+    if not set(args.rate_worker_kinds) <= {"threads", "processes"}:
+        _log(f"bench control: --rate-worker-kinds takes threads and processes, got "
+             f"{','.join(args.rate_worker_kinds)!r}")
+        return 2
     try:
         budgets = [float(text) for text in args.rate_activation_budgets]
         budgets_ok = all(0.0 <= budget <= 1.0 for budget in budgets)
@@ -476,10 +522,11 @@ def run(args: argparse.Namespace) -> int:
                              f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
                     rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
     replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers), budget, update,
-                                  costs == "compiled")
+                                  costs == "compiled", kind)
                   for costs in (args.rate_costs if args.compile else ["eager"]) for update in rate_updates
-                  for budget in (budgets if args.compile else budgets[:1]) for workers in args.rate_workers
-                  for sdf in rate_sdf for dtype in args.rate_dtypes] if rate_solves > 0 else None
+                  for budget in (budgets if args.compile else budgets[:1]) for kind in args.rate_worker_kinds
+                  for workers in args.rate_workers for sdf in rate_sdf for dtype in args.rate_dtypes
+                  ] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "goal_indices": indices, "quick": args.quick, "plant": args.plant,
                 "plants": args.plants, "same_models": same_models,
@@ -508,10 +555,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
                   f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
                   f"point-body pairs), {r['substeps']} sub-steps, bubble SDF {sdf}, {r['threads']} thread(s), "
-                  f"{r['workers']} solver worker(s), {r['object_update']} object update, {budget}{costs}"
+                  f"{'LD_PRELOAD ' + r['preloaded'] if r['preloaded'] else 'system malloc'}, "
+                  f"{r['workers']} solver worker(s) ({r['worker_kind']}), {r['object_update']} object update, "
+                  f"{budget}{costs}"
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
-                  f"{r['rollout_ms']:.0f} (step calls {r['step_forward_ms']:.0f}, cost calls "
-                  f"{r['cost_forward_ms']:.0f}), backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f}, "
+                  f"{r['rollout_ms']:.0f}{_call_split(r)}, backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f}, "
                   f"state estimate {r['estimate_ms']:.1f}, prediction {r['predict_ms']:.1f} ms; median "
                   f"{r['median_solve_ms']:.0f} ms, slowest {r['slowest_solve_ms']:.0f} ms; plan costs "
                   f"{', '.join(f'{c:.4g}' for c in r['plan_costs'])}; warm-up solves "

@@ -28,6 +28,11 @@ rounding. It pays where the step's kernels are too small to keep a second core b
 intra-op threads then mostly wait at each kernel's barrier): give each worker one intra-op thread
 (``torch.set_num_threads(1)``). ``dynamics``, ``stage_cost`` and ``terminal_cost`` are then called from several
 threads at once, so they must not keep per-call state that one share would overwrite for another.
+
+Worker processes. Given ``processes`` (``worker_processes.WorkerProcesses``, one per worker), the shares run there
+instead, each on the process's own copy of the problem: no interpreter lock or allocator is shared. Each share sends
+back its sequences, their costs, and the states along its lowest-cost sequence only (``ShareResult``), which are the
+returned states whenever that share holds the winner. The plan is the threads' plan (the same arithmetic per row).
 """
 from __future__ import annotations
 
@@ -35,11 +40,14 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import torch
 from torch import Tensor
 from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
+
+if TYPE_CHECKING:
+    from hydrosoft.control.worker_processes import WorkerProcesses
 
 State = Any
 """A tensor or a pytree (tuple, NamedTuple, dict) of tensors, each with a leading batch axis."""
@@ -85,6 +93,17 @@ class PlanResult(NamedTuple):
     states: list[State]  # x_1 .. x_K (batch 1) along plan, from the rollout that scored it; [] with no finite sample
 
 
+class ShareResult(NamedTuple):
+    """One share's part of a CEM round (``CemGd.improve``): its ``b`` improved sequences and their costs, and the
+    states along its lowest-cost one, the only ones the solver may return."""
+
+    u: Tensor  # (b, K, *action_shape), after the G Adam steps
+    cost: Tensor  # (b,), each sequence's J after them (non-finite where the rollout failed)
+    best: int | None  # index in the share of the lowest finite cost (first of equals); None when none is finite
+    best_states: list[State]  # x_1 .. x_K (batch 1, copies) along sequence ``best``; [] when it is None
+    timings: dict[str, float]  # wall s: rollout_s, backward_s
+
+
 class CemGd:
     """Cross-entropy + gradient-descent MPC over action sequences ``(K, *action_shape)`` within box bounds.
 
@@ -94,6 +113,10 @@ class CemGd:
 
     Attributes ``mean`` and ``std`` ``(K, *action_shape)`` (action units) are the Gaussian that the next
     ``solve`` samples from.
+
+    ``processes``: worker processes (``worker_processes.WorkerProcesses`` with ``config.workers`` processes, already
+    given this problem by ``set_problem``) that run the shares instead of threads (module docstring); the solver does
+    not own them, so its caller stops them.
     """
 
     def __init__(
@@ -106,6 +129,7 @@ class CemGd:
         config: CemGdConfig = CemGdConfig(),
         dtype: torch.dtype = torch.float64,
         device: torch.device | str = "cpu",
+        processes: WorkerProcesses | None = None,
     ) -> None:
         self.dynamics = dynamics
         self.stage_cost = stage_cost
@@ -122,7 +146,11 @@ class CemGd:
         self._half = (self.high - self.low) / 2
         self._rest = torch.zeros_like(self.low).clamp(self.low, self.high)
         self._generator = torch.Generator(device=self.device)
-        self._pool = ThreadPoolExecutor(config.workers, "cem-gd") if config.workers > 1 else None
+        self.processes = processes
+        if processes is not None and processes.workers != config.workers:
+            raise ValueError(f"{processes.workers} worker processes for workers={config.workers}")
+        threads = config.workers > 1 and processes is None
+        self._pool = ThreadPoolExecutor(config.workers, "cem-gd") if threads else None
         self.reset()
 
     def reset(self) -> None:
@@ -142,15 +170,19 @@ class CemGd:
         """
         cfg = self.config
         timings = {"rollout_s": 0.0, "backward_s": 0.0, "cem_s": 0.0}
-        x0 = tree_map(self._expand, x0)
+        if self.processes is None:
+            x0 = tree_map(self._expand, x0)
         best_cost, best_plan, best_states = math.inf, None, []
         for _ in range(cfg.cem_iterations):
             tic = self._clock()
             u = self._sample()
             timings["cem_s"] += self._clock() - tic
-            shares = self._map(self._improve, self._shares(x0, u))
-            u, cost = torch.cat([share[0] for share in shares]), torch.cat([share[1] for share in shares])
-            slowest = max((share[3] for share in shares), key=lambda t: t["rollout_s"] + t["backward_s"])
+            if self.processes is None:
+                shares = self._map(self.improve, self._shares(x0, u))
+            else:
+                shares = self.processes.improve(x0, list(u.tensor_split(cfg.workers)))
+            u, cost = torch.cat([share.u for share in shares]), torch.cat([share.cost for share in shares])
+            slowest = max((share.timings for share in shares), key=lambda t: t["rollout_s"] + t["backward_s"])
             timings["rollout_s"] += slowest["rollout_s"]
             timings["backward_s"] += slowest["backward_s"]
 
@@ -162,7 +194,7 @@ class CemGd:
                 lowest = cost[order[0]].item()
                 if lowest < best_cost:
                     best_cost, best_plan = lowest, u[order[0]]
-                    best_states = _sample_states(shares, int(order[0]))
+                    best_states = _winner_states(shares, int(order[0]))
                 self._elites = u[order[: min(cfg.elites, n_finite)]]
                 self.mean = self._elites.mean(0)
                 self.std = self._elites.std(0, correction=0).maximum(cfg.min_std * self._half)
@@ -206,17 +238,21 @@ class CemGd:
             raise ValueError(f"costs must have shape (B,) = ({u.shape[0]},), got {tuple(cost.shape)}")
         return cost, states[1:]
 
-    def _improve(self, x0: State, u: Tensor) -> tuple[Tensor, Tensor, list[State], dict[str, float]]:
-        """One share's part of a CEM round: its ``G`` Adam steps from ``u (b, K, *A)`` and the rollout of the result;
-        ``(u, J (b,), states x_1 .. x_K, timings)``. Every sample's descent is its own, so shares need not meet until
-        the refit."""
+    def improve(self, x0: State, u: Tensor) -> ShareResult:
+        """One share's part of a CEM round: its ``G`` Adam steps from ``u (b, K, *A)`` and the rollout of the result,
+        from ``x0`` (batch ``b``). Every sample's descent is its own, so shares need not meet until the refit. (The
+        solver's worker threads call it, and ``WorkerProcesses``' processes on their own solver.)"""
         timings = {"rollout_s": 0.0, "backward_s": 0.0}
         u = self._descend(x0, u, timings)
         tic = self._clock()
         with torch.no_grad():  # grad mode is per thread: set here, on the worker
             cost, states = self._rollout(x0, u)
         timings["rollout_s"] += self._clock() - tic
-        return u, cost, states, timings
+        scored = torch.where(torch.isfinite(cost), cost, math.inf)  # as ``solve`` ranks them
+        best = int(torch.argsort(scored, stable=True)[0]) if bool(torch.isfinite(scored).any()) else None
+        best_states = [] if best is None else [
+            tree_map(lambda t: t[best:best + 1].clone() if isinstance(t, Tensor) else t, state) for state in states]
+        return ShareResult(u, cost, best, best_states, timings)
 
     def _shares(self, x: State, u: Tensor) -> list[tuple[State, Tensor]]:
         """The batch ``(x, u)`` as ``workers`` contiguous shares (one share, unsplit, with one worker)."""
@@ -283,12 +319,13 @@ class CemGd:
         return time.perf_counter()
 
 
-def _sample_states(shares: list[tuple[Tensor, Tensor, list[State], dict]], index: int) -> list[State]:
-    """Sample ``index``'s states ``x_1 .. x_K`` (batch 1, copies) from the shares' rollouts (``CemGd._improve``'s
-    results, in order)."""
-    for u, _, states, _ in shares:
-        if index < u.shape[0]:
-            return [tree_map(lambda t: t[index:index + 1].clone() if isinstance(t, Tensor) else t, state)
-                    for state in states]
-        index -= u.shape[0]
+def _winner_states(shares: list[ShareResult], index: int) -> list[State]:
+    """The states ``x_1 .. x_K`` of sample ``index`` of the whole batch, the lowest cost of all (first of equals): it
+    is the lowest of its own share too, whose ``best_states`` are therefore its states."""
+    for share in shares:
+        if index < share.u.shape[0]:
+            if share.best != index:
+                raise RuntimeError(f"the lowest-cost sample {index} is not its share's lowest ({share.best})")
+            return share.best_states
+        index -= share.u.shape[0]
     raise IndexError("sample index past the shares")

@@ -34,15 +34,16 @@ from __future__ import annotations
 
 import functools
 import math
+import pickle
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Literal
+from typing import Callable, Literal, NamedTuple
 
 import msgspec
 import torch
 from torch import Tensor
 
-from hydrosoft.control import CemGd, CemGdConfig
+from hydrosoft.control import CemGd, CemGdConfig, WorkerProcesses
 from hydrosoft.control.costs import orientation_error, position_error
 from hydrosoft.dynamics import CompiledStep, Model, State, step, with_object_update
 from hydrosoft.geometry import se3
@@ -64,6 +65,8 @@ class PlannerSettings:
     (a finer integration step ``dt / (substeps * factor)`` within each control step). lr, init_std, min_std: fractions of the
     action half-range (``CemGdConfig``). dtype: the planner's float type. seed: the solver's seed.
     workers: solver threads that each roll out a share of the B samples (``CemGdConfig.workers``; 1: none).
+    worker_processes: run the ``workers`` shares in processes of their own instead of threads
+    (``control.WorkerProcesses``; each builds its own copy of the model, step and costs: ``build_problem``).
     sdf_solver_steps: None, or a fixed number of solver steps for the planner's iteratively solved body SDFs
     (the ellipsoid's ``solver_steps``: 2 is exact to rounding within 1 cm of the membrane and fuses into one
     kernel when compiled); the plant always solves to convergence.
@@ -96,6 +99,7 @@ class PlannerSettings:
     compile: bool = False
     workers: int = 1
     object_update: str = "explicit"
+    worker_processes: bool = False
 
     def config(self, horizon: int, iterations: int) -> CemGdConfig:
         """The solver configuration for a plan of ``horizon`` steps and ``iterations`` CEM rounds."""
@@ -211,7 +215,9 @@ class Setup:
     spacing, the same for every setting) on which the ADD error is measured. dynamics: the planner's step
     ``(state, u) -> state`` on planner_model, a ``CompiledStep`` when ``planner.compile`` is set (one per setup,
     shared by every solve on it, so it compiles once). cost_terms: what evaluates the costs (``Task.costs``),
-    compiled with the step, and as it is shared by every goal.
+    compiled with the step, and as it is shared by every goal. processes: the solver's worker processes when
+    ``planner.worker_processes`` is set (``solver_processes`` gives them each goal's problem; ``close`` stops them).
+    compile_options: what ``prepare`` was given, which the worker processes compile their steps with.
     """
 
     task: Task
@@ -223,6 +229,13 @@ class Setup:
     sensors: Tensor
     metric_points: Tensor
     cost_terms: CostTerms = EAGER_COST_TERMS
+    processes: WorkerProcesses | None = None
+    compile_options: dict | None = None
+
+    def close(self) -> None:
+        """Stop the worker processes, if any."""
+        if self.processes is not None:
+            self.processes.close()
 
 
 def prepare(
@@ -237,13 +250,11 @@ def prepare(
     ``planner.compile`` is set, on top of ``dynamic=False``: the planner's shapes are fixed per setup, and static
     kernels are the fast ones (inductor with its C++ wrapper by default). They go to the compiled cost terms
     (``compiled_cost_terms``) too, where dynamo's automatic dynamic shapes stay on: an open-loop plan's horizon
-    is each episode's length.
+    is each episode's length. With ``planner.worker_processes`` it starts the solver's worker processes, which build
+    their own step with the same options (``build_problem``; ``Setup.close`` stops them).
     """
     spacing = planner.spacing or task.scene.object.spacing
-    scene = with_solver_steps(with_contact(task.scene, planner.model, spacing), planner.sdf_solver_steps)
-    model, _, _ = compile_scene(scene, dtype=planner.dtype)
-    model = with_object_update(model, planner.object_update)
-    model = replace(model, substeps=model.substeps * planner.substep_factor)
+    model = planner_model(task, planner)
     world = Plant(task.scene, plant, spacing)
     missing = [name for name in model.body_names if name not in world.model.body_names]
     if missing:
@@ -251,7 +262,64 @@ def prepare(
     body_index = torch.tensor([world.model.body_names.index(name) for name in model.body_names])
     metric = build_surface(msgspec.structs.replace(task.scene.object, spacing=METRIC_SPACING_M)).points
     dynamics, costs = planner_calls(model, planner, compile_options)
-    return Setup(task, planner, model, dynamics, world, body_index, sensor_bodies(model), metric, costs)
+    processes = None
+    if planner.worker_processes:
+        low, high = task.bounds(model.body_names, model.dtype)
+        processes = WorkerProcesses(build_problem, planner.workers, low, high, planner.config(planner.horizon, 1),
+                                    planner.dtype, threads=torch.get_num_threads())
+    return Setup(task, planner, model, dynamics, world, body_index, sensor_bodies(model), metric, costs, processes,
+                 compile_options)
+
+
+def planner_model(task: Task, planner: PlannerSettings) -> Model:
+    """The planner's model of ``task``'s scene: its contact model, spacing, SDF solver steps, object update and
+    sub-steps as ``planner`` sets them."""
+    spacing = planner.spacing or task.scene.object.spacing
+    scene = with_solver_steps(with_contact(task.scene, planner.model, spacing), planner.sdf_solver_steps)
+    model, _, _ = compile_scene(scene, dtype=planner.dtype)
+    model = with_object_update(model, planner.object_update)
+    return replace(model, substeps=model.substeps * planner.substep_factor)
+
+
+class SolverProblem(NamedTuple):
+    """What a solver worker process builds its share's problem from (``build_problem``); picklable."""
+
+    task: Task
+    planner: PlannerSettings
+    compile_options: dict | None
+    goal: Tensor  # (7,) float64
+    anchor: tuple[Tensor, Tensor] | None  # as ``Task.costs`` takes it
+    eager_costs: bool = False  # the costs eager even when the step is compiled (benchmarks compare the two)
+
+
+_WORKER_PLANNERS: dict[bytes, tuple[Model, Callable, CostTerms]] = {}
+"""In a worker process: the planner model, step and cost terms per pickled ``(task, planner, compile options)``,
+made once and kept for every goal."""
+
+
+def build_problem(problem: SolverProblem) -> tuple[Callable, Callable, Callable]:
+    """``(dynamics, stage_cost, terminal_cost)`` of ``problem`` for ``control.WorkerProcesses``: in a worker
+    process, its own planner model and step (one worker: ``planner.workers`` is the parent's count of processes)
+    and the costs of the goal."""
+    planner = replace(problem.planner, workers=1, worker_processes=False)
+    key = pickle.dumps((problem.task, planner, problem.compile_options))
+    if key not in _WORKER_PLANNERS:
+        model = planner_model(problem.task, planner)
+        _WORKER_PLANNERS[key] = (model, *planner_calls(model, planner, problem.compile_options))
+    model, dynamics, terms = _WORKER_PLANNERS[key]
+    stage, terminal = problem.task.costs(model, problem.goal, anchor=problem.anchor,
+                                         terms=EAGER_COST_TERMS if problem.eager_costs else terms)
+    return dynamics, stage, terminal
+
+
+def solver_processes(setup: Setup, goal: Tensor, anchor: tuple[Tensor, Tensor] | None,
+                     eager_costs: bool = False) -> WorkerProcesses | None:
+    """The setup's worker processes, set to plan for ``goal`` from ``anchor`` (``CemGd``'s ``processes``), or None
+    when the planner runs its shares on threads."""
+    if setup.processes is not None:
+        setup.processes.set_problem(SolverProblem(setup.task, setup.planner, setup.compile_options, goal, anchor,
+                                                  eager_costs))
+    return setup.processes
 
 
 def planner_calls(model: Model, planner: PlannerSettings, compile_options: dict | None = None
@@ -351,6 +419,7 @@ def run_episode(
     solver = CemGd(
         setup.dynamics, stage, terminal, low, high,
         config=planner.config(horizon, iterations), dtype=model.dtype,
+        processes=solver_processes(setup, goal, anchor),
     )
     start_error = _errors(setup, plant.state.object_pose, goal)[0]
     errors, actions, timings = [start_error], [], []

@@ -94,6 +94,22 @@ def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost
         assert "--rate-activation-budgets" in capsys.readouterr().err
 
 
+def test_the_rate_is_measured_with_worker_threads_and_worker_processes_alike(tmp_path, capsys):
+    """The same loop with its two shares on threads and in processes of their own: the same plans, bit for bit (the
+    same arithmetic per row); the step and cost calls are not timed where they run in other processes."""
+    assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
+                             "--steps", "1", "--goals", "1", "--rate-solves", "2", "--rate-dtypes", "float32",
+                             "--rate-workers", "2", "--rate-worker-kinds", "threads,processes", "--json",
+                             "--out", str(tmp_path))) == 0
+    threads, processes = json.loads(capsys.readouterr().out)["replanning"]
+    assert (threads["worker_kind"], processes["worker_kind"]) == ("threads", "processes")
+    assert processes["plan_costs"] == threads["plan_costs"] and all(math.isfinite(c) for c in threads["plan_costs"])
+    assert processes["step_forward_ms"] is None and threads["step_forward_ms"] > 0
+    assert processes["rate_hz"] > 0 and processes["rollout_ms"] > 0 and processes["backward_ms"] > 0
+    assert control.run(parse("--rate-worker-kinds", "fibers", "--out", str(tmp_path))) == 2
+    assert "--rate-worker-kinds" in capsys.readouterr().err
+
+
 def test_the_rate_is_measured_per_object_update_and_the_episodes_plan_with_the_chosen_one(tmp_path, capsys):
     assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
                              "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes",
@@ -151,7 +167,7 @@ def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp
     finally:
         torch._dynamo.reset()
     out = capsys.readouterr().out
-    assert "float32" in out and ("sub-steps, bubble SDF in 3 solver steps, 1 thread(s), 1 solver worker(s), "
-                                 "explicit object update, activation budget 0, compiled costs, compiled:") in out
+    assert "float32" in out and "sub-steps, bubble SDF in 3 solver steps, 1 thread(s), " in out
+    assert "1 solver worker(s) (threads), explicit object update, activation budget 0, compiled costs, compiled:" in out
     assert "explicit object update, activation budget 0, compiled:" in out  # --rate-costs eager
     assert "compiling the step" in out

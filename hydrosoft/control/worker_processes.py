@@ -1,0 +1,214 @@
+"""Worker processes for ``CemGd``: each share of the samples descends and rolls out in a process of its own.
+
+The solver's worker threads split the samples but share one interpreter: with the compiled step, each thread held
+the interpreter lock about half the wall time, and memory allocation and the lock kept two B = 32 shares at
+0.7-0.9 of the speed each has alone (README, "Worker processes"). Processes share nothing, so each runs its share at
+its own speed; the price is a copy of the problem per process (its model, compiled step and costs, built there from
+a picklable description) and a few hundred microseconds of messages per solve.
+
+``WorkerProcesses(build, workers, ...)`` starts ``workers`` processes: fresh interpreters running this module (``python
+-m hydrosoft.control.worker_processes FD``), each talking to its parent over a socket pair. (A fork of a process that
+runs torch's threads is unsafe, and multiprocessing's ``spawn`` re-imports the parent's main script, which a script
+without a ``__main__`` guard cannot survive.) ``set_problem(problem)`` has each call ``build(problem) -> (dynamics,
+stage_cost, terminal_cost)`` and keep a ``CemGd`` of its own on it (one worker, the parent's bounds, dtype and
+settings), as for a new goal; ``build`` must be a module-level function and ``problem`` picklable, and ``build`` may
+keep what does not change between problems (the model and its compiled step). ``improve(x0, shares)`` sends the batch-1
+start state and one share of the sequences to each, whose solver's ``improve`` runs it, and returns their
+``ShareResult``s in order. The first ``improve`` compiles, in every process at once. Messages are pickled with the
+standard pickler and sent as bytes through the sockets, the per-solve tensors as NumPy arrays (multiprocessing's own
+pickler would move each tensor through a shared-memory file, slower for a few kilobytes).
+
+A worker's error is raised in the parent as ``WorkerError`` with the worker's message; a worker that dies, or does
+not answer within ``timeout_s``, raises it too, and ``close`` (also on garbage collection and at exit) stops all
+of them. A worker exits by itself when its socket closes, so none outlives its parent, even one killed.
+"""
+from __future__ import annotations
+
+import pickle
+import socket
+import subprocess
+import sys
+import traceback
+import weakref
+from collections.abc import Callable
+from dataclasses import replace
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils._pytree import tree_map
+
+from hydrosoft.compilation import settle_garbage_collector
+from hydrosoft.control.cem_gd import CemGd, CemGdConfig, ShareResult
+
+Problem = tuple[Callable, Callable, Callable]
+"""``(dynamics, stage_cost, terminal_cost)`` as ``CemGd`` takes them."""
+
+
+SETTLE_AFTER = 2
+"""Improves of a new problem after which a worker settles its garbage collector (``compilation``): the first compiles
+the step's graphs, the second those of the step from its own outputs."""
+
+
+STDERR_FD = 2
+"""Where a worker's standard output goes: the parent's standard error, so that nothing a worker prints can land in a
+command's output (``bench control --json`` writes its document there)."""
+
+
+class WorkerError(RuntimeError):
+    """A worker process failed, died or did not answer in time."""
+
+
+def _to_numpy(tree: Any) -> Any:
+    return tree_map(lambda t: t.detach().cpu().numpy() if isinstance(t, Tensor) else t, tree)
+
+
+def _to_torch(tree: Any) -> Any:
+    return tree_map(lambda a: torch.from_numpy(a) if isinstance(a, np.ndarray) else a, tree)
+
+
+class WorkerProcesses:
+    """``workers`` processes that each improve one share of ``CemGd``'s samples (module docstring).
+
+    ``low, high``: the action bounds, ``config``: the solver's settings and ``dtype`` its float type (each process's
+    own solver has them, with one worker); ``threads``: torch's intra-op threads per process; ``timeout_s``: how long
+    to wait for a process to start (build and compile) and for each answer.
+    """
+
+    def __init__(self, build: Callable[[Any], Problem], workers: int, low: Tensor, high: Tensor,
+                 config: CemGdConfig, dtype: torch.dtype, threads: int = 1, timeout_s: float = 900.0) -> None:
+        self.workers = workers
+        self.timeout_s = timeout_s
+        self._pipes: list[Connection] = []
+        self._processes: list[subprocess.Popen] = []
+        self._finalizer = weakref.finalize(self, _stop, self._pipes, self._processes)
+        solver = (build, low.cpu().numpy(), high.cpu().numpy(), replace(config, workers=1), dtype, threads)
+        for _ in range(workers):
+            ours, theirs = socket.socketpair()
+            with theirs:
+                self._processes.append(subprocess.Popen(
+                    [sys.executable, "-m", __name__, str(theirs.fileno())], pass_fds=[theirs.fileno()],
+                    stdout=STDERR_FD))
+            self._pipes.append(Connection(ours.detach()))
+        self._broadcast("start", [solver] * workers)
+
+    @property
+    def pids(self) -> list[int]:
+        """The worker processes' pids."""
+        return [process.pid for process in self._processes]
+
+    def set_problem(self, problem: Any) -> None:
+        """Rebuild every process's problem from ``problem`` (``build(problem)``), as for a new goal."""
+        self._broadcast("problem", [problem] * self.workers)
+
+    def improve(self, x0: Any, shares: list[Tensor]) -> list[ShareResult]:
+        """Each share ``(b_i, K, *A)`` improved from ``x0`` (batch 1) by its process: their ``ShareResult``s."""
+        if len(shares) != self.workers:
+            raise ValueError(f"{len(shares)} shares for {self.workers} worker processes")
+        start = _to_numpy(x0)
+        results = self._broadcast("improve", [(start, share.cpu().numpy()) for share in shares])
+        return [ShareResult(torch.from_numpy(u).to(share), torch.from_numpy(cost).to(share.device), best,
+                            _to_torch(states), timings)
+                for (u, cost, best, states, timings), share in zip(results, shares)]
+
+    def close(self) -> None:
+        """Stop the processes (their pipes close; any still running after 5 s is killed)."""
+        self._finalizer()
+
+    def _broadcast(self, kind: str, payloads: list) -> list:
+        """Send ``(kind, payload)`` to each process, then gather each one's answer, in order. Any error, death or
+        timeout stops them all and raises ``WorkerError``."""
+        for i, (pipe, payload) in enumerate(zip(self._pipes, payloads)):
+            try:
+                pipe.send_bytes(pickle.dumps((kind, payload), protocol=pickle.HIGHEST_PROTOCOL))
+            except (BrokenPipeError, OSError) as err:
+                self._fail(i, kind, f"it died ({err})")
+        answers = []
+        for i, pipe in enumerate(self._pipes):
+            try:
+                ready = pipe.poll(self.timeout_s)
+                status, answer = pickle.loads(pipe.recv_bytes()) if ready else ("timeout", None)
+            except (EOFError, OSError):
+                status, answer = "died", None
+            if status != "ok":
+                self._fail(i, kind, {"timeout": f"no answer within {self.timeout_s:g} s",
+                                     "died": "it died"}.get(status, answer))
+            answers.append(answer)
+        return answers
+
+    def _fail(self, index: int, kind: str, detail: str) -> None:
+        """Stop every process, then raise ``WorkerError`` for process ``index``'s failure at message ``kind``."""
+        self.close()
+        raise WorkerError(f"solver worker process {index} failed at {kind}: {detail} (exit codes "
+                          f"{self._exit_codes()})")
+
+    def _exit_codes(self) -> list[int | None]:
+        return [process.poll() for process in self._processes]
+
+
+def _stop(pipes: list[Connection], processes: list[subprocess.Popen]) -> None:
+    for pipe in pipes:
+        pipe.close()
+    for process in processes:
+        try:
+            process.wait(5.0)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(5.0)
+
+
+def _reply(pipe: Connection, message: tuple) -> None:
+    pipe.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _serve(pipe: Connection) -> None:
+    """A worker process: take the ``start`` message, then answer ``problem`` and ``improve`` messages until the
+    socket closes."""
+    kind, (build, low, high, config, dtype, threads) = pickle.loads(pipe.recv_bytes())
+    torch.set_num_threads(threads)
+
+    def make(description: Any) -> CemGd:
+        return CemGd(*build(description), torch.from_numpy(low), torch.from_numpy(high), config=config, dtype=dtype)
+
+    def expand(t: Any, b: int) -> Any:
+        return t.expand(b, *t.shape[1:]).contiguous() if isinstance(t, Tensor) else t
+
+    cem, unsettled = None, 0
+    _reply(pipe, ("ok", None) if kind == "start" else ("error", f"expected start, got {kind!r}"))
+    while True:
+        try:
+            kind, payload = pickle.loads(pipe.recv_bytes())
+        except (EOFError, OSError):
+            return
+        try:
+            if kind == "problem":
+                cem = make(payload)
+                unsettled = SETTLE_AFTER
+                _reply(pipe, ("ok", None))
+            elif kind == "improve" and cem is None:
+                _reply(pipe, ("error", "improve before any problem was set (set_problem)"))
+            elif kind == "improve":
+                start, u = payload
+                u = torch.from_numpy(u)
+                x0 = tree_map(lambda t: expand(t.to(dtype) if t.is_floating_point() else t, u.shape[0])
+                              if isinstance(t, Tensor) else t, _to_torch(start))
+                share = cem.improve(x0, u)
+                if unsettled:
+                    unsettled -= 1
+                    if not unsettled:
+                        settle_garbage_collector()
+                _reply(pipe, ("ok", (share.u.numpy(), share.cost.numpy(), share.best, _to_numpy(share.best_states),
+                                  share.timings)))
+            else:
+                _reply(pipe, ("error", f"unknown message {kind!r}"))
+        except Exception:  # noqa: BLE001 - reported to the parent, which raises it
+            _reply(pipe, ("error", traceback.format_exc()))
+
+
+if __name__ == "__main__":
+    try:
+        _serve(Connection(int(sys.argv[1])))
+    except (KeyboardInterrupt, EOFError, OSError):  # the parent stopped, or was interrupted with us
+        pass

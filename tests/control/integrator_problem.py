@@ -1,0 +1,35 @@
+"""A single integrator x_{k+1} = x_k + u_k towards a goal, as a picklable problem for ``WorkerProcesses``' tests (the
+worker processes import this module by name: the tests put its folder on their ``PYTHONPATH``)."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from hydrosoft.control import effort_cost
+
+
+class State(NamedTuple):
+    pos: torch.Tensor  # (B, 3) m
+    steps: torch.Tensor  # (B,) int64, steps taken: a non-float leaf rides along
+
+
+def integrator(state: State, u: torch.Tensor) -> State:
+    """Single integrator on a (B, 1, 3) action."""
+    return State(state.pos + u[:, 0], state.steps + 1)
+
+
+def build(goal: tuple[float, float, float]):
+    """``(dynamics, stage_cost, terminal_cost)`` towards ``goal`` (m); a goal with a NaN raises, as a broken
+    problem would."""
+    if any(g != g for g in goal):
+        raise ValueError(f"goal {goal} is not finite")
+    target = torch.tensor(goal, dtype=torch.float64)
+
+    def to_goal(state: State) -> torch.Tensor:
+        return (state.pos - target.to(state.pos)).square().sum(-1)
+
+    def stage(states: list[State], u: torch.Tensor) -> torch.Tensor:
+        return sum(to_goal(state) for state in states) + 0.01 * effort_cost(u)
+
+    return integrator, stage, to_goal

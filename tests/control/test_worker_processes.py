@@ -1,0 +1,142 @@
+"""CEM-GD's shares in worker processes: the same plans as threads, new goals, and failures that raise instead of
+hanging (real processes, each stopped by the test)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from hydrosoft.control import CemGd, CemGdConfig
+from hydrosoft.control.worker_processes import WorkerError, WorkerProcesses
+
+HERE = Path(__file__).parent
+sys.path.insert(0, str(HERE))
+import integrator_problem as problem  # noqa: E402 - the folder the worker processes import it from, too
+
+LOW = torch.full((1, 3), -0.1, dtype=torch.float64)
+GOAL = (0.5, -0.3, 0.2)
+
+
+@pytest.fixture(autouse=True)
+def _importable_problem(monkeypatch):
+    """The worker processes find ``integrator_problem`` on their path."""
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(HERE), os.environ.get("PYTHONPATH")])))
+
+
+def start(config: CemGdConfig, timeout_s: float = 60.0) -> WorkerProcesses:
+    return WorkerProcesses(problem.build, config.workers, LOW, -LOW, config, torch.float64, timeout_s=timeout_s)
+
+
+def solver(config: CemGdConfig, goal=GOAL, processes: WorkerProcesses | None = None) -> CemGd:
+    return CemGd(*problem.build(goal), LOW, -LOW, config, dtype=torch.float64, processes=processes)
+
+
+def x0(pos=(0.0, 0.0, 0.0)) -> problem.State:
+    return problem.State(torch.tensor([pos], dtype=torch.float64), torch.zeros(1, dtype=torch.int64))
+
+
+def assert_stopped(pids: list[int]) -> None:
+    for pid in pids:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+
+
+def test_processes_plan_what_threads_plan_and_follow_a_new_goal():
+    """Three workers over 64 samples (22, 21, 21): three receding-horizon solves give the plans, costs, warm starts
+    and predicted states of the threads' solver; after ``set_problem`` with another goal, those of a fresh solver
+    for it. The processes are others than this one, and ``close`` stops them."""
+    config = CemGdConfig(seed=3, workers=3)
+    workers = start(config)
+    pids = workers.pids
+    try:
+        assert len(set(pids)) == 3 and os.getpid() not in pids
+        for goal, start_pos in ((GOAL, (0.0, 0.0, 0.0)), ((-0.2, 0.1, 0.0), (0.1, 0.2, -0.1))):
+            workers.set_problem(goal)
+            threads, processes = solver(config, goal), solver(config, goal, workers)
+            state = x0(start_pos)
+            for _ in range(3):
+                expected, result = threads.solve(state), processes.solve(state)
+                torch.testing.assert_close(result.plan, expected.plan, rtol=0, atol=1e-12)
+                assert result.cost == pytest.approx(expected.cost, rel=1e-12)
+                torch.testing.assert_close(processes.mean, threads.mean, rtol=0, atol=1e-12)
+                for got, want in zip(result.states, expected.states, strict=True):
+                    torch.testing.assert_close(got.pos, want.pos, rtol=0, atol=1e-12)
+                    assert torch.equal(got.steps, want.steps)
+                state = result.states[0]
+    finally:
+        workers.close()
+    assert_stopped(pids)
+
+
+def test_a_broken_problem_raises_the_workers_error_and_stops_them():
+    config = CemGdConfig(seed=0, workers=2)
+    workers = start(config)
+    pids = workers.pids
+    with pytest.raises(WorkerError, match="improve before any problem"):
+        workers.improve(x0(), list(torch.zeros(64, 10, 1, 3, dtype=torch.float64).tensor_split(2)))
+    assert_stopped(pids)
+    workers = start(config)
+    pids = workers.pids
+    with pytest.raises(WorkerError, match="goal .* is not finite"):
+        workers.set_problem((float("nan"), 0.0, 0.0))
+    assert_stopped(pids)
+
+
+def test_a_killed_worker_raises_instead_of_hanging():
+    config = CemGdConfig(seed=0, workers=2)
+    workers = start(config, timeout_s=30.0)
+    pids = workers.pids
+    workers.set_problem(GOAL)
+    os.kill(pids[1], signal.SIGKILL)
+    tic = time.monotonic()
+    with pytest.raises(WorkerError, match="died"):
+        solver(config, processes=workers).solve(x0())
+    assert time.monotonic() - tic < 20.0
+    assert_stopped(pids)
+
+
+PARENT = """
+import sys, torch
+sys.path.insert(0, {here!r})
+import integrator_problem as problem
+from hydrosoft.control import CemGdConfig
+from hydrosoft.control.worker_processes import WorkerProcesses
+low = torch.full((1, 3), -0.1, dtype=torch.float64)
+workers = WorkerProcesses(problem.build, 2, low, -low, CemGdConfig(workers=2), torch.float64)
+print(*workers.pids, flush=True)
+sys.stdin.read()
+"""
+
+
+def test_workers_exit_when_their_parent_is_killed():
+    """A planner killed outright (no ``close``) leaves no worker behind: each exits when its socket closes."""
+    parent = subprocess.Popen([sys.executable, "-c", PARENT.format(here=str(HERE))], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(pid) for pid in parent.stdout.readline().split()]
+        assert len(pids) == 2
+    finally:
+        parent.kill()
+        parent.wait(10)
+    deadline = time.monotonic() + 20.0
+    alive = pids
+    while alive and time.monotonic() < deadline:
+        alive = [pid for pid in alive if _alive(pid)]
+        time.sleep(0.1)
+    for pid in alive:  # stop what the check found, then fail
+        os.kill(pid, signal.SIGKILL)
+    assert alive == []
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie reparented to init counts as gone)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
