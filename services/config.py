@@ -201,7 +201,10 @@ class PlannerConfig(Strict):
     than one under load; raise it on a machine with cores to spare). workers: solver threads that each roll out a
     share of the samples (``CemGdConfig.workers``; 1 by default), at most ``samples``: on a machine with a core per
     worker to spare, two workers with one torch thread each beat one solve on two threads (``hydrosoft-stack bench
-    control --rate-workers 1,2 --threads 1`` measures it). object_update: the planner model's object update
+    control --rate-workers 1,2 --threads 1`` measures it). worker_processes: the ``workers`` shares in processes of
+    their own instead of threads (``hydrosoft.control.WorkerProcesses``; 0.86 of the threads' cycle in the
+    benchmark, ``--rate-worker-kinds``), each with its own copy of the model and step: for a machine with a core per
+    worker to spare. object_update: the planner model's object update
     (``hydrosoft.dynamics.Model.object_update``): ``explicit``, sub-stepped as the scene's contacts need, or
     ``linearly_implicit``, one sub-step per control step (NH and SNH planners; ``hydrosoft-stack bench control
     --rate-object-updates`` measures the rate of each). max_reapproaches: how often one goal may bring
@@ -226,6 +229,7 @@ class PlannerConfig(Strict):
     workers: int = 1
     object_update: Literal["explicit", "linearly_implicit"] = "explicit"
     max_reapproaches: int = 3
+    worker_processes: bool = False
 
     def __post_init__(self) -> None:
         _require(self.max_reapproaches >= 0, "planner.max_reapproaches",

@@ -31,9 +31,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import importlib
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import msgspec
@@ -41,7 +43,7 @@ import numpy as np
 import torch
 
 from hydrosoft.compilation import settle_garbage_collector
-from hydrosoft.control import CemGd, PlanResult
+from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import State, with_object_update
@@ -113,6 +115,7 @@ class PlannerCore:
     frame: TaskFrame = field(default_factory=lambda: TaskFrame.from_pose(se3.identity()))
     grasp_offset: torch.Tensor | None = None
     cost_terms: CostTerms = EAGER_COST_TERMS
+    processes: WorkerProcesses | None = None
 
     @classmethod
     def build(cls, config: StackConfig) -> PlannerCore:
@@ -138,18 +141,40 @@ class PlannerCore:
         if len(arms) == 1:
             (index,) = arms.values()
             offset = grasp_offset(state.object_pose[0].double(), state.body_poses[0, index].double())
+        processes = None
+        if pc.worker_processes:
+            low, high = task.bounds(model.body_names, model.dtype)
+            # by its module's name: run as a service this module is __main__, which a worker cannot import
+            build = importlib.import_module("hydrosoft.services.planner").core_problem
+            processes = WorkerProcesses(build, pc.workers, low, high, settings.config(settings.horizon, 1),
+                                        settings.dtype, threads=pc.threads)
         return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
-                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset, cost_terms)
+                   metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset, cost_terms, processes)
+
+    def problem(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]
+                ) -> tuple[Callable, Callable, Callable]:
+        """``(dynamics, stage_cost, terminal_cost)`` towards ``goal_pose (7,)``, the drift cost anchored at the object
+        pose ``(7,)`` and TCP poses ``(7,)`` the goal starts from (``Task.costs``)."""
+        stage, terminal = self.task.costs(self.model, goal_pose, anchor=(object_pose, self.body_poses(arm_poses)),
+                                          terms=self.cost_terms)
+        return self.dynamics, stage, terminal
 
     def solver(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]) -> CemGd:
-        """A fresh CEM-GD solver towards ``goal_pose (7,)`` (its warm start then follows the episode), its drift
-        cost anchored at the object pose ``(7,)`` and TCP poses ``(7,)`` the goal starts from (``Task.costs``)."""
-        task = self.task
-        low, high = task.bounds(self.model.body_names, self.model.dtype)
-        stage, terminal = task.costs(self.model, goal_pose, anchor=(object_pose, self.body_poses(arm_poses)),
-                                     terms=self.cost_terms)
-        return CemGd(self.dynamics, stage, terminal, low, high, config=self.settings.config(self.settings.horizon, 1),
-                     dtype=self.model.dtype)
+        """A fresh CEM-GD solver for ``problem(goal_pose, object_pose, arm_poses)`` (its warm start then follows the
+        episode), on the worker processes when the config asks for them (given the same problem first)."""
+        low, high = self.task.bounds(self.model.body_names, self.model.dtype)
+        if self.processes is not None:
+            alone = msgspec.structs.replace(self.config.planner, workers=1, worker_processes=False)
+            self.processes.set_problem((msgspec.structs.replace(self.config, planner=alone), goal_pose, object_pose,
+                                        arm_poses))
+        return CemGd(*self.problem(goal_pose, object_pose, arm_poses), low, high,
+                     config=self.settings.config(self.settings.horizon, 1), dtype=self.model.dtype,
+                     processes=self.processes)
+
+    def close(self) -> None:
+        """Stop the worker processes, if any."""
+        if self.processes is not None:
+            self.processes.close()
 
     def error_mm(self, object_pose: torch.Tensor, goal_pose: torch.Tensor) -> float:
         """ADD error (mm) of ``object_pose (7,)`` against ``goal_pose (7,)``."""
@@ -487,6 +512,21 @@ class Planner:
                         solve_ms=1e3 * sum(result.timings.values()), **stamps)
 
 
+_WORKER_CORES: dict[bytes, PlannerCore] = {}
+"""In a solver worker process: the planner core per config (JSON), built once and kept for every goal."""
+
+
+def core_problem(problem: tuple) -> tuple[Callable, Callable, Callable]:
+    """``(dynamics, stage_cost, terminal_cost)`` in a solver worker process (``control.WorkerProcesses``) for
+    ``problem = (config, goal_pose, object_pose, arm_poses)``: ``PlannerCore.problem`` on the config's core (one
+    worker, no processes of its own)."""
+    config, goal_pose, object_pose, arm_poses = problem
+    key = msgspec.json.encode(config)
+    if key not in _WORKER_CORES:
+        _WORKER_CORES[key] = PlannerCore.build(config)
+    return _WORKER_CORES[key].problem(goal_pose, object_pose, arm_poses)
+
+
 def compile_step(core: PlannerCore) -> float:
     """Compile the planner's step for every input signature a solve uses, by one solve from the scene's initial
     state (its result is dropped), then settle the garbage collector (``compilation.settle_garbage_collector``: the
@@ -519,6 +559,7 @@ async def run(service: Service, config: StackConfig) -> None:
             await planner.tick()
     finally:
         serving.cancel()
+        core.close()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

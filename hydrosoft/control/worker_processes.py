@@ -79,6 +79,9 @@ class WorkerProcesses:
 
     def __init__(self, build: Callable[[Any], Problem], workers: int, low: Tensor, high: Tensor,
                  config: CemGdConfig, dtype: torch.dtype, threads: int = 1, timeout_s: float = 900.0) -> None:
+        if getattr(build, "__module__", "__main__") == "__main__":
+            raise ValueError(f"build {build!r} must be importable by its module's name, not defined in __main__ (a "
+                             f"worker process runs another main module)")
         self.workers = workers
         self.timeout_s = timeout_s
         self._pipes: list[Connection] = []

@@ -140,3 +140,12 @@ def _alive(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+def test_a_build_defined_in_the_main_module_is_refused_up_front():
+    def build(goal):
+        return problem.build(goal)
+
+    build.__module__ = "__main__"
+    with pytest.raises(ValueError, match="importable"):
+        WorkerProcesses(build, 2, LOW, -LOW, CemGdConfig(workers=2), torch.float64)

@@ -4,6 +4,7 @@ from the stack config, the client API's refusals."""
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import msgspec
@@ -12,11 +13,13 @@ import pytest
 import torch
 
 from hydrosoft.geometry import se3
+from hydrosoft.scene import compile_scene
 from hydrosoft.services import messages as msg
 from hydrosoft.services.config import load_config
 from hydrosoft.services.planner import (
     PlannerCore,
     arm_end_positions,
+    planner_scene,
     resolve_target,
     targets_from_plan,
 )
@@ -138,3 +141,31 @@ def test_the_planner_model_takes_the_configured_object_update(core, tmp_path):
     assert core.model.object_update == "linearly_implicit" and core.model.substeps == 1
     assert core.settings.object_update == "linearly_implicit"
     assert explicit.model.object_update == "explicit" and explicit.model.substeps > 1
+
+
+def test_worker_processes_plan_what_threads_plan_and_stop_with_the_core(tmp_path):
+    """``planner.worker_processes``: two solves of a goal on two worker processes give the plans of two worker
+    threads (each process builds the config's core and the goal's costs itself); ``close`` stops the processes."""
+    text = SIM_TOML.read_text().replace("[planner]", "[planner]\nworkers = 2\n", 1)
+    (tmp_path / "threads.toml").write_text(text)
+    (tmp_path / "processes.toml").write_text(text.replace("[planner]", "[planner]\nworker_processes = true\n", 1))
+    threads = PlannerCore.build(load_config(tmp_path / "threads.toml"))
+    processes = PlannerCore.build(load_config(tmp_path / "processes.toml"))
+    pids = processes.processes.pids
+    try:
+        assert threads.processes is None and len(pids) == 2
+        _, initial, _ = compile_scene(planner_scene(threads.task, threads.config.planner), dtype=threads.model.dtype)
+        arms = {name: initial.body_poses[0, index].double() for name, index in threads.arms.items()}
+        goal = threads.task.initial_pose().clone()
+        goal[0] += 0.02
+        plans = []
+        for core in (threads, processes):
+            solver = core.solver(goal, initial.object_pose[0].double(), arms)
+            plans.append([solver.solve(initial).plan for _ in range(2)])
+        for expected, got in zip(*plans, strict=True):
+            torch.testing.assert_close(got, expected, rtol=0, atol=1e-6)
+    finally:
+        processes.close()
+    for pid in pids:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
