@@ -148,6 +148,10 @@ class PlannerCore:
             build = importlib.import_module("hydrosoft.services.planner").core_problem
             processes = WorkerProcesses(build, pc.workers, low, high, settings.config(settings.horizon, 1),
                                         settings.dtype, threads=pc.threads)
+            # each worker builds its core now, at start, not at the first goal (on the service's event loop)
+            arm_poses = {name: state.body_poses[0, index].double() for name, index in arms.items()}
+            processes.set_problem(worker_problem(config, task.initial_pose(), state.object_pose[0].double(),
+                                                 arm_poses))
         return cls(config, task, settings, model, dynamics, arms, sensor_bodies(model), state.body_poses[0].double(),
                    metric, membranes, TaskFrame.from_pose(config.scene.task_frame), offset, cost_terms, processes)
 
@@ -164,9 +168,7 @@ class PlannerCore:
         episode), on the worker processes when the config asks for them (given the same problem first)."""
         low, high = self.task.bounds(self.model.body_names, self.model.dtype)
         if self.processes is not None:
-            alone = msgspec.structs.replace(self.config.planner, workers=1, worker_processes=False)
-            self.processes.set_problem((msgspec.structs.replace(self.config, planner=alone), goal_pose, object_pose,
-                                        arm_poses))
+            self.processes.set_problem(worker_problem(self.config, goal_pose, object_pose, arm_poses))
         return CemGd(*self.problem(goal_pose, object_pose, arm_poses), low, high,
                      config=self.settings.config(self.settings.horizon, 1), dtype=self.model.dtype,
                      processes=self.processes)
@@ -514,6 +516,14 @@ class Planner:
 
 _WORKER_CORES: dict[bytes, PlannerCore] = {}
 """In a solver worker process: the planner core per config (JSON), built once and kept for every goal."""
+
+
+def worker_problem(config: StackConfig, goal_pose: torch.Tensor, object_pose: torch.Tensor,
+                   arm_poses: dict[str, torch.Tensor]) -> tuple:
+    """What a solver worker process builds a goal's problem from (``core_problem``): ``config`` as one worker without
+    processes of its own, and the goal and anchor ``PlannerCore.problem`` takes."""
+    alone = msgspec.structs.replace(config.planner, workers=1, worker_processes=False)
+    return msgspec.structs.replace(config, planner=alone), goal_pose, object_pose, arm_poses
 
 
 def core_problem(problem: tuple) -> tuple[Callable, Callable, Callable]:
