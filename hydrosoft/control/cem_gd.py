@@ -171,7 +171,7 @@ class CemGd:
         cfg = self.config
         timings = {"rollout_s": 0.0, "backward_s": 0.0, "cem_s": 0.0}
         if self.processes is None:
-            x0 = tree_map(self._expand, x0)
+            x0 = self.expand_state(x0, cfg.samples)
         best_cost, best_plan, best_states = math.inf, None, []
         for _ in range(cfg.cem_iterations):
             tic = self._clock()
@@ -210,12 +210,17 @@ class CemGd:
         timings["cem_s"] += self._clock() - tic
         return PlanResult(best_plan[0].clone(), best_plan, best_cost, "ok", timings, best_states)
 
-    def _expand(self, leaf: Any) -> Any:
-        """Batch-1 tensor -> ``(B, ...)`` contiguous copy on the solver's device (floats in its dtype)."""
-        if not isinstance(leaf, Tensor):
-            return leaf
-        leaf = leaf.to(device=self.device, dtype=self.dtype if leaf.is_floating_point() else None)
-        return leaf.expand(self.config.samples, *leaf.shape[1:]).contiguous()
+    def expand_state(self, x0: State, batch: int) -> State:
+        """Batch-1 state ``x0`` -> each tensor a ``(batch, ...)`` contiguous copy on the solver's device, floats in its
+        dtype: the start of ``batch`` rollouts (all samples here, or one share in a worker process)."""
+
+        def expand(leaf: Any) -> Any:
+            if not isinstance(leaf, Tensor):
+                return leaf
+            leaf = leaf.to(device=self.device, dtype=self.dtype if leaf.is_floating_point() else None)
+            return leaf.expand(batch, *leaf.shape[1:]).contiguous()
+
+        return tree_map(expand, x0)
 
     def _sample(self) -> Tensor:
         """Kept elites followed by fresh draws from N(mean, std) clamped to the bounds: ``(B, K, *A)``."""

@@ -2,7 +2,8 @@
 
 The solver's worker threads split the samples but share one interpreter: with the compiled step, each thread held
 the interpreter lock about half the wall time, and memory allocation and the lock kept two B = 32 shares at
-0.7-0.9 of the speed each has alone (README, "Worker processes"). Processes share nothing, so each runs its share at
+0.7-0.9 of the speed each has alone (README, "Worker processes, a faster `malloc` and a settled garbage
+collector"). Processes share nothing, so each runs its share at
 its own speed; the price is a copy of the problem per process (its model, compiled step and costs, built there from
 a picklable description) and a few hundred microseconds of messages per solve.
 
@@ -175,9 +176,6 @@ def _serve(pipe: Connection) -> None:
     def make(description: Any) -> CemGd:
         return CemGd(*build(description), torch.from_numpy(low), torch.from_numpy(high), config=config, dtype=dtype)
 
-    def expand(t: Any, b: int) -> Any:
-        return t.expand(b, *t.shape[1:]).contiguous() if isinstance(t, Tensor) else t
-
     cem, unsettled = None, 0
     _reply(pipe, ("ok", None) if kind == "start" else ("error", f"expected start, got {kind!r}"))
     while True:
@@ -195,9 +193,7 @@ def _serve(pipe: Connection) -> None:
             elif kind == "improve":
                 start, u = payload
                 u = torch.from_numpy(u)
-                x0 = tree_map(lambda t: expand(t.to(dtype) if t.is_floating_point() else t, u.shape[0])
-                              if isinstance(t, Tensor) else t, _to_torch(start))
-                share = cem.improve(x0, u)
+                share = cem.improve(cem.expand_state(_to_torch(start), u.shape[0]), u)
                 if unsettled:
                     unsettled -= 1
                     if not unsettled:
