@@ -40,14 +40,11 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Protocol
 
 import torch
 from torch import Tensor
 from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
-
-if TYPE_CHECKING:
-    from hydrosoft.control.worker_processes import WorkerProcesses
 
 State = Any
 """A tensor or a pytree (tuple, NamedTuple, dict) of tensors, each with a leading batch axis."""
@@ -104,6 +101,16 @@ class ShareResult(NamedTuple):
     timings: dict[str, float]  # wall s: rollout_s, backward_s
 
 
+class ShareProcesses(Protocol):
+    """What the solver needs of its worker processes (``worker_processes.WorkerProcesses`` is one), so that the
+    worker module depends on the solver and not both ways."""
+
+    workers: int
+
+    def improve(self, x0: State, shares: list[Tensor]) -> list[ShareResult]:
+        """Each share ``(b_i, K, *action_shape)`` improved from ``x0`` (batch 1) by its process."""
+
+
 class CemGd:
     """Cross-entropy + gradient-descent MPC over action sequences ``(K, *action_shape)`` within box bounds.
 
@@ -129,7 +136,7 @@ class CemGd:
         config: CemGdConfig = CemGdConfig(),
         dtype: torch.dtype = torch.float64,
         device: torch.device | str = "cpu",
-        processes: WorkerProcesses | None = None,
+        processes: ShareProcesses | None = None,
     ) -> None:
         self.dynamics = dynamics
         self.stage_cost = stage_cost
