@@ -1,7 +1,7 @@
 """Pure encoding and decoding of UR's RTDE protocol (version 2), as the ``ur_rtde`` 1.6.5 client uses it.
 
 No sockets here: the simulated controller (``simulator.py``) feeds bytes in and takes bytes out, and the tests call
-these functions directly. Facts follow ``/work/shared/reference/devices.md`` sections 1-4 (UR's RTDE guide, UR's
+these functions directly. Facts follow ``docs/devices.md`` sections 1-4 (UR's RTDE guide, UR's
 ``rtde/serialize.py`` and ur_rtde's ``robot_state.cpp``).
 
 Framing: every packet is ``uint16 total size (header included) | uint8 command | payload``, all numbers big-endian.
