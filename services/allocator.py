@@ -3,8 +3,8 @@
 The compiled planner allocates and frees about 90 buffers of a few tens of kB per model step, and every tensor
 op allocates its small C++ objects. Under glibc's ``malloc`` that took 12-14 % of a solve (``perf``: ``_int_malloc``,
 ``_int_free``, ``malloc_consolidate``), and the planner's two solver threads share its arenas. gperftools' tcmalloc,
-preloaded, took a solve to 0.92 of glibc's time in a round-robin of processes (README, "Worker processes, a faster
-`malloc` and a settled garbage collector").
+preloaded, took a solve to 0.92 of glibc's time in a round-robin of processes (docs/decisions.md, 2026-11-27,
+"the solver's shares may run in worker processes, and a faster `malloc` is preloaded").
 
 A running process cannot swap its allocator, so ``hydrosoft-stack`` re-executes itself once, at start, with the
 library in ``LD_PRELOAD`` (``reexec_with_allocator``); the processes it starts (the launcher's services, inductor's

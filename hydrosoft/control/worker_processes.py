@@ -2,8 +2,8 @@
 
 The solver's worker threads split the samples but share one interpreter: with the compiled step, each thread held
 the interpreter lock about half the wall time, and memory allocation and the lock kept two B = 32 shares at
-0.7-0.9 of the speed each has alone (README, "Worker processes, a faster `malloc` and a settled garbage
-collector"). Processes share nothing, so each runs its share at
+0.7-0.9 of the speed each has alone (docs/decisions.md, "the solver's shares may run in worker processes,
+and a faster `malloc` is preloaded"). Processes share nothing, so each runs its share at
 its own speed; the price is a copy of the problem per process (its model, compiled step and costs, built there from
 a picklable description) and a few hundred microseconds of messages per solve.
 

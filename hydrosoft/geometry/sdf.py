@@ -158,7 +158,7 @@ class Ellipsoid:
       (``distance_with_gradient``), which is what the implicit function theorem gives at the root. So the
       backward is one product per point whatever the solve costs. The pushing planner's compiled sub-step took
       0.89 of the time forward and 0.82 forward and backward, compared with autograd recording the last Newton
-      step (README, "The ellipsoid's gradient as its normal"). Second derivatives are not modelled (zero).
+      step (docs/decisions.md, "the ellipsoid's gradient is its normal"). Second derivatives are not modelled (zero).
     * Deep inside (``t < -min(r)^2 / 2``, depth >= ``min(r)^2 / (2 max(r))``), where the root nears
       the pole ``-min(r)^2`` (the centre, the medial surface), the closest point's smallest-radius
       coordinates come from the surface equation instead, which is well conditioned there, and

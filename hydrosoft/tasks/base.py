@@ -177,7 +177,7 @@ def compiled_cost_terms(activation_memory_budget: float = 0.0, workers: int = 1,
 
     Eager, the costs were dozens of small operations per rollout, forward and backward, each paying the interpreter
     and, with two solver workers, waiting for it. Compiled, a call of both took 0.49 of the eager time forward and
-    backward, and the two-worker planning cycle 0.95 (README, "The costs compiled"). The second rollout length
+    backward, and the two-worker planning cycle 0.95 (docs/decisions.md, "the task costs"). The second rollout length
     compiles once more, and with dynamo's default ``dynamic=None`` that graph is symbolic in the length and serves
     all others (open-loop plans of each episode's length)."""
     return CostTerms(CompiledFunction(stage_terms, activation_memory_budget, workers, **options),
