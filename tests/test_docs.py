@@ -2,6 +2,7 @@
 points outside the repository, and the README stays a short guide."""
 
 import argparse
+import os
 import re
 import shlex
 from pathlib import Path
@@ -22,9 +23,11 @@ OUTSIDE_REFERENCE = re.compile(r"\.\./shared|(?<![\w.])/(?:work|home|Users|root)
 
 def repo_files(suffixes: tuple[str, ...]) -> list[Path]:
     """The repository's files with these suffixes, without environments, caches and build outputs."""
-    return sorted(path for path in ROOT.rglob("*") if path.suffix in suffixes and path.is_file()
-                  and not SKIPPED_DIRS & set(path.relative_to(ROOT).parts)
-                  and not any(part.endswith(".egg-info") for part in path.relative_to(ROOT).parts))
+    found = []
+    for folder, subfolders, files in os.walk(ROOT):
+        subfolders[:] = [name for name in subfolders if name not in SKIPPED_DIRS and not name.endswith(".egg-info")]
+        found += [Path(folder, name) for name in files if Path(name).suffix in suffixes]
+    return sorted(found)
 
 
 def docs() -> list[Path]:
