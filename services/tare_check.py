@@ -19,7 +19,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from hydrosoft.drivers.bubble.deformation import CONTACT_THRESHOLD_M
 from hydrosoft.services import messages as msg
 from hydrosoft.services.safety import MOVING_ANGULAR_SPEED_RAD_S, MOVING_SPEED_M_S, is_moving
 
@@ -32,9 +31,10 @@ DEFORMATION_MAX_AGE_S = 0.5
 #: 3 x 3 pixels has about 0.42 sigma (0.08 mm), so the threshold is 6 of its sigmas and noise alone never reaches it.
 MEDIAN_KERNEL_PX = 3
 #: A pixel shows contact when its median-filtered deformation exceeds this, m: the bubble camera's own contact
-#: threshold (``drivers.bubble.deformation.CONTACT_THRESHOLD_M``, 0.5 mm), the shallowest press it reports as
-#: touching. A press shallower than this everywhere cannot be told from noise and is not refused.
-CONTACT_DEFORMATION_M = CONTACT_THRESHOLD_M
+#: threshold (``drivers.bubble.deformation.CONTACT_THRESHOLD_M``, 0.5 mm; not imported, as that module loads torch),
+#: the shallowest press it reports as touching. A press shallower than this everywhere cannot be told from noise
+#: and is not refused.
+CONTACT_DEFORMATION_M = 5e-4
 #: Contact needs at least this many such pixels (a blob, not one hot pixel the median let through).
 MIN_CONTACT_PIXELS = 4
 #: The membrane must return depth on at least this fraction of the image, or contact cannot be ruled out.

@@ -1,7 +1,9 @@
 """The F/T reader service: its plain parts (tare, messages, polling a fake sensor) and the service as a real process
-reading a ``SimulatedFT300`` the test starts behind the config's ``ft_port``: it waits for the port, tares,
-publishes the simulator's wrench minus the tare, rejects corrupted frames and publishes nothing while the sensor
-stalls.
+reading a ``SimulatedFT300`` the test starts behind the config's ``ft_port``: it waits for the port, publishes the
+simulator's wrench minus the stored tare, rejects corrupted frames and publishes nothing while the sensor stalls;
+and it tares only on request, only with the arm at rest and the bubble out of contact (fake ``arm_state`` and
+``deformation`` publishers stand in for the arm commander and the bubble camera), and a reader killed and started
+again under load keeps the stored tare.
 
 The process gets a private run_dir and is stopped by its pid; the simulator is stopped by the test; every wait has
 a timeout.
@@ -23,6 +25,8 @@ from hydrosoft.services import bus as bus_layer
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Bus, LatestSubscriber
 from hydrosoft.services.config import load_config
+from hydrosoft.services.ft_bias import StoredBias, bias_path, load_bias, save_bias
+from hydrosoft.services.ft_command import request_tare
 from hydrosoft.services.ft_reader import (
     bias_of,
     error_kind,
@@ -84,6 +88,9 @@ def test_the_bias_is_the_mean_and_the_message_subtracts_it():
     np.testing.assert_allclose(message.wrench, PUSH, atol=1e-12)
     assert message.tared and message.sensor == "left" and message.hw_stamp_ns is None
     msg.encode(message, "wrench/left")
+    raw = wrench_message(WrenchSample(BIAS + PUSH, 5, None), None, "left")  # no bias: the raw reading, flagged
+    assert not raw.tared
+    np.testing.assert_array_equal(raw.wrench, BIAS + PUSH)
     with pytest.raises(ValueError, match="at least one"):
         bias_of([])
     with pytest.raises(ValueError, match="finite"):
@@ -126,13 +133,20 @@ def test_error_kinds_and_the_port_wait():
 # --- the service as a process ------------------------------------------------------------------------------------
 
 
-def test_the_service_publishes_the_simulators_wrench_minus_the_tare_and_nothing_while_it_stalls(tmp_path):
+def reader_config(tmp_path):
+    """A config with a private run_dir (state_dir under it) and one arm, ``bubble``: its path, the config, the port."""
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     port = run_dir / "ft300-bubble"
     config_path = tmp_path / "sim.toml"
     config_path.write_text(f'run_dir = "{run_dir}"\nmode = "sim"\n[[arms]]\nname = "bubble"\nft_port = "{port}"\n')
-    config = load_config(config_path)
+    return config_path, load_config(config_path), port
+
+
+def test_the_service_publishes_the_simulators_wrench_minus_the_tare_and_nothing_while_it_stalls(tmp_path):
+    config_path, config, port = reader_config(tmp_path)
+    save_bias(bias_path(config.state_path(), "bubble"), StoredBias(
+        arm="bubble", port=str(port), bias=tuple(map(float, BIAS)), taken_unix_ns=time.time_ns(), samples=50, source="test"))
     name = "ft_reader-bubble"
     applied = {"wrench": BIAS}
     simulator = SimulatedFT300(lambda: applied["wrench"], link=port)
@@ -198,3 +212,129 @@ def test_the_service_publishes_the_simulators_wrench_minus_the_tare_and_nothing_
     assert seen["crc"].errors["crc"] >= 1
     assert not [t for t in seen["during_stall"] if 0.15 < t < STALL_S - 0.05], seen["during_stall"]
     assert seen["degraded"].errors.get("stale", 0) >= 1
+
+
+# --- tare on request ---------------------------------------------------------------------------------------------
+
+READER = "ft_reader-bubble"
+STILL = np.zeros(6)
+CONTACT_PATCH_M = 0.005  # the pushing scene's press at its start
+
+
+def still_membrane(pressed_m: float = 0.0) -> np.ndarray:
+    """A bubble camera's deformation image ``(120, 160)`` (m): sim's 0.2 mm noise, and a patch pressed in by
+    ``pressed_m``."""
+    image = np.random.default_rng(7).normal(0.0, 2e-4, (120, 160)).astype(np.float32)
+    image[40:70, 60:100] += pressed_m
+    return image
+
+
+async def play_devices(config, world: dict, stop: asyncio.Event) -> None:
+    """Publish ``world["speed"]`` as ``arm_state/bubble`` on the arm commander's endpoint (25 Hz) and
+    ``world["membrane"]`` as ``deformation/bubble`` on the bubble camera's (every other period) until ``stop``."""
+    with Bus() as bus:
+        arm = bus_layer.Publisher(bus, config.endpoint("arm_commander-bubble"), source="arm_commander-bubble")
+        camera = bus_layer.Publisher(bus, config.endpoint("bubble_camera-bubble"), source="bubble_camera-bubble")
+        tick = 0
+        while not stop.is_set():
+            await arm.send(msg.ArmState(arm="bubble", tcp_pose=np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]),
+                                        tcp_speed=world["speed"], running=True, protective_stop=False,
+                                        emergency_stop=False, servo_active=False), "arm_state/bubble")
+            if tick % 2 == 0:
+                await camera.send(msg.MembraneDeformation(bubble="bubble", deformation=world["membrane"],
+                                                          reference_stamp_ns=1), "deformation/bubble")
+            tick += 1
+            await asyncio.sleep(0.04)
+
+
+async def reader_output(config, window_s: float) -> tuple[list[msg.Wrench], msg.ServiceStatus]:
+    """The reader's wrenches over ``window_s`` (after the first) and then its next status."""
+    with Bus() as bus:
+        wrenches = LatestSubscriber(bus, config.endpoint(READER), ["wrench/bubble"])
+        status = LatestSubscriber(bus, config.endpoint(READER, "status"), [f"status/{READER}"])
+        received, end_s = [], None
+        while end_s is None or time.monotonic() < end_s:
+            if await wrenches.wait(1.0):
+                received.append(wrenches.latest("wrench/bubble", 1.0, msg.Wrench).value)
+                end_s = end_s or time.monotonic() + window_s
+        while True:
+            await status.wait(1.5)
+            try:
+                return received, status.latest(f"status/{READER}", 3.0, msg.ServiceStatus).value
+            except bus_layer.Stale:
+                continue
+
+
+def test_the_reader_tares_only_on_request_at_rest_out_of_contact_and_a_killed_reader_keeps_the_tare(tmp_path):
+    config_path, config, port = reader_config(tmp_path)
+    stored = bias_path(config.state_path(), "bubble")
+    stored.parent.mkdir(parents=True)
+    stored.write_text('{"arm": "bubble", "bias": [0.0, ')  # a tare cut off mid-write
+    load = {"wrench": STILL}
+    simulator = SimulatedFT300(lambda: load["wrench"], link=port, bias=BIAS)
+    world = {"speed": np.array([0.0, 0.01, 0.0, 0.0, 0.0, 0.0]), "membrane": still_membrane()}
+
+    async def requests() -> dict[str, object]:
+        seen: dict[str, object] = {}
+        stop = asyncio.Event()
+        devices = asyncio.create_task(play_devices(config, world, stop))
+        try:
+            seen["untared"] = await reader_output(config, 0.5)
+            seen["moving"] = await request_tare(config, "bubble")
+            world["speed"] = np.zeros(6)
+            world["membrane"] = still_membrane(CONTACT_PATCH_M)
+            await asyncio.sleep(0.3)
+            seen["contact"] = await request_tare(config, "bubble")
+            world["membrane"] = still_membrane()
+            await asyncio.sleep(0.3)
+            seen["clear"] = await request_tare(config, "bubble")
+            seen["tared"] = await reader_output(config, 0.5)
+        finally:
+            stop.set()
+            await devices
+        return seen
+
+    first = ServiceProcess("ft_reader", READER, config_path, tmp_path / "ft_reader.log")
+    second = None
+    try:
+        simulator.start()
+        first.wait_ready()
+        seen = asyncio.run(asyncio.wait_for(requests(), SCENARIO_TIMEOUT_S))
+        first.kill()  # a crash; meanwhile the bubble starts pressing
+        load["wrench"] = PUSH
+        second = ServiceProcess("ft_reader", READER, config_path, tmp_path / "ft_reader_2.log")
+        second.wait_ready()
+        after_kill = asyncio.run(asyncio.wait_for(reader_output(config, 0.5), SCENARIO_TIMEOUT_S))
+    finally:
+        first.stop()
+        rc = second.stop() if second is not None else None
+        simulator.stop()
+    assert rc == 0, second.log() if second is not None else first.log()
+
+    untared, status = seen["untared"]
+    assert untared and not any(m.tared for m in untared)  # a corrupt file is no zero bias: raw, flagged
+    for message in untared:
+        assert_wrench_near(message.wrench, BIAS)
+    assert status.state == "degraded" and status.errors.get("bias_file", 0) == 1, status
+    assert status.note.startswith("NOT TARED: stored bias unusable") and str(stored) in status.note, status.note
+
+    assert not seen["moving"].ok and "is moving (10.0 mm/s" in seen["moving"].error, seen["moving"]
+    assert not seen["contact"].ok and "in contact" in seen["contact"].error, seen["contact"]
+    assert seen["moving"].bias is None and seen["contact"].bias is None
+    clear = seen["clear"]
+    assert clear.ok and clear.error == "", clear
+    assert_wrench_near(clear.bias, BIAS)
+    kept = load_bias(stored, "bubble", str(port))  # stored before it was used
+    np.testing.assert_array_equal(kept.vector, clear.bias)
+    assert kept.taken_unix_ns == clear.taken_unix_ns and kept.samples >= 20 and kept.source == "ft tare"
+    tared, status = seen["tared"]
+    assert tared and all(m.tared for m in tared)
+    for message in tared:
+        assert_wrench_near(message.wrench, STILL)
+    assert status.state == "ready" and status.note.startswith("tared: bias [1.500 -2.000 3.250"), status
+
+    loaded, status = after_kill
+    assert loaded and all(m.tared for m in loaded)
+    for message in loaded:  # the stored tare, not a new one under load: the load still reads
+        assert_wrench_near(message.wrench, PUSH)
+    assert status.state == "ready" and "by ft tare" in status.note and status.errors == {}, status

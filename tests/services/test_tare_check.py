@@ -67,6 +67,12 @@ def test_a_pressed_patch_is_contact_and_refused_with_its_depth(depth_m):
     assert depth_m * 1e3 <= deepest_mm <= depth_m * 1e3 + 1.0  # the press plus at most 5 sigma of noise
 
 
+def test_contact_is_the_bubble_cameras_own_threshold():
+    from hydrosoft.drivers.bubble.deformation import CONTACT_THRESHOLD_M
+
+    assert CONTACT_DEFORMATION_M == CONTACT_THRESHOLD_M
+
+
 def test_a_small_contact_still_counts_but_one_hot_pixel_does_not():
     assert contact_refusal(deformation(pressed(1e-3, side_px=3)), "bubble") is not None  # a 3 x 3 px patch
     image = np.zeros(SHAPE)
