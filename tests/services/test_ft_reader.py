@@ -338,3 +338,79 @@ def test_the_reader_tares_only_on_request_at_rest_out_of_contact_and_a_killed_re
     for message in loaded:  # the stored tare, not a new one under load: the load still reads
         assert_wrench_near(message.wrench, PUSH)
     assert status.state == "ready" and "by ft tare" in status.note and status.errors == {}, status
+
+
+def test_bad_input_and_an_unplugged_sensor_are_counted_and_never_end_the_reader(tmp_path):
+    """Every malformation (``fuzz.py``) of the reader's inputs (``arm_state``, ``deformation``) and of its tare
+    request, a request of another kind, and a sensor unplugged and plugged in again: each counted, every request
+    answered, the reader up throughout and reading again afterwards."""
+    import zmq
+    from fuzz import Malformed, frames_of, malformed
+
+    config_path, config, port = reader_config(tmp_path)
+    simulator = SimulatedFT300(lambda: STILL, link=port, bias=BIAS)
+    state = msg.ArmState(arm="bubble", tcp_pose=np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]), tcp_speed=STILL,
+                         running=True, protective_stop=False, emergency_stop=False, servo_active=False)
+    membrane = msg.MembraneDeformation(bubble="bubble", deformation=still_membrane(), reference_stamp_ns=1)
+
+    async def scenario() -> dict[str, object]:
+        seen: dict[str, object] = {"replies": []}
+        with Bus() as bus:
+            arm = bus.socket(zmq.PUB, config.endpoint("arm_commander-bubble"), bind=True)
+            camera = bus.socket(zmq.PUB, config.endpoint("bubble_camera-bubble"), bind=True)
+            requests = bus.socket(zmq.DEALER, config.endpoint(READER, "cmd"), bind=False)
+            await asyncio.sleep(0.5)  # the reader's subscriptions come up
+            await arm.send_multipart(frames_of(state, "arm_state/bubble"))  # a newer message than stale_stamp's
+            await camera.send_multipart(frames_of(membrane, "deformation/bubble"))
+            broken = malformed(state, "arm_state/bubble") + malformed(membrane, "deformation/bubble")
+            for item in broken:
+                await (arm if item.frames[0].startswith(b"arm") else camera).send_multipart(item.frames)
+                await asyncio.sleep(0.01)
+            requests_sent = malformed(msg.Tare(), "cmd/tare") + [
+                Malformed("another kind", "handler", msg.encode(msg.GetStatus()))]
+            for number, item in enumerate(requests_sent, start=1):
+                await requests.send_multipart([number.to_bytes(8, "big"), *item.frames])
+                frames = await asyncio.wait_for(requests.recv_multipart(), 5.0)
+                seen["replies"].append((item.name, msg.decode(frames[1:])[1]))
+            seen["kinds"] = {item.kind for item in broken + requests_sent} - {"handler"}
+            seen["refused"] = await request_tare(config, "bubble")  # still answered: no fresh input to judge by
+        simulator.disconnect()
+        seen["unplugged"] = await degraded_status(config)
+        simulator.reconnect()
+        seen["plugged"] = await reader_output(config, 0.5)
+        return seen
+
+    process = ServiceProcess("ft_reader", READER, config_path, tmp_path / "ft_reader.log")
+    try:
+        simulator.start()
+        process.wait_ready()
+        seen = asyncio.run(asyncio.wait_for(scenario(), SCENARIO_TIMEOUT_S))
+        alive = process.proc.poll() is None
+    finally:
+        rc = process.stop()
+        simulator.stop()
+    assert alive and rc == 0, process.log()
+    assert all(not reply.ok and reply.error for _, reply in seen["replies"]), seen["replies"]
+    assert "answers only Tare" in seen["replies"][-1][1].error
+    assert not seen["refused"].ok and "no fresh arm state" in seen["refused"].error
+    status = seen["unplugged"]
+    assert status.state == "degraded" and status.errors.get("not_connected", 0) + status.errors.get("stale", 0) > 0
+    wrenches, status = seen["plugged"]
+    assert len(wrenches) >= 20 and not any(m.tared for m in wrenches)  # no stored bias here: raw, flagged
+    missing = {kind for kind in seen["kinds"] if status.errors.get(kind, 0) == 0}
+    assert not missing, (missing, status.errors)
+
+
+async def degraded_status(config, window_s: float = 1.0) -> msg.ServiceStatus:
+    """The reader's first ``degraded`` status after ``window_s`` (an unplugged sensor: no wrench meanwhile)."""
+    with Bus() as bus:
+        status = LatestSubscriber(bus, config.endpoint(READER, "status"), [f"status/{READER}"])
+        end_s = time.monotonic() + window_s
+        while True:
+            await status.wait(1.5)
+            try:
+                report = status.latest(f"status/{READER}", 3.0, msg.ServiceStatus).value
+            except bus_layer.Stale:
+                continue
+            if time.monotonic() > end_s and report.state == "degraded":
+                return report
