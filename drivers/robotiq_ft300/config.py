@@ -1,7 +1,7 @@
 """Settings of the FT 300 driver: the serial line, the stream's start/stop timing and the link-health limits.
 
-Device facts (baud rate, Modbus address) default to the sensor's factory values (Robotiq FT 300 manual; see
-``/work/shared/reference/devices.md`` section 7). Host facts, such as the port path, belong in ``deploy/lab.toml``.
+Device facts (baud rate, Modbus address) default to the sensor's factory values (Robotiq FT 300 manual; the facts
+and their sources are in ``protocol.py``). Host facts, such as the port path, belong in ``deploy/lab.toml``.
 The stop/start timings follow the ROS driver (``rq_sensor_com.cpp``): the stream counts as stopped after 80 ms
 without a byte, and the sensor gets 100 ms to switch back to Modbus before the start request.
 """

@@ -1,8 +1,7 @@
 """The FT 300's serial protocol, pure (no I/O): CRC-16/Modbus, stream frames, the Modbus requests that start the
 stream and the burst that stops it, and a scanner that finds frames in an arbitrary byte stream.
 
-Facts (Robotiq FT 300 manual, "data stream" section; ROS driver ``rq_sensor_com.cpp``; summarised in
-``/work/shared/reference/devices.md`` section 7):
+Facts (Robotiq FT 300 manual, "data stream" section; ROS driver ``rq_sensor_com.cpp``):
 
 - The line is 19200 baud 8N1. Out of the box the sensor is a Modbus RTU slave, address 9.
 - Writing 0x0200 to holding register 410 (function 16) starts the stream; the sensor echoes the request's address
