@@ -120,8 +120,8 @@ def stored_tare(path: Path, arm: str, port: str) -> tuple[CurrentBias, str | Non
     except BiasFileError as error:
         return CurrentBias(None, f"stored bias unusable ({error})"), str(error)
     if stored is None:
-        return CurrentBias(None, f"no stored bias ({path}): run `hydrosoft-stack ft tare {arm}` with the bubble clear of "
-                          "everything"), None
+        return CurrentBias(None, f"no stored bias ({path}): run `hydrosoft-stack ft tare {arm}` with the bubble "
+                                 "clear of everything"), None
     return CurrentBias(stored), None
 
 
@@ -187,12 +187,6 @@ async def samples_over(sensor: ForceTorqueSensor, duration_s: float = TARE_S) ->
     return np.asarray(wrenches, dtype=np.float64).reshape(-1, 6)
 
 
-async def tare(sensor: ForceTorqueSensor, duration_s: float = TARE_S) -> np.ndarray:
-    """The bias ``(6,)`` of ``sensor``: the mean of its new samples over ``duration_s``. Raises the driver's error
-    when it sends nothing new for ``STALE_AFTER_S``."""
-    return bias_of(list(await samples_over(sensor, duration_s)))
-
-
 class TareServer:
     """Answers ``Tare`` requests for ``arm``'s sensor: checks the arm and the bubble (``tare_check``), averages,
     checks again, stores the bias at ``path`` and only then hands it to the publishing loop (``current``).
@@ -203,9 +197,10 @@ class TareServer:
         ``deformation/ARM`` in the background.
     """
 
-    def __init__(self, sensor: ForceTorqueSensor, current: CurrentBias, arm: str, port: str, path: Path,
-                 arm_states: LatestSubscriber, deformations: LatestSubscriber) -> None:
-        self.sensor, self.current, self.arm, self.port, self.path = sensor, current, arm, port, path
+    def __init__(self, service: Service, sensor: ForceTorqueSensor, current: CurrentBias, arm: str, port: str,
+                 path: Path, arm_states: LatestSubscriber, deformations: LatestSubscriber) -> None:
+        self.service, self.sensor, self.current, self.arm, self.port, self.path = (service, sensor, current, arm,
+                                                                                    port, path)
         self._arm_states, self._deformations = arm_states, deformations
 
     def refusal(self) -> str | None:
@@ -221,7 +216,7 @@ class TareServer:
             return None
 
     async def handle(self, request: msg.Request) -> msg.Reply:
-        """The reply to ``request`` (a ``Tare``; anything else is refused)."""
+        """The reply to ``request`` (a ``Tare``; anything else is refused); the outcome is logged."""
         if not isinstance(request, msg.Tare):
             return request.reply(ok=False, error=f"ft_reader-{self.arm} answers only Tare, not "
                                                  f"{type(request).__name__}")
@@ -233,15 +228,19 @@ class TareServer:
                 refused = f"the sensor failed while averaging: {error}"
             else:
                 refused = spread_refusal(wrenches) or self.refusal()
+        if refused is None:
+            stored = StoredBias(arm=self.arm, port=self.port, bias=tuple(float(v) for v in bias_of(list(wrenches))),
+                                taken_unix_ns=time.time_ns(), samples=len(wrenches), source=TARE_SOURCE)
+            try:
+                await asyncio.to_thread(save_bias, self.path, stored)
+            except OSError as error:
+                refused = f"the bias cannot be stored at {self.path}: {error}"
         if refused is not None:
+            self.service.log.warning("tare requested by %r refused: %s", request.source, refused)
             return msg.TareReply(ok=False, error=f"tare refused: {refused}")
-        stored = StoredBias(arm=self.arm, port=self.port, bias=tuple(float(v) for v in bias_of(list(wrenches))),
-                            taken_unix_ns=time.time_ns(), samples=len(wrenches), source=TARE_SOURCE)
-        try:
-            await asyncio.to_thread(save_bias, self.path, stored)
-        except OSError as error:
-            return msg.TareReply(ok=False, error=f"tare refused: the bias cannot be stored at {self.path}: {error}")
         self.current.stored, self.current.untared_because = stored, ""
+        self.service.log.info("tare requested by %r taken and stored in %s: %s", request.source, self.path,
+                              stored.describe())
         return msg.TareReply(ok=True, bias=stored.vector, taken_unix_ns=stored.taken_unix_ns)
 
 
@@ -265,7 +264,7 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
                                     background=True)
     deformations = service.subscriber(config.endpoint(f"bubble_camera-{arm}"),
                                       [msg.topic_for(msg.MembraneDeformation, arm)], background=True)
-    tares = TareServer(sensor, current, arm, port, path, arm_states, deformations)
+    tares = TareServer(service, sensor, current, arm, port, path, arm_states, deformations)
     requests = service.request_server(config.endpoint(service.name, "cmd"), tares.handle)
     await service.ready()
     health_task = asyncio.create_task(_health_forever(service, sensor, current))

@@ -31,7 +31,7 @@ from hydrosoft.services.ft_reader import (
     bias_of,
     error_kind,
     next_sample,
-    tare,
+    samples_over,
     wait_for_port,
     wrench_message,
 )
@@ -115,10 +115,11 @@ def test_the_tare_averages_new_samples_over_its_duration_and_fails_on_a_silent_s
             self.reads += 1
             return sample(time.monotonic_ns(), float(self.reads % 2))  # alternating 0 and 1
 
-    bias = run(tare(Counting(), duration_s=0.05))
-    np.testing.assert_allclose(bias, 0.5, atol=0.1)
+    wrenches = run(samples_over(Counting(), duration_s=0.05))
+    assert wrenches.shape[1] == 6 and wrenches.shape[0] >= 2
+    np.testing.assert_allclose(bias_of(list(wrenches)), 0.5, atol=0.1)
     with pytest.raises(Stale):
-        run(tare(ScriptedSensor(Stale("silent")), duration_s=0.05))
+        run(samples_over(ScriptedSensor(Stale("silent")), duration_s=0.05))
 
 
 def test_error_kinds_and_the_port_wait():
@@ -146,7 +147,8 @@ def reader_config(tmp_path):
 def test_the_service_publishes_the_simulators_wrench_minus_the_tare_and_nothing_while_it_stalls(tmp_path):
     config_path, config, port = reader_config(tmp_path)
     save_bias(bias_path(config.state_path(), "bubble"), StoredBias(
-        arm="bubble", port=str(port), bias=tuple(map(float, BIAS)), taken_unix_ns=time.time_ns(), samples=50, source="test"))
+        arm="bubble", port=str(port), bias=tuple(map(float, BIAS)), taken_unix_ns=time.time_ns(), samples=50,
+        source="test"))
     name = "ft_reader-bubble"
     applied = {"wrench": BIAS}
     simulator = SimulatedFT300(lambda: applied["wrench"], link=port)
