@@ -308,7 +308,7 @@ class DurationStats:
 
 
 #: Who the simulated sensors' tares are stored as (``StoredBias.source``).
-SIM_TARE_SOURCE = "sim_world (the simulated sensor's zero-load offset, sim.ft_bias)"
+SIM_TARE_SOURCE = "sim_world, sim.ft_bias"
 
 
 def store_sim_tare(config: StackConfig, arm: str) -> None:
