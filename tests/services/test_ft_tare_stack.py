@@ -5,6 +5,8 @@ and the F/T reader (the real serial driver on the simulated FT 300, which adds `
 Ground truth is sim_world's ``eval/contact_forces``: the net force the bubble applies to the cube. The reader's
 force reads it from the start (sim_world stored the sensor's zero-load offset as the tare), ``ft tare`` is refused
 while the bubble presses, and a reader SIGKILLed and started again while the bubble presses still reads the load.
+With the cube moved away from under the bubble (``sim.object_offset_m``) and no stored tare, the reader starts
+untared, ``ft tare`` is accepted on the rendered membrane, stored, and a restarted reader loads it.
 
 Every process is stopped by its pid; each wait has a timeout.
 """
@@ -23,6 +25,7 @@ from hydrosoft.services import cli
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Bus, LatestSubscriber, Stale
 from hydrosoft.services.config import load_config
+from hydrosoft.services.ft_bias import bias_path, load_bias
 
 pytestmark = pytest.mark.slow
 
@@ -72,24 +75,37 @@ def assert_reads_the_load(seen: dict[str, object]) -> None:
         assert abs(float(np.linalg.norm(message.wrench[:3])) - true_n) < FORCE_ATOL_N, (message.wrench, true_n)
 
 
+class Services:
+    """The services this module starts, each stopped by its pid (``stop_all``)."""
+
+    def __init__(self, config_path, tmp_path) -> None:
+        self.config_path, self.tmp_path = config_path, tmp_path
+        self.processes: list[ServiceProcess] = []
+
+    def start(self, module: str, name: str) -> ServiceProcess:
+        process = ServiceProcess(module, name, self.config_path, self.tmp_path / f"{name}.{len(self.processes)}.log")
+        self.processes.append(process)
+        process.wait_ready(READY_TIMEOUT_S)
+        return process
+
+    def stop_all(self) -> dict[str, int]:
+        return {f"{p.name}.{i}": p.stop() for i, p in reversed(list(enumerate(self.processes)))}
+
+    def logs(self) -> str:
+        return "\n".join(process.log() for process in self.processes)
+
+
 def test_the_reader_reads_the_true_load_from_the_start_refuses_a_tare_in_contact_and_after_a_kill(tmp_path, capsys):
     config_path = stack_config(tmp_path)
     config = load_config(config_path)
     (tmp_path / "run").mkdir()  # the launcher's job, here done by the test
     assert any(config.sim.ft_bias), "deploy/sim.toml's simulated sensor has an offset to tare away"
-    processes: list[ServiceProcess] = []
-
-    def start(module: str, name: str, log: str) -> ServiceProcess:
-        process = ServiceProcess(module, name, config_path, tmp_path / log)
-        processes.append(process)
-        process.wait_ready(READY_TIMEOUT_S)
-        return process
-
+    services = Services(config_path, tmp_path)
     try:
-        start("sim_world", "sim_world", "sim_world.log")
-        start("arm_commander", "arm_commander-bubble", "arm_commander.log")
-        reader = start("ft_reader", READER, "ft_reader.log")
-        start("bubble_camera", "bubble_camera-bubble", "bubble_camera.log")
+        services.start("sim_world", "sim_world")
+        services.start("arm_commander", "arm_commander-bubble")
+        reader = services.start("ft_reader", READER)
+        services.start("bubble_camera", "bubble_camera-bubble")
         at_start = measure(config)
 
         time.sleep(1.0)  # the reader's subscribers have the arm's state and the membrane
@@ -97,12 +113,11 @@ def test_the_reader_reads_the_true_load_from_the_start_refuses_a_tare_in_contact
         refusal = capsys.readouterr().err
 
         reader.kill()  # as a crash would, while the bubble presses
-        start("ft_reader", READER, "ft_reader_restarted.log")
+        services.start("ft_reader", READER)
         after_kill = measure(config)
     finally:
-        codes = {process.name: process.stop() for process in reversed(processes)}
-    logs = "\n".join(process.log() for process in processes)
-    assert all(code in (0, -9) for code in codes.values()), (codes, logs)
+        codes = services.stop_all()
+    assert all(code in (0, -9) for code in codes.values()), (codes, services.logs())
 
     assert_reads_the_load(at_start)
     assert at_start["status"].note.startswith("tared: bias [1.200 -0.800 2.500 0.040 -0.030 0.020]")
@@ -110,3 +125,47 @@ def test_the_reader_reads_the_true_load_from_the_start_refuses_a_tare_in_contact
     assert refused == 1 and "tare refused: the bubble is in contact" in refusal, refusal
     assert_reads_the_load(after_kill)
     assert after_kill["status"].state == "ready" and after_kill["status"].note.startswith("tared: bias [1.200")
+
+
+def test_out_of_contact_at_rest_a_tare_is_accepted_stored_and_reloaded_by_a_restarted_reader(tmp_path, capsys):
+    config_path = stack_config(tmp_path, object_offset_m=(0.2, 0.0))  # the cube far from the bubble
+    config = load_config(config_path)
+    (tmp_path / "run").mkdir()
+    stored = bias_path(config.state_path(), "bubble")
+    services = Services(config_path, tmp_path)
+    try:
+        services.start("sim_world", "sim_world")
+        stored.unlink()  # no tare stored yet: sim_world's is removed
+        services.start("arm_commander", "arm_commander-bubble")
+        reader = services.start("ft_reader", READER)
+        services.start("bubble_camera", "bubble_camera-bubble")
+        untared = measure(config)
+
+        time.sleep(1.0)  # the reader's subscribers have the arm's state and the membrane
+        accepted = cli.main(["ft", "tare", "bubble", "--config", str(config_path)])
+        printed = capsys.readouterr()
+        tared = measure(config)
+
+        reader.kill()
+        services.start("ft_reader", READER)
+        reloaded = measure(config)
+    finally:
+        codes = services.stop_all()
+    assert all(code in (0, -9) for code in codes.values()), (codes, services.logs())
+
+    assert float(np.linalg.norm(untared["truth"])) == 0.0  # nothing touches the bubble
+    assert untared["wrenches"] and not any(m.tared for m in untared["wrenches"])
+    for message in untared["wrenches"]:  # the raw reading: the sensor's offset
+        np.testing.assert_allclose(message.wrench, config.sim.ft_bias, atol=0.011)
+    assert untared["status"].state == "degraded" and untared["status"].note.startswith("NOT TARED: no stored bias")
+
+    assert accepted == 0, printed
+    assert printed.out.startswith("tared bubble: bias [1.200 -0.800 2.500 0.040 -0.030 0.020] N, N m"), printed
+    kept = load_bias(stored, "bubble", config.arm("bubble").ft_port)
+    np.testing.assert_allclose(kept.vector, config.sim.ft_bias, atol=0.006)
+    assert kept.source == "ft tare" and kept.samples >= 20
+    for seen in (tared, reloaded):
+        assert seen["wrenches"] and all(m.tared for m in seen["wrenches"])
+        for message in seen["wrenches"]:
+            np.testing.assert_allclose(message.wrench, np.zeros(6), atol=0.011)
+        assert seen["status"].state == "ready" and "by ft tare" in seen["status"].note, seen["status"]
