@@ -40,8 +40,8 @@ MIN_CONTACT_PIXELS = 4
 #: The membrane must return depth on at least this fraction of the image, or contact cannot be ruled out.
 MIN_RETURN_FRACTION = 0.5
 #: Largest peak-to-peak change of the force (N) and torque (N m) components over the averaged readings: above it,
-#: something touched the sensor or the arm moved during the tare. The FT 300's own noise is about 0.1 N and
-#: 0.005 N m (its datasheet's signal noise), a fraction of these.
+#: something touched the sensor or the arm moved during the tare. The FT 300's own noise is of the order of 0.1 N
+#: and 0.005 N m (Robotiq's datasheet figure, not yet measured on the lab's sensor: check the spread a tare logs).
 MAX_SPREAD_N = 0.5
 MAX_SPREAD_NM = 0.05
 
