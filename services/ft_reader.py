@@ -239,8 +239,10 @@ class TareServer:
             self.service.log.warning("tare requested by %r refused: %s", request.source, refused)
             return msg.TareReply(ok=False, error=f"tare refused: {refused}")
         self.current.stored, self.current.untared_because = stored, ""
-        self.service.log.info("tare requested by %r taken and stored in %s: %s", request.source, self.path,
-                              stored.describe())
+        spread = wrenches.max(axis=0) - wrenches.min(axis=0)
+        self.service.log.info("tare requested by %r taken and stored in %s: %s; peak-to-peak over its %d samples "
+                              "%.3f N, %.4f N m", request.source, self.path, stored.describe(), len(wrenches),
+                              spread[:3].max(), spread[3:].max())
         return msg.TareReply(ok=True, bias=stored.vector, taken_unix_ns=stored.taken_unix_ns)
 
 
