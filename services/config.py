@@ -8,6 +8,8 @@ Layout (see ``deploy/sim.toml`` for a commented example)::
     run_dir, log_level, mode          where ipc sockets and pty links live; "sim" or "lab"
     compile_cache_dir                 torch's compile cache for the compiled planner and plant (kept between
                                       launches; default /tmp/torchinductor_USER)
+    state_dir                         what the stack keeps between launches (the F/T sensors' stored tares);
+                                      relative: under run_dir (default run_dir/state)
     [scene]                           the task whose scene is on the table, where it lies (task_frame), the tags
     [camera]                          the tag camera: intrinsics, pose in the base frame, rate
     [[arms]]                          per arm: the scene body it carries (its TCP is that body's frame), the UR
@@ -248,6 +250,12 @@ class PlannerConfig(Strict):
                  f"linearly_implicit needs an NH or SNH planner (planner.model), got {self.model!r}")
 
 
+MAX_SIM_FT_BIAS_N = 100.0
+"""The largest simulated F/T offset force, N: a third of the FT 300's +-300 N range, above any real mounting offset."""
+MAX_SIM_FT_BIAS_NM = 10.0
+"""The largest simulated F/T offset torque, N m (the FT 300's range is +-30 N m)."""
+
+
 class SimConfig(Strict):
     """sim_world: physics rate (Hz of simulated time, run in real time), the plant's spacing relative to the
     planner's, camera noise (grey levels) and blur (px), depth noise (m). compile: run the plant's step compiled
@@ -259,7 +267,10 @@ class SimConfig(Strict):
     RTDE streams: a CB3's 125 Hz by default, not an e-Series' 500 Hz, as the commander servoes and reads at 125 Hz
     and each extra cycle is a Python loop turn in sim_world (at least ``limits.servo_rate_hz``). object_offset_m:
     the object starts this far (m, task frame x and y) from the scene's pose, under no bubble when it is far enough:
-    a lost object for the planner to re-approach (``services/reapproach.py``)."""
+    a lost object for the planner to re-approach (``services/reapproach.py``). ft_bias: the simulated FT 300's
+    zero-load reading ``[Fx, Fy, Fz, Mx, My, Mz]`` (N, N m), which it adds to every frame as a real sensor's offset;
+    sim_world stores it as the arm's tare (``services/ft_bias.py``) at its start, a tare taken before the membrane
+    touched anything."""
 
     rate_hz: float = 50.0
     ur_tick_hz: float = 125.0
@@ -269,9 +280,15 @@ class SimConfig(Strict):
     image_blur_px: float = 0.6
     depth_noise_m: float = 0.0002
     object_offset_m: tuple[float, float] = (0.0, 0.0)
+    ft_bias: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         _positive(self, "sim", "rate_hz", "spacing_factor", "ur_tick_hz")
+        _require(all(math.isfinite(v) for v in self.ft_bias)
+                 and max(abs(v) for v in self.ft_bias[:3]) <= MAX_SIM_FT_BIAS_N
+                 and max(abs(v) for v in self.ft_bias[3:]) <= MAX_SIM_FT_BIAS_NM, "sim.ft_bias",
+                 f"must be 6 finite numbers, forces within {MAX_SIM_FT_BIAS_N} N and torques within "
+                 f"{MAX_SIM_FT_BIAS_NM} N m, got {list(self.ft_bias)}")
         _require(all(math.isfinite(v) and abs(v) <= 0.5 for v in self.object_offset_m), "sim.object_offset_m",
                  f"must be two finite numbers within 0.5 m, got {list(self.object_offset_m)}")
         _require(self.rate_hz >= 50.0, "sim.rate_hz", f"must be at least 50 Hz, got {self.rate_hz}")
@@ -306,6 +323,7 @@ class StackConfig(Strict):
     run_dir: str = "/tmp/hydrosoft"
     log_level: str = "INFO"
     compile_cache_dir: str | None = None
+    state_dir: str = "state"
     mode: Literal["sim", "lab"] = "sim"
     scene: SceneConfig = SceneConfig()
     camera: CameraConfig = CameraConfig()
@@ -373,6 +391,12 @@ class StackConfig(Strict):
         """The runtime settings of ``service`` (the planner's heartbeat at ``planner.heartbeat_period_s``)."""
         heartbeat = {"heartbeat_period_s": self.planner.heartbeat_period_s} if service == "planner" else {}
         return RuntimeConfig(status_endpoint=self.endpoint(service, "status"), log_level=self.log_level, **heartbeat)
+
+    def state_path(self) -> Path:
+        """The folder of what the stack keeps between launches (``state_dir``; a relative one lies under
+        ``run_dir``). Keep it off a folder that a restart empties (the lab's ``/run``): a lost tare leaves the F/T
+        readings untared until a person tares again."""
+        return Path(self.run_dir) / Path(self.state_dir).expanduser()
 
     def curve_server(self) -> CurveServer | None:
         """The CURVE server keys, or None."""

@@ -1,11 +1,21 @@
-"""The F/T reader service: one arm's tared wrenches from its Robotiq FT 300.
+"""The F/T reader service: one arm's wrenches from its Robotiq FT 300, less the stored tare.
 
 One per arm, named ``ft_reader-ARM``. It waits up to ``PORT_WAIT_S`` for the sensor's port ``arm.ft_port`` to
 appear (in sim mode sim_world links its simulated FT 300's pseudo-terminal there), connects the real driver
-(``drivers.robotiq_ft300.FT300Sensor``) and tares it: the bias is the mean of the samples of the first ``TARE_S``
-(the arm must not touch anything meanwhile; a tare the sensor interrupts starts again). Then it publishes every
-new sample minus that bias as ``wrench/ARM`` (``Wrench``, ``tared=True``, N and N m in the sensor frame) at the
-sensor's rate (~100 Hz).
+(``drivers.robotiq_ft300.FT300Sensor``) and loads the arm's stored tare (``services/ft_bias.py``, a file in
+``state_dir``). It never tares by itself: a reader started or restarted while the bubble presses on something
+keeps subtracting the bias taken out of contact, so it still reads the load.
+
+It publishes every new sample as ``wrench/ARM`` (``Wrench``, N and N m in the sensor frame) at the sensor's rate
+(~100 Hz): less the stored bias, ``tared=True``; or, with no usable stored bias (none yet, or a file that is
+corrupt or belongs to another sensor: counted as ``bias_file``), the raw reading with ``tared=False``, and the
+service reports ``degraded``. The status note says which: the bias, when it was taken and its age, or why the
+readings are untared.
+
+Tare on request only: ``Tare`` on the cmd endpoint (``hydrosoft-stack ft tare ARM``). It is refused, with the reason,
+unless the arm is at rest and the bubble shows no contact (``services/tare_check.py``, from ``arm_state/ARM`` and
+``deformation/ARM``) before and after averaging the samples of ``TARE_S``, and those samples were steady. An
+accepted tare is stored first (a tare that cannot be stored is refused), then used.
 
 A sensor that sends nothing new for ``STALE_AFTER_S`` (stale, unplugged or reconnecting: the driver reconnects on
 its own) is counted under the driver error's kind (``stale``, ``not_connected``, ...) once per ``STALE_AFTER_S``,
@@ -22,6 +32,7 @@ import argparse
 import asyncio
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +42,17 @@ from hydrosoft.drivers.errors import DeviceFault, DriverError, NotConnected, Pro
 from hydrosoft.drivers.robotiq_ft300.config import FT300Config
 from hydrosoft.drivers.robotiq_ft300.sensor import FT300Sensor
 from hydrosoft.services import messages as msg
-from hydrosoft.services.config import StackConfig
 from hydrosoft.services import arm_service_main, service_main
+from hydrosoft.services.bus import LatestSubscriber, Stale as StaleInput
+from hydrosoft.services.config import StackConfig
+from hydrosoft.services.ft_bias import BiasFileError, StoredBias, bias_path, load_bias, save_bias
 from hydrosoft.services.runtime import Service
+from hydrosoft.services.tare_check import (
+    ARM_STATE_MAX_AGE_S,
+    DEFORMATION_MAX_AGE_S,
+    spread_refusal,
+    tare_refusal,
+)
 
 MODULE = "ft_reader"
 #: How long the port may take to appear (sim: until sim_world has linked its pty), s.
@@ -44,14 +63,16 @@ PORT_POLL_S = 0.1
 CONNECT_TIMEOUT_S = 10.0
 #: Pause between connect attempts, s.
 CONNECT_RETRY_S = 0.5
-#: The tare averages the samples of this long after connecting, s (~20 frames at 100 Hz).
-TARE_S = 0.2
+#: A tare averages the samples of this long, s (~50 frames at 100 Hz).
+TARE_S = 0.5
 #: The service publishes nothing and counts an error after this long without a new sample, s (10 frame periods).
 STALE_AFTER_S = 0.1
 #: How often the driver is polled for a new sample, s (half the FT 300's 10 ms frame period).
 POLL_PERIOD_S = 0.005
-#: How often the driver's CRC error count is read, s.
+#: How often the driver's CRC error count is read and the status note (the bias's age) renewed, s.
 HEALTH_PERIOD_S = 1.0
+#: Who a tare taken on request is stored as (``StoredBias.source``).
+TARE_SOURCE = "ft tare"
 
 
 def bias_of(wrenches: Sequence[np.ndarray]) -> np.ndarray:
@@ -63,10 +84,45 @@ def bias_of(wrenches: Sequence[np.ndarray]) -> np.ndarray:
     return stacked.mean(axis=0)
 
 
-def wrench_message(sample: WrenchSample, bias: np.ndarray, sensor: str) -> msg.Wrench:
-    """The ``Wrench`` message of ``sample`` minus ``bias`` ``(6,)`` (tared), with the sample's hardware stamp."""
-    return msg.Wrench(sensor=sensor, wrench=np.asarray(sample.wrench, dtype=np.float64) - bias, tared=True,
+def wrench_message(sample: WrenchSample, bias: np.ndarray | None, sensor: str) -> msg.Wrench:
+    """The ``Wrench`` message of ``sample`` minus ``bias`` ``(6,)`` (``tared=True``), or of the raw sample when
+    ``bias`` is None (``tared=False``), with the sample's hardware stamp."""
+    wrench = np.asarray(sample.wrench, dtype=np.float64)
+    return msg.Wrench(sensor=sensor, wrench=wrench if bias is None else wrench - bias, tared=bias is not None,
                       hw_stamp_ns=sample.hw_stamp_ns)
+
+
+@dataclass
+class CurrentBias:
+    """The bias the reader subtracts: ``stored`` (None: none usable, readings go out untared) and, then, why not
+    (``untared_because``)."""
+
+    stored: StoredBias | None
+    untared_because: str = ""
+
+    @property
+    def bias(self) -> np.ndarray | None:
+        """The bias ``(6,)`` (N, N m), or None when untared."""
+        return None if self.stored is None else self.stored.vector
+
+    def note(self) -> str:
+        """The status note: the bias and its age, or why the readings are untared."""
+        if self.stored is not None:
+            return self.stored.describe()
+        return f"NOT TARED: {self.untared_because}; readings are raw (tared=False)"
+
+
+def stored_tare(path: Path, arm: str, port: str) -> tuple[CurrentBias, str | None]:
+    """The tare stored at ``path`` for ``arm``'s sensor on ``port`` and, when the file exists but cannot be used,
+    the error to count (``bias_file``). Never a zero bias in place of a missing or broken one."""
+    try:
+        stored = load_bias(path, arm, port)
+    except BiasFileError as error:
+        return CurrentBias(None, f"stored bias unusable ({error})"), str(error)
+    if stored is None:
+        return CurrentBias(None, f"no stored bias ({path}): run `hydrosoft-stack ft tare {arm}` with the bubble "
+                                 "clear of everything"), None
+    return CurrentBias(stored), None
 
 
 def error_kind(error: DriverError) -> str:
@@ -119,36 +175,102 @@ async def connect(sensor: ForceTorqueSensor, timeout_s: float = CONNECT_TIMEOUT_
         await asyncio.sleep(CONNECT_RETRY_S)
 
 
-async def tare(sensor: ForceTorqueSensor, duration_s: float = TARE_S) -> np.ndarray:
-    """The bias ``(6,)`` of ``sensor``: the mean of its new samples over ``duration_s``. Raises the driver's error
-    when it sends nothing new for ``STALE_AFTER_S``."""
+async def samples_over(sensor: ForceTorqueSensor, duration_s: float = TARE_S) -> np.ndarray:
+    """The new samples' wrenches ``(K, 6)`` of ``sensor`` over ``duration_s``. Raises the driver's error when it
+    sends nothing new for ``STALE_AFTER_S``."""
     end_ns = time.monotonic_ns() + round(duration_s * 1e9)
     wrenches, last_ns = [], 0
     while last_ns < end_ns or not wrenches:
         sample = await next_sample(sensor, last_ns)
         wrenches.append(sample.wrench)
         last_ns = sample.stamp_ns
-    return bias_of(wrenches)
+    return np.asarray(wrenches, dtype=np.float64).reshape(-1, 6)
+
+
+class TareServer:
+    """Answers ``Tare`` requests for ``arm``'s sensor: checks the arm and the bubble (``tare_check``), averages,
+    checks again, stores the bias at ``path`` and only then hands it to the publishing loop (``current``).
+
+    Args:
+        sensor: the connected sensor. current: the reader's tare, replaced on success. arm, port: whose sensor.
+        path: the bias file. arm_states, deformations: subscribers reading ``arm_state/ARM`` and
+        ``deformation/ARM`` in the background.
+    """
+
+    def __init__(self, service: Service, sensor: ForceTorqueSensor, current: CurrentBias, arm: str, port: str,
+                 path: Path, arm_states: LatestSubscriber, deformations: LatestSubscriber) -> None:
+        self.service, self.sensor, self.current, self.arm, self.port, self.path = (service, sensor, current, arm,
+                                                                                    port, path)
+        self._arm_states, self._deformations = arm_states, deformations
+
+    def refusal(self) -> str | None:
+        """Why a tare may not be taken now (``tare_check.tare_refusal`` on the newest fresh inputs), or None."""
+        return tare_refusal(self._newest(self._arm_states, msg.ArmState, ARM_STATE_MAX_AGE_S),
+                            self._newest(self._deformations, msg.MembraneDeformation, DEFORMATION_MAX_AGE_S),
+                            self.arm)
+
+    def _newest(self, subscriber: LatestSubscriber, kind: type[msg.Message], max_age_s: float):
+        try:
+            return subscriber.latest(msg.topic_for(kind, self.arm), max_age_s, kind).value
+        except StaleInput:
+            return None
+
+    async def handle(self, request: msg.Request) -> msg.Reply:
+        """The reply to ``request`` (a ``Tare``; anything else is refused); the outcome is logged."""
+        if not isinstance(request, msg.Tare):
+            return request.reply(ok=False, error=f"ft_reader-{self.arm} answers only Tare, not "
+                                                 f"{type(request).__name__}")
+        refused = self.refusal()
+        if refused is None:
+            try:
+                wrenches = await samples_over(self.sensor)
+            except DriverError as error:
+                refused = f"the sensor failed while averaging: {error}"
+            else:
+                refused = spread_refusal(wrenches) or self.refusal()
+        if refused is None:
+            stored = StoredBias(arm=self.arm, port=self.port, bias=tuple(float(v) for v in bias_of(list(wrenches))),
+                                taken_unix_ns=time.time_ns(), samples=len(wrenches), source=TARE_SOURCE)
+            try:
+                await asyncio.to_thread(save_bias, self.path, stored)
+            except OSError as error:
+                refused = f"the bias cannot be stored at {self.path}: {error}"
+        if refused is not None:
+            self.service.log.warning("tare requested by %r refused: %s", request.source, refused)
+            return msg.TareReply(ok=False, error=f"tare refused: {refused}")
+        self.current.stored, self.current.untared_because = stored, ""
+        spread = wrenches.max(axis=0) - wrenches.min(axis=0)
+        self.service.log.info("tare requested by %r taken and stored in %s: %s; peak-to-peak over its %d samples "
+                              "%.3f N, %.4f N m", request.source, self.path, stored.describe(), len(wrenches),
+                              spread[:3].max(), spread[3:].max())
+        return msg.TareReply(ok=True, bias=stored.vector, taken_unix_ns=stored.taken_unix_ns)
 
 
 async def serve(service: Service, config: StackConfig, arm: str) -> None:
-    """Publish ``arm``'s tared wrenches until cancelled (module docstring)."""
+    """Publish ``arm``'s wrenches, less the stored tare, and serve tare requests until cancelled (module
+    docstring)."""
     port = config.arm(arm).ft_port
     await wait_for_port(port)
     sensor = FT300Sensor(FT300Config(port=port))
     service.on_shutdown(sensor.close)
     await connect(sensor)
-    while True:
-        try:
-            bias = await tare(sensor)
-            break
-        except DriverError as error:
-            service.count_error(error_kind(error), f"tare failed, starting it again: {error}")
-    service.log.info("tared: bias %s N, N m", np.array2string(bias, precision=3))
+    path = bias_path(config.state_path(), arm)
+    current, error_text = stored_tare(path, arm, port)
+    if error_text is not None:
+        service.count_error("bias_file", error_text)
+    service.note = current.note()
+    service.log.info("%s", service.note)
     out = service.publisher(config.endpoint(service.name))
     topic = msg.topic_for(msg.Wrench, arm)
+    arm_states = service.subscriber(config.endpoint(f"arm_commander-{arm}"), [msg.topic_for(msg.ArmState, arm)],
+                                    background=True)
+    deformations = service.subscriber(config.endpoint(f"bubble_camera-{arm}"),
+                                      [msg.topic_for(msg.MembraneDeformation, arm)], background=True)
+    tares = TareServer(service, sensor, current, arm, port, path, arm_states, deformations)
+    requests = service.request_server(config.endpoint(service.name, "cmd"), tares.handle)
     await service.ready()
-    health_task = asyncio.create_task(_count_crc_errors_forever(service, sensor))
+    health_task = asyncio.create_task(_health_forever(service, sensor, current))
+    request_task = asyncio.create_task(requests.serve())
     try:
         last_ns = 0
         while True:
@@ -161,21 +283,26 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
                 continue
             last_ns = sample.stamp_ns
             try:
-                await out.send(wrench_message(sample, bias, arm), topic)
+                await out.send(wrench_message(sample, current.bias, arm), topic)
             except msg.MessageError as error:
                 service.count_error(error.kind, f"cannot publish the wrench: {error}")
                 continue
-            if service.state != "ready":
-                await service.set_state("ready")
+            healthy = "ready" if current.stored is not None else "degraded"
+            if service.state != healthy:
+                service.note = current.note()
+                await service.set_state(healthy)
     finally:
         health_task.cancel()
+        request_task.cancel()
 
 
-async def _count_crc_errors_forever(service: Service, sensor: FT300Sensor) -> None:
-    """Every ``HEALTH_PERIOD_S``, count the frames ``sensor`` rejected for their CRC."""
+async def _health_forever(service: Service, sensor: FT300Sensor, current: CurrentBias) -> None:
+    """Every ``HEALTH_PERIOD_S``, renew the status note (the bias's age) and count the frames ``sensor`` rejected
+    for their CRC."""
     counted = sensor.health().crc_errors
     while True:
         await asyncio.sleep(HEALTH_PERIOD_S)
+        service.note = current.note()
         total = sensor.health().crc_errors
         if total > counted:
             service.count_error("crc", f"{total - counted} F/T frames failed their CRC in {HEALTH_PERIOD_S} s "

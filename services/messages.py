@@ -428,7 +428,8 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
     """A service's health. state: starting, ready, degraded or stopping. pid: its process id. uptime_s: s since it
     started. published_hz, received_hz: per topic, messages per second over the last status period. errors:
     count per error kind since start. last_error: text of the newest error ("" if none). restarts: how often the
-    launcher restarted it."""
+    launcher restarted it. note: the service's own one-line account of a state worth knowing ("" if none; the F/T
+    reader's bias and its age, or why it publishes untared readings)."""
 
     topic = "status"
 
@@ -440,6 +441,7 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
     errors: dict[str, int] = {}
     last_error: str = ""
     restarts: int = 0
+    note: str = ""
 
 
 # --- client API: requests and replies ----------------------------------------------------------------------------
@@ -551,6 +553,27 @@ class GetStatus(Request, frozen=True, kw_only=True):
     reply = StatusReply
 
 
+class TareReply(Reply, frozen=True, kw_only=True):
+    """The reply to Tare. bias: ``(6,)`` float64 the stored bias ``[Fx, Fy, Fz, Mx, My, Mz]`` (N, N m, sensor
+    frame) now subtracted from every reading, None when refused. taken_unix_ns: when it was taken (wall clock, ns
+    since the Unix epoch: it is kept across restarts; 0 when refused)."""
+
+    topic = "reply/tare"
+    ARRAYS = {"bias": WRENCH._replace(optional=True)}
+
+    bias: np.ndarray | None = None
+    taken_unix_ns: int = 0
+
+
+class Tare(Request, frozen=True, kw_only=True):
+    """Ask an F/T reader (``ft_reader-ARM``'s cmd endpoint) to tare its sensor: take the mean reading as the new
+    bias and store it. Refused (``ok`` False, the reason in ``error``) unless the arm is at rest and its bubble
+    shows no contact (``services/tare_check.py``)."""
+
+    topic = "cmd/tare"
+    reply = TareReply
+
+
 # --- ground truth (simulation only; the planner never subscribes to eval/) ---------------------------------------
 
 
@@ -613,7 +636,7 @@ def _register(*kinds: type[Message]) -> dict[str, type[Message]]:
 KINDS: dict[str, type[Message]] = _register(
     DepthFrame, CameraImage, MembraneDeformation, TagDetections, ObjectPose, Wrench, ArmState, ArmTarget, Plan,
     Heartbeat, ServiceStatus, CommandReply, StatusReply, SetGoal, Start, Stop, GetStatus, EvalObjectPose,
-    EvalContactForces,
+    EvalContactForces, TareReply, Tare,
 )
 """Every message kind by its topic."""
 

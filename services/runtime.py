@@ -112,6 +112,7 @@ class Service:
         self.errors = ErrorCounter(self.log)
         self.state: ServiceState = "starting"
         self.restarts = _restarts_from_environment(self.log)
+        self.note = ""  # a line for the status on a state worth knowing (ServiceStatus.note); set it any time
         self._started_ns = time.monotonic_ns()
         self._publishers: list[Publisher] = []
         self._subscribers: list[LatestSubscriber] = []
@@ -188,6 +189,7 @@ class Service:
             errors=dict(self.errors.counts),
             last_error=self.errors.last_error,
             restarts=self.restarts,
+            note=self.note,
         )
 
     async def publish_status(self) -> None:

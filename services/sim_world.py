@@ -18,8 +18,10 @@
   talks to; no ``ur_rtde`` client ever runs in this process (the simulator and a client in one process block each
   other). And a simulated FT 300 (``drivers/robotiq_ft300/simulator.py``) on a pseudo-terminal linked at
   ``arm.ft_port``, streaming the wrench the object applies to the bubble (``hydrosoft.dynamics.body_wrenches``,
-  about the TCP, in the TCP frame: pressing down on the object reads as +Fz for a TCP whose z points up), which
-  the real serial driver in the F/T reader reads.
+  about the TCP, in the TCP frame: pressing down on the object reads as +Fz for a TCP whose z points up) plus the
+  sensor's zero-load offset ``sim.ft_bias``, which the real serial driver in the F/T reader reads. sim_world stores
+  that offset as the arm's tare (``services/ft_bias.py``, in ``state_dir``) before the sensor starts: the tare a
+  person would take before the membrane touches the object, since the scenes start in contact.
 - Rendered sensors (``sim_world_render``), each in a worker thread so the physics keeps its rate: the tag
   camera's image on ``image/tag_camera`` (``CameraImage``) at ``camera.fps``, and each bubble's depth image on
   ``depth/ARM`` (``DepthFrame``) at ``arm.depth.fps`` or as fast as it renders.
@@ -60,6 +62,7 @@ from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Publisher
 from hydrosoft.services import service_main
 from hydrosoft.services.config import ConfigError, StackConfig
+from hydrosoft.services.ft_bias import StoredBias, bias_path, save_bias
 from hydrosoft.services.runtime import Service
 from hydrosoft.services.sim_devices import image_topic
 from hydrosoft.services.sim_world_render import BubbleDepthCamera, tag_camera
@@ -304,6 +307,18 @@ class DurationStats:
 # --- the service --------------------------------------------------------------------------------------------------
 
 
+#: Who the simulated sensors' tares are stored as (``StoredBias.source``).
+SIM_TARE_SOURCE = "sim_world, sim.ft_bias"
+
+
+def store_sim_tare(config: StackConfig, arm: str) -> None:
+    """Store the simulated FT 300's zero-load offset ``sim.ft_bias`` as ``arm``'s tare, replacing any stored one
+    (it is what a tare out of contact reads on this sensor). Raises OSError when the file cannot be written."""
+    stored = StoredBias(arm=arm, port=config.arm(arm).ft_port, bias=config.sim.ft_bias, taken_unix_ns=time.time_ns(),
+                        samples=0, source=SIM_TARE_SOURCE)
+    save_bias(bias_path(config.state_path(), arm), stored)
+
+
 async def start_devices(service: Service, config: StackConfig,
                          plant: SimPlant) -> dict[str, SimulatedURController]:
     """Start each arm's simulated UR controller (returned by arm) and FT 300; register their shutdown."""
@@ -323,7 +338,9 @@ async def start_devices(service: Service, config: StackConfig,
             service.log.warning("arm %s has no ft_port: no simulated FT 300 for it", arm.name)
             continue
         Path(arm.ft_port).parent.mkdir(parents=True, exist_ok=True)
-        sensor = SimulatedFT300(functools.partial(plant.tcp_wrench, arm.name), link=arm.ft_port).start()
+        store_sim_tare(config, arm.name)
+        sensor = SimulatedFT300(functools.partial(plant.tcp_wrench, arm.name), link=arm.ft_port,
+                                bias=np.array(config.sim.ft_bias)).start()
         service.on_shutdown(functools.partial(loop.run_in_executor, None, sensor.stop))
         service.log.info("arm %s: UR controller on %s, FT 300 at %s", arm.name, arm.ur_host, arm.ft_port)
     return controllers

@@ -4,11 +4,12 @@ For ``--wait`` seconds (default ``DEFAULT_WINDOW_S``, above the runtime's 1 s st
 every service has reported) one SUB socket listens to the ``status/NAME`` and ``heartbeat/NAME`` topics of every
 service of the config, then prints per service: state, pid, uptime, published and received message rates (Hz per
 topic, from its newest ``ServiceStatus``), restarts, error counts by kind, the newest error text and the age of its
-newest heartbeat. A service that sent no status in the window is listed as ``no status`` (``null`` in JSON); that
+newest heartbeat, and its note when it has one (the F/T reader's bias and its age, or why its readings are
+untared). A service that sent no status in the window is listed as ``no status`` (``null`` in JSON); that
 is a report, not an error: the exit code is 0, or 2 for a bad config.
 
 ``--json`` prints one document ``{"services": {NAME: {state, pid, uptime_s, published_hz, received_hz, restarts,
-errors, last_error, heartbeat_age_s} | null}}``.
+errors, last_error, heartbeat_age_s[, note]} | null}}`` (``note`` only when the service set one).
 
 A status endpoint that is not local (a ``tcp://`` address beyond loopback, which needs CURVE client keys the config
 does not hold) is not read; the service is reported as ``null`` and a note goes to stderr.
@@ -44,7 +45,7 @@ def report_for(status: ServiceStatus | None, heartbeat_age_s: float | None) -> R
     None when it sent no status."""
     if status is None:
         return None
-    return {
+    report = {
         "state": status.state,
         "pid": status.pid,
         "uptime_s": round(status.uptime_s, 3),
@@ -55,6 +56,9 @@ def report_for(status: ServiceStatus | None, heartbeat_age_s: float | None) -> R
         "last_error": status.last_error,
         "heartbeat_age_s": None if heartbeat_age_s is None else round(heartbeat_age_s, 3),
     }
+    if status.note:
+        report["note"] = status.note
+    return report
 
 
 def _rates(rates: dict[str, float]) -> str:
@@ -76,6 +80,8 @@ def format_table(reports: dict[str, Report]) -> str:
                      f"{sum(report['published_hz'].values()):>7.1f} {sum(report['received_hz'].values()):>8.1f} "
                      f"{report['restarts']:>8} {errors:>6}")
         lines.append(f"{'':<4}publishes: {_rates(report['published_hz'])}; receives: {_rates(report['received_hz'])}")
+        if "note" in report:
+            lines.append(f"{'':<4}note: {report['note']}")
         if report["heartbeat_age_s"] is None:
             lines.append(f"{'':<4}no heartbeat in the window")
         if errors:

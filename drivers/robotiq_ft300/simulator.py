@@ -163,6 +163,8 @@ class SimulatedFT300:
         faults: line faults applied to stream frames; change them later with ``set_faults``.
         seed: seed of the fault generator (drawn from only for frames sent while some fault rate is set).
         streaming: start out streaming, as a sensor left streaming by an earlier run.
+        bias: ``(6,)`` the sensor's zero-load reading (N, N m), added to every wrench sent, as a real sensor's
+            offset (a tare removes it); zeros by default.
     """
 
     def __init__(
@@ -175,9 +177,14 @@ class SimulatedFT300:
         faults: FT300Faults = NO_FAULTS,
         seed: int = 0,
         streaming: bool = False,
+        bias: np.ndarray | None = None,
     ) -> None:
         if not rate_hz > 0:
             raise ValueError(f"rate_hz={rate_hz} must be positive")
+        self.bias = np.zeros(6) if bias is None else np.array(bias, dtype=np.float64).reshape(6)
+        if not np.isfinite(self.bias).all():
+            raise ValueError(f"bias={self.bias} must be 6 finite numbers")
+        self.bias.flags.writeable = False
         self._source = wrench_source or _zero_wrench
         self._period_ns = round(1e9 / rate_hz)
         self.rate_hz = rate_hz
@@ -235,7 +242,7 @@ class SimulatedFT300:
 
     def sent_wrenches(self) -> np.ndarray:
         """``(K, 6)`` the wrenches of the last frames sent (up to ``HISTORY_FRAMES``), as the frames carry them
-        (rounded to 0.01 N, 0.001 N m), before any fault was applied."""
+        (``bias`` included, rounded to 0.01 N, 0.001 N m), before any fault was applied."""
         with self._lock:
             return np.array(self._history).reshape(-1, 6)
 
@@ -490,7 +497,7 @@ class SimulatedFT300:
 
     def _send_frame(self) -> None:
         try:
-            frame, carried = self._encoded(np.asarray(self._source(), dtype=np.float64))
+            frame, carried = self._encoded(np.asarray(self._source(), dtype=np.float64) + self.bias)
         except Exception:
             log.exception("%r: wrench source failed; frame skipped", self)
             self._count(source_errors=1)

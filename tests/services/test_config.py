@@ -93,3 +93,15 @@ def test_the_compile_cache_goes_to_the_config_dir_unless_the_environment_names_o
     monkeypatch.delenv(CACHE_ENV)
     use_compile_cache(parse_config(ONE_ARM + 'compile_cache_dir = "~/cache"\n'))
     assert os.environ[CACHE_ENV] == str(Path("~/cache").expanduser())
+
+
+def test_state_dir_lies_under_run_dir_unless_absolute_and_sim_ft_bias_is_checked():
+    base = 'run_dir = "/run/hydrosoft"\n[[arms]]\nname = "bubble"\n'
+    assert parse_config(base).state_path() == Path("/run/hydrosoft/state")
+    assert parse_config('state_dir = "/var/lib/hydrosoft"\n' + base).state_path() == Path("/var/lib/hydrosoft")
+    assert parse_config('state_dir = "tares"\n' + base).state_path() == Path("/run/hydrosoft/tares")
+    assert parse_config(base).sim.ft_bias == (0.0,) * 6
+    assert parse_config(base + '[sim]\nft_bias = [1, 2, 3, 0.1, 0.2, 0.3]\n').sim.ft_bias == (1, 2, 3, 0.1, 0.2, 0.3)
+    for bad in ("[1, 2, 3]", "[1, 2, 3, 0, 0, nan]", "[101, 0, 0, 0, 0, 0]", "[0, 0, 0, 0, 0, -11]"):
+        with pytest.raises(ConfigError, match="sim.ft_bias"):
+            parse_config(base + f"[sim]\nft_bias = {bad}\n")

@@ -1,7 +1,9 @@
 """The F/T reader service: its plain parts (tare, messages, polling a fake sensor) and the service as a real process
-reading a ``SimulatedFT300`` the test starts behind the config's ``ft_port``: it waits for the port, tares,
-publishes the simulator's wrench minus the tare, rejects corrupted frames and publishes nothing while the sensor
-stalls.
+reading a ``SimulatedFT300`` the test starts behind the config's ``ft_port``: it waits for the port, publishes the
+simulator's wrench minus the stored tare, rejects corrupted frames and publishes nothing while the sensor stalls;
+and it tares only on request, only with the arm at rest and the bubble out of contact (fake ``arm_state`` and
+``deformation`` publishers stand in for the arm commander and the bubble camera), and a reader killed and started
+again under load keeps the stored tare.
 
 The process gets a private run_dir and is stopped by its pid; the simulator is stopped by the test; every wait has
 a timeout.
@@ -23,11 +25,13 @@ from hydrosoft.services import bus as bus_layer
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Bus, LatestSubscriber
 from hydrosoft.services.config import load_config
+from hydrosoft.services.ft_bias import StoredBias, bias_path, load_bias, save_bias
+from hydrosoft.services.ft_command import request_tare
 from hydrosoft.services.ft_reader import (
     bias_of,
     error_kind,
     next_sample,
-    tare,
+    samples_over,
     wait_for_port,
     wrench_message,
 )
@@ -84,6 +88,9 @@ def test_the_bias_is_the_mean_and_the_message_subtracts_it():
     np.testing.assert_allclose(message.wrench, PUSH, atol=1e-12)
     assert message.tared and message.sensor == "left" and message.hw_stamp_ns is None
     msg.encode(message, "wrench/left")
+    raw = wrench_message(WrenchSample(BIAS + PUSH, 5, None), None, "left")  # no bias: the raw reading, flagged
+    assert not raw.tared
+    np.testing.assert_array_equal(raw.wrench, BIAS + PUSH)
     with pytest.raises(ValueError, match="at least one"):
         bias_of([])
     with pytest.raises(ValueError, match="finite"):
@@ -108,10 +115,11 @@ def test_the_tare_averages_new_samples_over_its_duration_and_fails_on_a_silent_s
             self.reads += 1
             return sample(time.monotonic_ns(), float(self.reads % 2))  # alternating 0 and 1
 
-    bias = run(tare(Counting(), duration_s=0.05))
-    np.testing.assert_allclose(bias, 0.5, atol=0.1)
+    wrenches = run(samples_over(Counting(), duration_s=0.05))
+    assert wrenches.shape[1] == 6 and wrenches.shape[0] >= 2
+    np.testing.assert_allclose(bias_of(list(wrenches)), 0.5, atol=0.1)
     with pytest.raises(Stale):
-        run(tare(ScriptedSensor(Stale("silent")), duration_s=0.05))
+        run(samples_over(ScriptedSensor(Stale("silent")), duration_s=0.05))
 
 
 def test_error_kinds_and_the_port_wait():
@@ -126,13 +134,21 @@ def test_error_kinds_and_the_port_wait():
 # --- the service as a process ------------------------------------------------------------------------------------
 
 
-def test_the_service_publishes_the_simulators_wrench_minus_the_tare_and_nothing_while_it_stalls(tmp_path):
+def reader_config(tmp_path):
+    """A config with a private run_dir (state_dir under it) and one arm, ``bubble``: its path, the config, the port."""
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     port = run_dir / "ft300-bubble"
     config_path = tmp_path / "sim.toml"
     config_path.write_text(f'run_dir = "{run_dir}"\nmode = "sim"\n[[arms]]\nname = "bubble"\nft_port = "{port}"\n')
-    config = load_config(config_path)
+    return config_path, load_config(config_path), port
+
+
+def test_the_service_publishes_the_simulators_wrench_minus_the_tare_and_nothing_while_it_stalls(tmp_path):
+    config_path, config, port = reader_config(tmp_path)
+    save_bias(bias_path(config.state_path(), "bubble"), StoredBias(
+        arm="bubble", port=str(port), bias=tuple(map(float, BIAS)), taken_unix_ns=time.time_ns(), samples=50,
+        source="test"))
     name = "ft_reader-bubble"
     applied = {"wrench": BIAS}
     simulator = SimulatedFT300(lambda: applied["wrench"], link=port)
@@ -198,3 +214,205 @@ def test_the_service_publishes_the_simulators_wrench_minus_the_tare_and_nothing_
     assert seen["crc"].errors["crc"] >= 1
     assert not [t for t in seen["during_stall"] if 0.15 < t < STALL_S - 0.05], seen["during_stall"]
     assert seen["degraded"].errors.get("stale", 0) >= 1
+
+
+# --- tare on request ---------------------------------------------------------------------------------------------
+
+READER = "ft_reader-bubble"
+STILL = np.zeros(6)
+CONTACT_PATCH_M = 0.005  # the pushing scene's press at its start
+
+
+def still_membrane(pressed_m: float = 0.0) -> np.ndarray:
+    """A bubble camera's deformation image ``(120, 160)`` (m): sim's 0.2 mm noise, and a patch pressed in by
+    ``pressed_m``."""
+    image = np.random.default_rng(7).normal(0.0, 2e-4, (120, 160)).astype(np.float32)
+    image[40:70, 60:100] += pressed_m
+    return image
+
+
+async def play_devices(config, world: dict, stop: asyncio.Event) -> None:
+    """Publish ``world["speed"]`` as ``arm_state/bubble`` on the arm commander's endpoint (25 Hz) and
+    ``world["membrane"]`` as ``deformation/bubble`` on the bubble camera's (every other period) until ``stop``."""
+    with Bus() as bus:
+        arm = bus_layer.Publisher(bus, config.endpoint("arm_commander-bubble"), source="arm_commander-bubble")
+        camera = bus_layer.Publisher(bus, config.endpoint("bubble_camera-bubble"), source="bubble_camera-bubble")
+        tick = 0
+        while not stop.is_set():
+            await arm.send(msg.ArmState(arm="bubble", tcp_pose=np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]),
+                                        tcp_speed=world["speed"], running=True, protective_stop=False,
+                                        emergency_stop=False, servo_active=False), "arm_state/bubble")
+            if tick % 2 == 0:
+                await camera.send(msg.MembraneDeformation(bubble="bubble", deformation=world["membrane"],
+                                                          reference_stamp_ns=1), "deformation/bubble")
+            tick += 1
+            await asyncio.sleep(0.04)
+
+
+async def reader_output(config, window_s: float) -> tuple[list[msg.Wrench], msg.ServiceStatus]:
+    """The reader's wrenches over ``window_s`` (after the first) and then its next status."""
+    with Bus() as bus:
+        wrenches = LatestSubscriber(bus, config.endpoint(READER), ["wrench/bubble"])
+        status = LatestSubscriber(bus, config.endpoint(READER, "status"), [f"status/{READER}"])
+        received, end_s = [], None
+        while end_s is None or time.monotonic() < end_s:
+            if await wrenches.wait(1.0):
+                received.append(wrenches.latest("wrench/bubble", 1.0, msg.Wrench).value)
+                end_s = end_s or time.monotonic() + window_s
+        while True:
+            await status.wait(1.5)
+            try:
+                return received, status.latest(f"status/{READER}", 3.0, msg.ServiceStatus).value
+            except bus_layer.Stale:
+                continue
+
+
+def test_the_reader_tares_only_on_request_at_rest_out_of_contact_and_a_killed_reader_keeps_the_tare(tmp_path):
+    config_path, config, port = reader_config(tmp_path)
+    stored = bias_path(config.state_path(), "bubble")
+    stored.parent.mkdir(parents=True)
+    stored.write_text('{"arm": "bubble", "bias": [0.0, ')  # a tare cut off mid-write
+    load = {"wrench": STILL}
+    simulator = SimulatedFT300(lambda: load["wrench"], link=port, bias=BIAS)
+    world = {"speed": np.array([0.0, 0.01, 0.0, 0.0, 0.0, 0.0]), "membrane": still_membrane()}
+
+    async def requests() -> dict[str, object]:
+        seen: dict[str, object] = {}
+        stop = asyncio.Event()
+        devices = asyncio.create_task(play_devices(config, world, stop))
+        try:
+            seen["untared"] = await reader_output(config, 0.5)
+            seen["moving"] = await request_tare(config, "bubble")
+            world["speed"] = np.zeros(6)
+            world["membrane"] = still_membrane(CONTACT_PATCH_M)
+            await asyncio.sleep(0.3)
+            seen["contact"] = await request_tare(config, "bubble")
+            world["membrane"] = still_membrane()
+            await asyncio.sleep(0.3)
+            seen["clear"] = await request_tare(config, "bubble")
+            seen["tared"] = await reader_output(config, 0.5)
+        finally:
+            stop.set()
+            await devices
+        return seen
+
+    first = ServiceProcess("ft_reader", READER, config_path, tmp_path / "ft_reader.log")
+    second = None
+    try:
+        simulator.start()
+        first.wait_ready()
+        seen = asyncio.run(asyncio.wait_for(requests(), SCENARIO_TIMEOUT_S))
+        first.kill()  # a crash; meanwhile the bubble starts pressing
+        load["wrench"] = PUSH
+        second = ServiceProcess("ft_reader", READER, config_path, tmp_path / "ft_reader_2.log")
+        second.wait_ready()
+        after_kill = asyncio.run(asyncio.wait_for(reader_output(config, 0.5), SCENARIO_TIMEOUT_S))
+    finally:
+        first.stop()
+        rc = second.stop() if second is not None else None
+        simulator.stop()
+    assert rc == 0, second.log() if second is not None else first.log()
+
+    untared, status = seen["untared"]
+    assert untared and not any(m.tared for m in untared)  # a corrupt file is no zero bias: raw, flagged
+    for message in untared:
+        assert_wrench_near(message.wrench, BIAS)
+    assert status.state == "degraded" and status.errors.get("bias_file", 0) == 1, status
+    assert status.note.startswith("NOT TARED: stored bias unusable") and str(stored) in status.note, status.note
+
+    assert not seen["moving"].ok and "is moving (10.0 mm/s" in seen["moving"].error, seen["moving"]
+    assert not seen["contact"].ok and "in contact" in seen["contact"].error, seen["contact"]
+    assert seen["moving"].bias is None and seen["contact"].bias is None
+    clear = seen["clear"]
+    assert clear.ok and clear.error == "", clear
+    assert_wrench_near(clear.bias, BIAS)
+    kept = load_bias(stored, "bubble", str(port))  # stored before it was used
+    np.testing.assert_array_equal(kept.vector, clear.bias)
+    assert kept.taken_unix_ns == clear.taken_unix_ns and kept.samples >= 20 and kept.source == "ft tare"
+    tared, status = seen["tared"]
+    assert tared and all(m.tared for m in tared)
+    for message in tared:
+        assert_wrench_near(message.wrench, STILL)
+    assert status.state == "ready" and status.note.startswith("tared: bias [1.500 -2.000 3.250"), status
+
+    loaded, status = after_kill
+    assert loaded and all(m.tared for m in loaded)
+    for message in loaded:  # the stored tare, not a new one under load: the load still reads
+        assert_wrench_near(message.wrench, PUSH)
+    assert status.state == "ready" and "by ft tare" in status.note and status.errors == {}, status
+
+
+def test_bad_input_and_an_unplugged_sensor_are_counted_and_never_end_the_reader(tmp_path):
+    """Every malformation (``fuzz.py``) of the reader's inputs (``arm_state``, ``deformation``) and of its tare
+    request, a request of another kind, and a sensor unplugged and plugged in again: each counted, every request
+    answered, the reader up throughout and reading again afterwards."""
+    import zmq
+    from fuzz import Malformed, frames_of, malformed
+
+    config_path, config, port = reader_config(tmp_path)
+    simulator = SimulatedFT300(lambda: STILL, link=port, bias=BIAS)
+    state = msg.ArmState(arm="bubble", tcp_pose=np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]), tcp_speed=STILL,
+                         running=True, protective_stop=False, emergency_stop=False, servo_active=False)
+    membrane = msg.MembraneDeformation(bubble="bubble", deformation=still_membrane(), reference_stamp_ns=1)
+
+    async def scenario() -> dict[str, object]:
+        seen: dict[str, object] = {"replies": []}
+        with Bus() as bus:
+            arm = bus.socket(zmq.PUB, config.endpoint("arm_commander-bubble"), bind=True)
+            camera = bus.socket(zmq.PUB, config.endpoint("bubble_camera-bubble"), bind=True)
+            requests = bus.socket(zmq.DEALER, config.endpoint(READER, "cmd"), bind=False)
+            await asyncio.sleep(0.5)  # the reader's subscriptions come up
+            await arm.send_multipart(frames_of(state, "arm_state/bubble"))  # a newer message than stale_stamp's
+            await camera.send_multipart(frames_of(membrane, "deformation/bubble"))
+            broken = malformed(state, "arm_state/bubble") + malformed(membrane, "deformation/bubble")
+            for item in broken:
+                await (arm if item.frames[0].startswith(b"arm") else camera).send_multipart(item.frames)
+                await asyncio.sleep(0.01)
+            requests_sent = malformed(msg.Tare(), "cmd/tare") + [
+                Malformed("another kind", "handler", msg.encode(msg.GetStatus()))]
+            for number, item in enumerate(requests_sent, start=1):
+                await requests.send_multipart([number.to_bytes(8, "big"), *item.frames])
+                frames = await asyncio.wait_for(requests.recv_multipart(), 5.0)
+                seen["replies"].append((item.name, msg.decode(frames[1:])[1]))
+            seen["kinds"] = {item.kind for item in broken + requests_sent} - {"handler"}
+            seen["refused"] = await request_tare(config, "bubble")  # still answered: no fresh input to judge by
+        simulator.disconnect()
+        seen["unplugged"] = await degraded_status(config)
+        simulator.reconnect()
+        seen["plugged"] = await reader_output(config, 0.5)
+        return seen
+
+    process = ServiceProcess("ft_reader", READER, config_path, tmp_path / "ft_reader.log")
+    try:
+        simulator.start()
+        process.wait_ready()
+        seen = asyncio.run(asyncio.wait_for(scenario(), SCENARIO_TIMEOUT_S))
+        alive = process.proc.poll() is None
+    finally:
+        rc = process.stop()
+        simulator.stop()
+    assert alive and rc == 0, process.log()
+    assert all(not reply.ok and reply.error for _, reply in seen["replies"]), seen["replies"]
+    assert "answers only Tare" in seen["replies"][-1][1].error
+    assert not seen["refused"].ok and "no fresh arm state" in seen["refused"].error
+    status = seen["unplugged"]
+    assert status.state == "degraded" and status.errors.get("not_connected", 0) + status.errors.get("stale", 0) > 0
+    wrenches, status = seen["plugged"]
+    assert len(wrenches) >= 20 and not any(m.tared for m in wrenches)  # no stored bias here: raw, flagged
+    missing = {kind for kind in seen["kinds"] if status.errors.get(kind, 0) == 0}
+    assert not missing, (missing, status.errors)
+
+
+async def degraded_status(config, window_s: float = 1.0) -> msg.ServiceStatus:
+    """The reader's first ``degraded`` status after ``window_s`` (an unplugged sensor: no wrench meanwhile)."""
+    with Bus() as bus:
+        status = LatestSubscriber(bus, config.endpoint(READER, "status"), [f"status/{READER}"])
+        end_s = time.monotonic() + window_s
+        while True:
+            await status.wait(1.5)
+            try:
+                report = status.latest(f"status/{READER}", 3.0, msg.ServiceStatus).value
+            except bus_layer.Stale:
+                continue
+            if time.monotonic() > end_s and report.state == "degraded":
+                return report

@@ -53,6 +53,8 @@ def one_of_each_kind() -> list[m.Message]:
         m.EvalObjectPose(object="box", pose=tilted_pose()),
         m.EvalContactForces(bodies=("bubble", "table"), points=rng.uniform(-0.05, 0.05, (30, 3)),
                             forces=rng.normal(0, 1, (2, 30, 3))),
+        m.Tare(deadline_ns=7),
+        m.TareReply(ok=True, bias=np.array([1.2, -0.8, 2.5, 0.04, -0.03, 0.02]), taken_unix_ns=1_700_000_000 * 10**9),
         m.CameraImage.of("tag_camera", rng.integers(0, 256, (48, 64, 3), dtype=np.uint8), hw_stamp_ns=77),
         m.CameraImage.of("grey_camera", rng.integers(0, 256, (48, 64), dtype=np.uint8)),
     ]

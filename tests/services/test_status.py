@@ -96,3 +96,12 @@ def test_status_json_reports_each_running_service(root):
             run.process.send_signal(signal.SIGINT)
             run.wait_exit()
         run.cleanup()
+
+
+def test_a_services_note_is_reported_and_printed_only_when_it_has_one():
+    note = "tared: bias [1.2 -0.8 2.5 0.04 -0.03 0.02] N, N m, taken 2026-11-27 07:20:00 UTC (42 s ago, by ft tare)"
+    report = status.report_for(ServiceStatus(state="ready", pid=7, uptime_s=3.0, note=note), 0.05)
+    assert report["note"] == note
+    assert f"    note: {note}" in status.format_table({"ft_reader-a": report}).splitlines()
+    plain = status.report_for(ServiceStatus(state="ready", pid=7, uptime_s=3.0), 0.05)
+    assert "note" not in plain and "note:" not in status.format_table({"ft_reader-a": plain})

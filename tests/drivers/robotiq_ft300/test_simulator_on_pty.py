@@ -161,3 +161,19 @@ def test_command_line_simulator_serves_the_real_driver_and_stops_on_sigint(tmp_p
         if process.poll() is None:
             os.kill(process.pid, signal.SIGKILL)
             process.wait(PROCESS_TIMEOUT_S)
+
+
+def test_its_frames_carry_the_sensors_offset_on_top_of_the_wrench(make_simulator):
+    wrench = np.array([0.5, 0.0, 1.9, 0.0, 0.01, 0.0])
+    bias = np.array([1.2, -0.8, 2.5, 0.04, -0.03, 0.02])
+    simulator = make_simulator(wrench_source=lambda: wrench, bias=bias)
+    np.testing.assert_array_equal(simulator.bias, bias)
+    with open_client(simulator.port_path) as port:
+        port.write(start_stream_request())
+        assert port.read(WRITE_REPLY_SIZE) == start_stream_reply()
+        frames = read_frames(port, 5)
+        port.write(STOP_BURST)
+    np.testing.assert_allclose(frames[-1], wrench + bias, atol=1e-9)
+    np.testing.assert_allclose(simulator.sent_wrenches()[-1], wrench + bias, atol=1e-9)
+    with pytest.raises(ValueError, match="finite"):
+        SimulatedFT300(bias=np.array([0.0, 0.0, np.nan, 0.0, 0.0, 0.0]))
