@@ -33,6 +33,9 @@ GROUPS = {
         "camera": ("hydrosoft.drivers.camera.calibration", "camera intrinsics from ChArUco board pictures, written as a calibration TOML"),
         "task-frame": ("hydrosoft.services.calibrate_task_frame", "the task scene's frame in the robot base frame (scene.task_frame), from the tag tracker's poses of the object set down where the task starts"),
     }),
+    "arm": ("act on a running stack's arm (see `arm ACTION --help`)", {
+        "enable": ("hydrosoft.services.arm_enable", "re-enable an arm after an external stop (pendant, dashboard, protective, safeguard or emergency stop): refused while the controller still reports one"),
+    }),
     "capture": ("capture what a device needs before a run (see `capture WHAT --help`)", {
         "reference": ("hydrosoft.services.capture_reference", "a Soft Bubble's reference membrane (its undeformed depth image, the median of N frames) for lab mode, as a .npz file"),
     }),
