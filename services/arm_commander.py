@@ -28,6 +28,7 @@ import argparse
 import asyncio
 import contextlib
 import functools
+import math
 import time
 from dataclasses import dataclass
 
@@ -199,6 +200,8 @@ class ServoLogic:
         frame; None when unknown) and whether a stop is still in flight (then nothing is commanded until it
         ends)."""
         force_n = None if force is None else float(np.linalg.norm(force))
+        if force_n is not None and not math.isfinite(force_n):  # no reading to keep the limit by
+            force, force_n = None, None
         if force_n is not None and force_n > self.limits.max_force_n:
             self.force_limited = True
         elif force_n is not None and force_n < self.limits.release_level_n:
