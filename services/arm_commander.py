@@ -142,9 +142,11 @@ class ServoLogic:
             self._refuse(target, reason)
             return "target_refused", reason
         if target.goal_started_ns <= self.goal_floor_ns:
+            text = f"target of a goal started before {self.goal_floor_cause}: not acted on; start a new goal"
             self.target = None
-            return "old_goal", (f"target of a goal started before {self.goal_floor_cause}: not acted on; start a new "
-                                "goal")
+            if not self.servoing and self.external is None:
+                self.reason, self.owner = text, "stack"
+            return "old_goal", text
         self.target, self._refusal = target, None
         self.deadline_ns = clamped_deadline_ns(target.deadline_ns, now_ns, self.limits)
         return None

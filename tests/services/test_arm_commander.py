@@ -8,6 +8,7 @@ the TCP through the simulator's inspection port. Every wait has a timeout; every
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
 import os
@@ -23,7 +24,8 @@ import numpy as np
 import pytest
 
 from hydrosoft.drivers.base import ArmState
-from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT, URArmConfig
+from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SIM_CONTROL_PORT, URArmConfig
+from hydrosoft.services import arm_enable
 from hydrosoft.services import messages as msg
 from hydrosoft.services.arm_commander import MAX_STEP_PERIODS, NO_TARGET, ServoLogic
 from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
@@ -759,6 +761,96 @@ def test_a_held_arm_is_checked_at_the_idle_rate_and_a_target_wakes_the_commander
     assert LIMITS.idle_rate_hz / 2 <= held_hz <= 2 * LIMITS.idle_rate_hz < LIMITS.servo_rate_hz, held_hz
     # without the wake a target would wait for the rest of an idle period: uniform over 0-40 ms
     assert np.median(wakes_ms) < idle_period_s * 1e3 / 4, wakes_ms
+
+
+async def dashboard(host: str, line: str) -> str:
+    """One request to the simulated controller's dashboard (29999), as a person at the pendant would; its reply."""
+    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, DASHBOARD_PORT), SOCKET_TIMEOUT_S)
+    try:
+        await asyncio.wait_for(reader.readline(), SOCKET_TIMEOUT_S)  # the banner
+        writer.write(f"{line}\n".encode())
+        return (await asyncio.wait_for(reader.readline(), SOCKET_TIMEOUT_S)).decode().strip()
+    finally:
+        writer.close()
+
+
+#: Each external stop: how a person or the controller causes it, the cause the commander names, and how a person
+#: clears it on the controller's side (None: nothing to clear; ``arm enable`` restarts the program).
+EXTERNAL_STOPS = {
+    "dashboard stop": (("dashboard", "stop"), "program stopped", None),
+    "dashboard pause": (("dashboard", "pause"), "program paused", None),
+    "protective stop": (("sim", "protective_stop"), "protective stop", ("dashboard", "unlock protective stop")),
+    "safeguard stop": (("sim", "safeguard_stop"), "safeguard stop", ("sim", "release_safety_stop")),
+}
+HELD_CHECK_S = 0.6  # how long fresh targets keep coming while the test checks that nothing reaches the controller
+
+
+@pytest.mark.parametrize("kind", list(EXTERNAL_STOPS))
+def test_an_external_stop_latches_until_arm_enable_and_a_new_goal(rig, kind):
+    (inject_via, inject), cause, clear = EXTERNAL_STOPS[kind]
+
+    async def act(tcp: SimTcp, via: str, what: str) -> None:
+        if via == "dashboard":
+            await dashboard(rig.host, what)
+        else:
+            await tcp.request(what)
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        await act(tcp, inject_via, inject)
+        latched = await until(lambda: (s := planner.arm_state()) and s.latched and s, 2.0, "the stop latched")
+        await at_rest(tcp, 2.0)
+        before = (await tcp.request("state"))["counters"]
+        refused = None
+        if clear is not None:  # a person must first clear the controller's own stop
+            refused = await arm_enable.enable(str(rig.config_path), ARM, "test")
+            await act(tcp, *clear)
+        await asyncio.sleep(HELD_CHECK_S)  # the goal's targets keep coming, the controller runs again (if cleared)
+        held_counters, held = (await tcp.request("state"))["counters"], planner.arm_state()
+        enable_code = await asyncio.to_thread(arm_enable.run, argparse.Namespace(
+            arm=ARM, config=str(rig.config_path), by="lab safety officer"))
+        await asyncio.sleep(HELD_CHECK_S)  # the old goal's targets keep coming
+        old_goal_counters, old_goal = (await tcp.request("state"))["counters"], planner.arm_state()
+        planner.new_goal()
+        await moving_at_speed(tcp)
+        return latched, before, refused, held_counters, held, enable_code, old_goal_counters, old_goal
+
+    latched, before, refused, held_counters, held, enable_code, old_goal_counters, old_goal = scenario(run, rig)
+    assert latched.stop_owner == "external" and cause in latched.stop_reason, latched
+    assert latched.controller_stop == cause and not latched.servo_active
+    assert held_counters.get("servol_received", 0) == before.get("servol_received", 0)  # no servo command reached it
+    assert held_counters.get("program_loaded", 0) == before.get("program_loaded", 0)  # and no program restart
+    assert held.latched and held.stop_owner == "external" and cause in held.stop_reason, held
+    if refused is not None:
+        assert not refused.ok and cause in refused.error, refused
+    assert enable_code == 0
+    assert old_goal_counters.get("servol_received", 0) == before.get("servol_received", 0)  # the old goal: held
+    assert not old_goal.latched and not old_goal.servo_active and "arm enable" in old_goal.stop_reason, old_goal
+    log = rig.log_path.read_text()
+    assert "arm enabled by 'lab safety officer'" in log
+
+
+def test_a_commander_restarted_mid_goal_does_not_move_the_arm_until_a_new_goal(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        await asyncio.to_thread(stop_process, rig.commander, signal.SIGKILL)
+        await asyncio.to_thread(rig.start_commander)
+        ready_ns = time.monotonic_ns()
+        await until(lambda: (s := planner.arm_state()) and s.stamp_ns > ready_ns, 5.0, "the new commander's state")
+        await at_rest(tcp, 2.0)
+        before = (await tcp.request("state"))["counters"]
+        await asyncio.sleep(2 * HELD_CHECK_S)  # the goal from before the restart keeps sending targets
+        after, held = (await tcp.request("state"))["counters"], planner.arm_state()
+        planner.new_goal()
+        await moving_at_speed(tcp)
+        return before, after, held, planner.status()
+
+    before, after, held, status = scenario(run, rig)
+    assert after.get("servol_received", 0) == before.get("servol_received", 0)
+    assert not held.servo_active and "before the commander's start" in held.stop_reason, held
+    assert status.errors.get("old_goal", 0) > 0
 
 
 def test_sigint_stops_the_arm_then_exits_0_and_stops_the_script(rig):
