@@ -27,7 +27,7 @@ from hydrosoft.drivers.base import ArmState
 from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SIM_CONTROL_PORT, URArmConfig
 from hydrosoft.services import arm_enable
 from hydrosoft.services import messages as msg
-from hydrosoft.services.arm_commander import MAX_STEP_PERIODS, NO_TARGET, ServoLogic
+from hydrosoft.services.arm_commander import EXIT_STOP_UNCONFIRMED, MAX_STEP_PERIODS, NO_TARGET, ServoLogic
 from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.config import LimitsConfig, load_config
 from loopback import free_ur_host
@@ -882,3 +882,17 @@ def test_sigint_stops_the_arm_then_exits_0_and_stops_the_script(rig):
     assert after["counters"].get("stop_script", 0) == before.get("stop_script", 0) + 1
     assert after["runtime_state"] != 2  # the program no longer plays
     assert log.rindex("arm stopped and at rest") < log.rindex("stopped (exit 0)")
+
+
+def test_a_stop_never_confirmed_at_rest_exits_3(rig):
+    """The controller gone at shutdown: the commander cannot see the arm at rest and says so by its exit code (the
+    controller's own watchdog is then what stops the arm)."""
+    commander = rig.start_commander()
+    with socket.create_connection((rig.host, SIM_CONTROL_PORT), timeout=SOCKET_TIMEOUT_S) as conn:
+        conn.sendall(b'{"op": "drop", "duration_s": 3.0}\n')
+        assert json.loads(conn.makefile().readline())["ok"]
+    time.sleep(0.3)  # the commander's driver has lost the link
+    exit_code = stop_process(commander, signal.SIGINT)
+    log = rig.log_path.read_text()
+    assert exit_code == EXIT_STOP_UNCONFIRMED, log[-2000:]
+    assert "not seen at rest" in log[log.rindex("SIGINT received"):]

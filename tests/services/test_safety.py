@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from hydrosoft.services.config import LimitsConfig
+from hydrosoft.services.config import LIMIT_BOUNDS, ConfigError, LimitsConfig
 from hydrosoft.services.safety import (NO_TARGET, check_path, check_target, clamped_deadline_ns, interpolate,
                                       is_moving, outside_workspace, retreat_refusal, rotation_angle_rad,
                                       tilt_and_yaw_deg, watchdog)
@@ -167,3 +167,23 @@ def test_moving_is_judged_on_linear_and_angular_speed():
     assert not is_moving([0.001, 0, 0, 0, 0, 0.005])
     assert is_moving([0, 0.003, 0, 0, 0, 0])
     assert is_moving([0, 0, 0, 0.02, 0, 0])
+
+
+@pytest.mark.parametrize("name", [name for name in LIMIT_BOUNDS if name != "max_yaw_deg"])
+def test_every_limit_has_an_upper_bound(name):
+    bound = LIMIT_BOUNDS[name]
+    others = {"idle_rate_hz": 1.0} if name == "servo_rate_hz" else {}
+    LimitsConfig(**{name: bound, **others, **({"servo_rate_hz": bound} if name == "idle_rate_hz" else {})})
+    with pytest.raises(ConfigError, match=f"limits.{name}: must be at most {bound}"):
+        LimitsConfig(**{name: bound * 1.01, **others})
+
+
+def test_the_release_level_lies_below_the_force_limit_and_the_yaw_range_is_ordered():
+    assert LimitsConfig(max_force_n=40.0).release_level_n == 30.0
+    assert LimitsConfig(max_force_n=40.0, release_force_n=10.0).release_level_n == 10.0
+    with pytest.raises(ConfigError, match="release_force_n"):
+        LimitsConfig(max_force_n=40.0, release_force_n=40.0)
+    with pytest.raises(ConfigError, match="yaw_range_deg"):
+        LimitsConfig(yaw_range_deg=(10.0, -10.0))
+    with pytest.raises(ConfigError, match="workspace_max"):
+        LimitsConfig(workspace_min=(-1.0, 0.0, 0.0), workspace_max=(1.0, 0.1, 0.1))
