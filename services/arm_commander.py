@@ -3,21 +3,45 @@
 Each period of ``limits.servo_rate_hz`` it reads the arm's state from its driver (``URArm`` on ``arm.ur_host``; in
 sim mode sim_world's simulated controller answers there), takes the planner's newest ``arm_target/ARM``, the
 planner's ``heartbeat/planner`` and the F/T reader's ``wrench/ARM``, and either sends the next servo pose
-(``safety.interpolate``: straight towards the target within the speed limits) or stops the arm. It stops
-(``driver.stop()`` once, and again whenever the stopped arm is seen moving) when the driver fails (Stale,
-NotConnected, DeviceFault), on any ``safety.watchdog`` rule (no target, deadline passed, heartbeat old, state not
-advancing, force unknown or too high) and on a refused target (``safety.check_target``: outside the workspace box,
-malformed; counted as ``target_refused``, never moved towards). Holding the arm spends the target: servoing
-resumes only with a fresh one (published after the last one seen) whose deadline lies ahead and which arrives
-with a fresh heartbeat (one arriving during the stop itself waits for the stop's end).
+(``safety.interpolate``: straight towards the target within the speed limits) or stops the arm (``driver.stop()``
+once, and again whenever the stopped arm is seen moving).
 
-It publishes ``ArmState`` on ``arm_state/ARM`` every period (with ``servo_active`` and ``stop_reason``) while the
-driver delivers state. While it holds the arm at rest with no target (``ServoLogic.holding_at_rest``), its period
-is that of ``limits.idle_rate_hz`` instead, and a target's arrival wakes it at once: an idle stack's commander and
-the readers of its state do a fifth of the work (ur_rtde's receive threads poll on regardless). The wrenches (100
-Hz) do not wake it: each tick reads those that came since the last one and keeps the newest. On shutdown
-(SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then closes the driver, which stops the controller's
-script (stopScript).
+Every stop has a named cause (``ArmState.stop_reason``) and an owner (``ArmState.stop_owner``):
+
+- ``external``: the controller reports a stop of its own (``ArmState.controller_stop``: pendant or dashboard stop
+  or pause, a protective, safeguard or emergency stop, a safety fault, an unpowered arm, a program stopped by
+  anyone or anything but this commander, the controller's watchdog included). It latches (``ArmState.latched``):
+  no servoing and no program restart, even once the controller runs again, until a person runs ``hydrosoft-stack
+  arm enable ARM`` (an ``EnableArm`` request on ``cmd`` of this service, logged; refused while the controller
+  still reports a safety stop or an unpowered arm; the program is restarted then if it is not running).
+- ``stack``: the commander's own rules. The transient ones clear on the next fresh target: the driver failing
+  (Stale, NotConnected, DeviceFault), the target's deadline (clamped to ``limits.max_target_lead_s`` after its
+  arrival), the planner's heartbeat, the plan's age (``ArmTarget.plan_done_ns`` older than
+  ``limits.max_plan_age_s``: a hung solve), the state not advancing, no fresh F/T reading, the force limit. A
+  refused target (``safety.check_target``: outside the workspace box or the orientation limits, malformed, another
+  arm's; or a straight path that starts outside them) holds the arm for the rest of its goal.
+
+No motion the person did not start: a target is acted on only when its goal (``ArmTarget.goal_started_ns``) started
+after this commander's start, its last reconnect to the controller and its last ``arm enable``; the others are
+counted (``old_goal``) and the arm holds.
+
+Force limit: above ``limits.max_force_n`` only a retreat is servoed (``safety.retreat_refusal``: a move within 60
+deg of the contact force on the bubble, the F/T sensor's axes being the TCP's, with almost no turn); a push is
+refused. Normal servoing resumes once the force has fallen below ``limits.release_force_n``.
+
+Holding the arm spends the target: servoing resumes only with a fresh one (published after the last one seen) whose
+deadline lies ahead and which arrives with a fresh heartbeat (one arriving during the stop itself waits for the
+stop's end).
+
+It publishes ``ArmState`` on ``arm_state/ARM`` every period while the driver delivers state. While it holds the arm
+at rest with no target (``ServoLogic.holding_at_rest``), its period is that of ``limits.idle_rate_hz`` instead, and
+a target's arrival wakes it at once: an idle stack's commander and the readers of its state do a fifth of the work
+(ur_rtde's receive threads poll on regardless). The wrenches (100 Hz) do not wake it: each tick reads those that
+came since the last one and keeps the newest. An external stop is counted once as the error ``external_stop``, so
+``hydrosoft-stack status`` names it. On shutdown (SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then
+closes the driver, which sends servoStop and stops the controller's script (stopScript). Exit codes: 0 stopped and
+seen at rest, 1 the service or its shutdown failed, 2 a bad config or name, 3 the arm was never seen at rest after
+its stop (``EXIT_STOP_UNCONFIRMED``).
 
 The decisions live in ``ServoLogic`` (no sockets, no driver; unit tested); ``Commander`` is the thin I/O around it.
 """
