@@ -18,15 +18,18 @@ Safety behaviour:
 - ``connect`` arms the controller's watchdog (``setWatchdog(watchdog_min_hz)``): when no command reaches the
   controller for ``1 / watchdog_min_hz`` s (this process died or hangs) the script stops and so does the arm. While
   connected, a supervisor task kicks the watchdog whenever no other command went out within a quarter period.
-- ``servo_to`` reads the state first and never commands while the stream is stale, while protectively or
-  emergency stopped, or while the control script is not running: it raises ``Stale`` or ``DeviceFault`` instead.
+- ``servo_to`` reads the state first and never commands while the stream is stale, while the controller reports a
+  stop of its own (any safety stop bit, a robot mode other than RUNNING, the program not playing: named in
+  ``ArmState.controller_stop`` by ``safety_status.py``): it raises ``Stale`` or ``DeviceFault`` instead.
 - ``read_state`` raises ``Stale`` when the newest state is older than ``max_age_s``, its age estimated from the
   controller's RTDE timestamp against the host clock (``stream_age.py``; ur_rtde keeps returning the last values
   for about 2.5 s after the stream stops, and says nothing about when they arrived).
 - When the stream closes (controller gone, or stalled for 2.5 s), the supervisor disconnects both clients and
-  reconnects with doubling back-off; calls raise ``NotConnected`` meanwhile. A stopped script or a protective stop
-  is not undone automatically: the caller decides (``restart_script``; an operator unlocks protective stops).
-- ``close`` stops the arm, runs ``stopScript`` (a disconnect alone leaves the script running) and disconnects.
+  reconnects with doubling back-off; calls raise ``NotConnected`` meanwhile (``ArmState.link_since_ns`` tells the
+  caller a reconnect happened). A stopped script or a protective stop is not undone automatically: the caller
+  decides (``restart_script``; a person unlocks protective stops).
+- ``close`` stops the arm (servoStop, sent before the driver counts as closed), runs ``stopScript`` (a disconnect
+  alone leaves the script running) and disconnects.
 
 ``counters`` counts by name what the driver refused or detected (``stale``, ``not_connected``,
 ``refused_safety_stop``, ``refused_script_not_running``, ``rejected_target``, ``command_rejected``,
@@ -333,15 +336,14 @@ class URArm:
         return receive
 
     def _require_commandable(self, state: ArmState, command: str) -> None:
+        """Raise ``DeviceFault`` (counted) while the controller reports a safety stop, or any other stop of its own
+        (``controller_stop``: the program not playing, the arm not powered)."""
         if state.safety_flags:
             self.counters["refused_safety_stop"] += 1
             raise DeviceFault(f"{self}: {state.safety_flags[0]} active; {command} not sent")
         if state.controller_stop:
             self.counters["refused_script_not_running"] += 1
             raise DeviceFault(f"{self}: the control script is not running ({state.controller_stop}); {command} not sent")
-        if not state.running:
-            self.counters["refused_script_not_running"] += 1
-            raise DeviceFault(f"{self}: the control script is not running; {command} not sent")
 
     async def _state_for_stop(self) -> ArmState | None:
         """State for ``stop``: None when only staleness prevents reading it (the stop is sent anyway)."""
