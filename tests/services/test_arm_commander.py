@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -36,7 +37,7 @@ from loopback import free_ur_host
 
 LIMITS = LimitsConfig(workspace_min=(0.1, -0.4, 0.1), workspace_max=(0.5, 0.0, 0.5), max_speed_m_s=0.1,
                       max_angular_speed_rad_s=1.0, max_force_n=40.0, servo_rate_hz=125.0, heartbeat_timeout_s=0.3,
-                      state_timeout_s=0.2)
+                      state_timeout_s=0.2, max_target_lead_s=0.5, max_plan_age_s=0.6)
 HOME = np.array([0.3, -0.2, 0.4, 0.0, 0.0, 1.0, 0.0])  # the simulator's default TCP: 0.4 m up, tool down
 S = 1_000_000_000
 PERIOD_NS = S // 125
@@ -81,7 +82,7 @@ def servoing_logic(limits: LimitsConfig = LIMITS) -> ServoLogic:
 
 
 def test_servo_commands_step_from_the_measured_pose_then_from_the_last_command():
-    logic = new_logic()
+    logic = new_logic(msgspec.structs.replace(LIMITS, max_target_lead_s=1.0))  # the late tick lies 0.5 s on
     first = step(logic, T0)
     assert first.command is None and first.reason == NO_TARGET and not first.stop
     logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0), T0)
@@ -383,6 +384,8 @@ max_force_n = {LIMITS.max_force_n}
 servo_rate_hz = {LIMITS.servo_rate_hz}
 heartbeat_timeout_s = {LIMITS.heartbeat_timeout_s}
 state_timeout_s = {LIMITS.state_timeout_s}
+max_target_lead_s = {LIMITS.max_target_lead_s}
+max_plan_age_s = {LIMITS.max_plan_age_s}
 [planner]
 heartbeat_period_s = {HEARTBEAT_PERIOD_S}
 """)
@@ -761,6 +764,74 @@ def test_a_held_arm_is_checked_at_the_idle_rate_and_a_target_wakes_the_commander
     assert LIMITS.idle_rate_hz / 2 <= held_hz <= 2 * LIMITS.idle_rate_hz < LIMITS.servo_rate_hz, held_hz
     # without the wake a target would wait for the rest of an idle period: uniform over 0-40 ms
     assert np.median(wakes_ms) < idle_period_s * 1e3 / 4, wakes_ms
+
+
+def test_a_target_lead_of_1e12_ns_stops_the_arm_within_max_target_lead_s(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        sent = await planner.targets.send(msg.ArmTarget(
+            arm=ARM, tcp_pose=HOME + [0.15, 0, 0, 0, 0, 0, 0], deadline_ns=time.monotonic_ns() + 10**12, plan_seq=1,
+            goal_started_ns=planner.goal_started_ns, plan_done_ns=time.monotonic_ns()), f"arm_target/{ARM}")
+        await moving_at_speed(tcp)
+        rest_ns, _ = await at_rest(tcp, 3.0)
+        return (rest_ns - sent.stamp_ns) * 1e-9, planner.arm_state()
+
+    rest_s, arm_state = scenario(run, rig)
+    assert rest_s < LIMITS.max_target_lead_s + STOP_TIME_S + SCHEDULING_SLACK_S, rest_s
+    assert "deadline passed" in arm_state.stop_reason and arm_state.stop_owner == "stack"
+
+
+def test_a_hung_solve_stops_the_arm_within_max_plan_age_s_while_heartbeats_and_targets_go_on(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.plan_done_ns = time.monotonic_ns()  # the last solve ended now; targets of it keep coming
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        rest_ns, _ = await at_rest(tcp, 3.0)
+        reason = planner.arm_state().stop_reason
+        return (rest_ns - planner.plan_done_ns) * 1e-9, reason, planner.last_heartbeat_ns
+
+    rest_s, reason, last_heartbeat_ns = scenario(run, rig)
+    assert rest_s < LIMITS.max_plan_age_s + SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S, rest_s
+    assert "no plan completed" in reason
+    assert (time.monotonic_ns() - last_heartbeat_ns) * 1e-9 < 5.0  # the heartbeats went on throughout
+
+
+def test_a_flipped_tool_target_is_refused_and_never_approached(rig):
+    flipped = np.array([HOME[0], HOME[1], LIMITS.workspace_min[2], 1.0, 0.0, 0.0, 0.0])  # tool up, lowest height
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        await planner.send_target(flipped, TARGET_LEAD_S)
+        poses = []
+        deadline_ns = time.monotonic_ns() + S
+        while time.monotonic_ns() < deadline_ns:
+            poses.append((await tcp.read())[1])
+            await asyncio.sleep(POLL_PERIOD_S)
+        assert np.abs(np.array(poses) - HOME).max() < 1e-6  # neither turned nor lowered
+        status = await until(lambda: (s := planner.status()) and "tilted" in s.last_error and s, 3.0,
+                             "the refusal counted")
+        return planner.arm_state(), status
+
+    arm_state, status = scenario(run, rig)
+    assert not arm_state.servo_active and "tilted 180.0 deg" in arm_state.stop_reason
+    assert status.errors.get("target_refused", 0) >= 1
+
+
+def test_over_the_force_limit_a_retreat_moves_the_arm_and_a_push_is_refused(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.force_n = -(LIMITS.max_force_n + 1.0)  # the tool's -z is base +z: the bubble is pushed up
+        await asyncio.sleep(0.1)
+        planner.goal = HOME + [0, 0, 0.05, 0, 0, 0, 0]  # up, along the force: a retreat
+        await moving_at_speed(tcp)
+        retreating = planner.arm_state()
+        planner.new_goal()  # a new goal (its first target's refusal must not hold the next one)
+        planner.goal = HOME - [0, 0, 0.05, 0, 0, 0, 0]  # down, into the contact
+        _, rest = await at_rest(tcp, 2.0)
+        await asyncio.sleep(3 * REPLAN_PERIOD_S)
+        _, still, _ = await tcp.read()
+        return retreating, np.linalg.norm(still - rest), planner.arm_state()
+
+    retreating, drift_m, pushing = scenario(run, rig)
+    assert retreating.servo_active and retreating.tcp_pose[2] > HOME[2]
+    assert drift_m < 1e-6 and not pushing.servo_active and "over the limit" in pushing.stop_reason
 
 
 async def dashboard(host: str, line: str) -> str:
