@@ -780,7 +780,7 @@ def test_a_target_lead_of_1e12_ns_stops_the_arm_within_max_target_lead_s(rig):
     assert "deadline passed" in arm_state.stop_reason and arm_state.stop_owner == "stack"
 
 
-def test_a_hung_solve_stops_the_arm_within_max_plan_age_s_while_heartbeats_and_targets_go_on(rig):
+def test_a_hung_solve_stops_the_arm_process_within_max_plan_age_s(rig):
     async def run(planner: PlayedPlanner, tcp: SimTcp):
         planner.plan_done_ns = time.monotonic_ns()  # the last solve ended now; targets of it keep coming
         planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
