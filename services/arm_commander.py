@@ -37,8 +37,8 @@ It publishes ``ArmState`` on ``arm_state/ARM`` every period while the driver del
 at rest with no target (``ServoLogic.holding_at_rest``), its period is that of ``limits.idle_rate_hz`` instead, and
 a target's arrival wakes it at once: an idle stack's commander and the readers of its state do a fifth of the work
 (ur_rtde's receive threads poll on regardless). The wrenches (100 Hz) do not wake it: each tick reads those that
-came since the last one and keeps the newest. An external stop is counted once as the error ``external_stop``, so
-``hydrosoft-stack status`` names it. On shutdown (SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then
+came since the last one and keeps the newest. An external stop is counted once as the error ``external_stop`` and
+the service reports ``degraded`` while it latches, so ``hydrosoft-stack status`` names it. On shutdown (SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then
 closes the driver, which sends servoStop and stops the controller's script (stopScript). Exit codes: 0 stopped and
 seen at rest, 1 the service or its shutdown failed, 2 a bad config or name, 3 the arm was never seen at rest after
 its stop (``EXIT_STOP_UNCONFIRMED``).
@@ -346,7 +346,7 @@ class Commander:
         except DriverError as err:
             driver_error = f"arm driver: {err}"
             self.service.count_error("arm_driver", str(err))
-        self._report_latch()
+        await self._report_latch()
         force = self._force()  # before the decision's time: reading the wrenches queued since the last tick
         heartbeat = self._newest("heartbeat/planner", ANY_AGE_S, msg.Heartbeat)
         decision = self.logic.decide(time.monotonic_ns(), state, driver_error,
@@ -373,13 +373,17 @@ class Commander:
                 latched=self.logic.external is not None, hw_stamp_ns=state.hw_stamp_ns),
                 f"arm_state/{self.arm}")
 
-    def _report_latch(self) -> None:
-        """Log and count (``external_stop``, shown by ``hydrosoft-stack status``) an external stop once, when it
-        latches."""
+    async def _report_latch(self) -> None:
+        """Make a latched external stop visible to ``hydrosoft-stack status``: counted once as ``external_stop``
+        (its text the newest error) and the service ``degraded`` while it lasts, ``ready`` again after ``arm
+        enable``."""
         external = self.logic.external
         if external is not None and external != self._latched_reported:
             self.service.count_error("external_stop", f"{external}: the arm is held until a person runs "
                                                       f"`hydrosoft-stack arm enable {self.arm}`")
+            await self.service.set_state("degraded")
+        elif external is None and self._latched_reported is not None and self.service.state == "degraded":
+            await self.service.set_state("ready")
         self._latched_reported = external
 
     async def handle(self, request: msg.Request) -> msg.Reply:

@@ -883,6 +883,7 @@ def test_an_external_stop_latches_until_arm_enable_and_a_new_goal(rig, kind):
 
         await assert_held("while the controller reports the stop")
         latched, refused = planner.arm_state(), None
+        degraded = await until(lambda: (s := planner.status()) and s.state == "degraded" and s, 2.0, "degraded")
         if clear is not None:  # a person clears the controller's own stop: the arm stays held
             await act(tcp, *clear)
             await assert_held("after the controller's stop was cleared")
@@ -896,12 +897,16 @@ def test_an_external_stop_latches_until_arm_enable_and_a_new_goal(rig, kind):
             arm=ARM, config=str(rig.config_path), by="lab safety officer"))
         await asyncio.sleep(HELD_CHECK_S)  # the old goal's targets keep coming
         old_goal_counters, old_goal = (await tcp.request("state"))["counters"], planner.arm_state()
+        ready = await until(lambda: (s := planner.status()) and s.state == "ready" and s, 2.0, "ready again")
         planner.new_goal()
         await moving_at_speed(tcp)
-        return latched, before, refused, held_counters, held, enable_code, old_goal_counters, old_goal
+        return latched, before, refused, held_counters, held, enable_code, old_goal_counters, old_goal, degraded, ready
 
-    latched, before, refused, held_counters, held, enable_code, old_goal_counters, old_goal = scenario(run, rig)
+    (latched, before, refused, held_counters, held, enable_code, old_goal_counters, old_goal, degraded,
+     ready) = scenario(run, rig)
     assert latched.stop_owner == "external" and cause in latched.stop_reason, latched
+    assert degraded.errors.get("external_stop", 0) > 0 and cause in degraded.last_error, degraded  # for `status`
+    assert ready.state == "ready"
     assert latched.controller_stop == cause and not latched.servo_active
     assert held_counters.get("program_loaded", 0) == before.get("program_loaded", 0)
     assert held.latched and held.stop_owner == "external" and cause in held.stop_reason, held
