@@ -38,10 +38,10 @@ at rest with no target (``ServoLogic.holding_at_rest``), its period is that of `
 a target's arrival wakes it at once: an idle stack's commander and the readers of its state do a fifth of the work
 (ur_rtde's receive threads poll on regardless). The wrenches (100 Hz) do not wake it: each tick reads those that
 came since the last one and keeps the newest. An external stop is counted once as the error ``external_stop`` and
-the service reports ``degraded`` while it latches, so ``hydrosoft-stack status`` names it. On shutdown (SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then
-closes the driver, which sends servoStop and stops the controller's script (stopScript). Exit codes: 0 stopped and
-seen at rest, 1 the service or its shutdown failed, 2 a bad config or name, 3 the arm was never seen at rest after
-its stop (``EXIT_STOP_UNCONFIRMED``).
+the service reports ``degraded`` while it latches, so ``hydrosoft-stack status`` names it. On shutdown
+(SIGINT/SIGTERM) it stops the arm, confirms it is at rest, then closes the driver, which sends servoStop and stops
+the controller's script (stopScript). Exit codes: 0 stopped and seen at rest, 1 the service or its shutdown failed,
+2 a bad config or name, 3 the arm was never seen at rest after its stop (``EXIT_STOP_UNCONFIRMED``).
 
 The decisions live in ``ServoLogic`` (no sockets, no driver; unit tested); ``Commander`` is the thin I/O around it.
 """

@@ -163,8 +163,8 @@ class ArmConfig(Strict):
     nominal_tcp: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        _require(all(math.isfinite(v) for v in self.nominal_tcp)
-                 and abs(math.sqrt(sum(v * v for v in self.nominal_tcp)) - 1.0) <= 1e-6, f"arms.{self.name}.nominal_tcp",
+        unit = abs(math.sqrt(sum(v * v for v in self.nominal_tcp)) - 1.0) <= 1e-6
+        _require(all(math.isfinite(v) for v in self.nominal_tcp) and unit, f"arms.{self.name}.nominal_tcp",
                  f"must be a unit quaternion [qw, qx, qy, qz], got {self.nominal_tcp}")
 
 
@@ -190,17 +190,17 @@ MAX_WORKSPACE_EDGE_M = 1.0
 class LimitsConfig(Strict):
     """The arm commander's limits. workspace_min/max: the box (m, base frame) every TCP target, and the straight
     path to it, must lie in. max_speed_m_s, max_angular_speed_rad_s: the interpolation's speed limit (the UR
-    driver's ``max_tcp_speed_m_s`` is this). max_force_n: above this contact force (N) only a target that moves the
-    bubble away from the contact is servoed (a retreat); release_force_n: normal servoing resumes only once the force
-    has fallen below this (N, < max_force_n; default 0.75 x max_force_n). servo_rate_hz: the rate of servo commands. idle_rate_hz: the
-    commander's rate while it holds the arm at rest with no target (it checks the arm and publishes its state this
-    often, and wakes at once on a target). heartbeat_timeout_s: stop when the planner's heartbeat is older.
-    state_timeout_s: stop when the arm driver's state has not advanced for this long. max_target_lead_s: a target's
-    deadline is clamped to at most this far after its arrival (s). max_plan_age_s: stop when the plan behind the
-    target was completed longer ago than this (s; a hung solve). max_tilt_deg: the largest angle between a target's
-    tool z axis and the arm's nominal one (``ArmConfig.nominal_tcp``); yaw_range_deg: the range of the turn about
-    the nominal tool z axis, relative to the nominal orientation (deg). Every limit has an upper bound
-    (``LIMIT_BOUNDS``)."""
+    driver's ``max_tcp_speed_m_s`` is this). max_force_n: above this contact force (N) only a target that moves
+    the bubble away from the contact is servoed (a retreat); release_force_n: normal servoing resumes only once
+    the force has fallen below this (N, < max_force_n; default 0.75 x max_force_n). servo_rate_hz: the rate of
+    servo commands. idle_rate_hz: the commander's rate while it holds the arm at rest with no target (it checks
+    the arm and publishes its state this often, and wakes at once on a target). heartbeat_timeout_s: stop when
+    the planner's heartbeat is older. state_timeout_s: stop when the arm driver's state has not advanced for this
+    long. max_target_lead_s: a target's deadline is clamped to at most this far after its arrival (s).
+    max_plan_age_s: stop when the plan behind the target was completed longer ago than this (s; a hung solve).
+    max_tilt_deg: the largest angle between a target's tool z axis and the arm's nominal one
+    (``ArmConfig.nominal_tcp``); yaw_range_deg: the range of the turn about the nominal tool z axis, relative to
+    the nominal orientation (deg). Every limit has an upper bound (``LIMIT_BOUNDS``)."""
 
     workspace_min: Vec3 = (-0.15, -0.15, 0.0)
     workspace_max: Vec3 = (0.15, 0.15, 0.2)
@@ -218,7 +218,8 @@ class LimitsConfig(Strict):
     yaw_range_deg: tuple[float, float] = (-180.0, 180.0)
 
     def __post_init__(self) -> None:
-        _positive(self, "limits", "max_speed_m_s", "max_angular_speed_rad_s", "max_force_n", "servo_rate_hz", "idle_rate_hz", "heartbeat_timeout_s", "state_timeout_s", "max_target_lead_s",
+        _positive(self, "limits", "max_speed_m_s", "max_angular_speed_rad_s", "max_force_n", "servo_rate_hz",
+                  "idle_rate_hz", "heartbeat_timeout_s", "state_timeout_s", "max_target_lead_s",
                   "max_plan_age_s", "max_tilt_deg")
         for name, bound in LIMIT_BOUNDS.items():
             if name != "max_yaw_deg":

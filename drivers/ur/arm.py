@@ -192,9 +192,10 @@ class URArm:
     async def stop(self) -> None:
         """Decelerate the TCP to rest at ``stop_decel_m_s2`` (servoStop) and return once it is at rest.
 
-        Safe to repeat. When the controller reports a stop of its own (``ArmState.controller_stop``: a safety stop,
-        the script not running or paused, the arm not powered), it has already stopped the arm and nothing is sent. Raises ``NotConnected`` when the controller cannot be reached (its
-        watchdog then stops the arm) and ``DeviceFault`` when the running script refuses the stop.
+        Safe to repeat. When the controller reports a stop of its own (``ArmState.controller_stop``: a safety
+        stop, the script not running or paused, the arm not powered), it has already stopped the arm and nothing
+        is sent. Raises ``NotConnected`` when the controller cannot be reached (its watchdog then stops the arm)
+        and ``DeviceFault`` when the running script refuses the stop.
         """
         state = await self._state_for_stop()
         if state is not None and state.controller_stop:
@@ -343,7 +344,8 @@ class URArm:
             raise DeviceFault(f"{self}: {state.safety_flags[0]} active; {command} not sent")
         if state.controller_stop:
             self.counters["refused_script_not_running"] += 1
-            raise DeviceFault(f"{self}: the control script is not running ({state.controller_stop}); {command} not sent")
+            raise DeviceFault(f"{self}: the control script is not running ({state.controller_stop}); "
+                              f"{command} not sent")
 
     async def _state_for_stop(self) -> ArmState | None:
         """State for ``stop``: None when only staleness prevents reading it (the stop is sent anyway)."""

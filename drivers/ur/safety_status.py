@@ -77,8 +77,8 @@ def controller_stop(safety_bits: int, robot_mode: int, runtime_state: int) -> st
     """The controller's reason for not running the stack's program, or "" when it runs it in normal operation.
 
     In order: the most severe safety stop bit (``safety_flags``), a robot mode other than RUNNING (``"robot mode
-    POWER_OFF"``), a program paused or pausing (``"program paused"``), stopped or stopping (``"program stopped"``), resuming
-    (``"program resuming"``: not ours to resume), an unknown runtime state.
+    POWER_OFF"``), a program paused or pausing (``"program paused"``), stopped or stopping (``"program
+    stopped"``), resuming (``"program resuming"``: not ours to resume), an unknown runtime state.
     """
     flags = safety_flags(safety_bits)
     if flags:

@@ -426,8 +426,8 @@ class SimulatedURController:
         elif op == "impose_pose":
             self.impose_tcp_pose(check_pose(request["pose"]))
         else:
-            raise ValueError(f"unknown op {op!r}; expected state, stall, stall_control, protective_stop, safeguard_stop, "
-                             "emergency_stop, release_safety_stop, stop_script, drop, impose_pose")
+            raise ValueError(f"unknown op {op!r}; expected state, stall, stall_control, protective_stop, "
+                             "safeguard_stop, emergency_stop, release_safety_stop, stop_script, drop, impose_pose")
         return {}
 
 
