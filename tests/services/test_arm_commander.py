@@ -852,6 +852,7 @@ EXTERNAL_STOPS = {
     "dashboard pause": (("dashboard", "pause"), "program paused", None),
     "protective stop": (("sim", "protective_stop"), "protective stop", ("dashboard", "unlock protective stop")),
     "safeguard stop": (("sim", "safeguard_stop"), "safeguard stop", ("sim", "release_safety_stop")),
+    "emergency stop": (("sim", "emergency_stop"), "emergency stop", ("sim", "release_safety_stop")),
 }
 HELD_CHECK_S = 0.6  # how long fresh targets keep coming while the test checks that nothing reaches the controller
 STOP_SEEN_S = 0.1  # after the TCP came to rest: the commander has read the controller's stop (every 8 ms) by then
@@ -891,7 +892,7 @@ def test_an_external_stop_latches_until_arm_enable_and_a_new_goal(rig, kind):
             await until(lambda: planner.arm_state().controller_stop == cause, 2.0, "the stop reported again")
             refused = await arm_enable.enable(str(rig.config_path), ARM, "test")
             await act(tcp, *clear)
-            await until(lambda: planner.arm_state().controller_stop == "", 2.0, "the stop cleared again")
+            await until(lambda: planner.arm_state().controller_stop != cause, 2.0, "the stop cleared again")
         held_counters, held = (await tcp.request("state"))["counters"], planner.arm_state()
         enable_code = await asyncio.to_thread(arm_enable.run, argparse.Namespace(
             arm=ARM, config=str(rig.config_path), by="lab safety officer"))
