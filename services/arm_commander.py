@@ -60,6 +60,7 @@ import numpy as np
 
 from hydrosoft.drivers.base import Arm, ArmState
 from hydrosoft.drivers.errors import DriverError
+from hydrosoft.drivers.ur.config import URArmConfig
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Received, Stale
 from hydrosoft.services.config import LimitsConfig, StackConfig
@@ -470,6 +471,16 @@ class Commander:
             await asyncio.sleep(self.logic.period_s)
 
 
+def driver_config(config: StackConfig, arm: str) -> URArmConfig:
+    """The UR driver's settings for ``arm`` from the stack's limits: its servo and state rates are
+    ``limits.servo_rate_hz``, its fastest TCP speed (which bounds how long a stop takes) ``limits.max_speed_m_s``
+    and its state's maximum age ``limits.state_timeout_s``."""
+    limits = config.limits
+    return URArmConfig(host=config.arm(arm).ur_host, servo_rate_hz=limits.servo_rate_hz,
+                       state_rate_hz=limits.servo_rate_hz, max_tcp_speed_m_s=limits.max_speed_m_s,
+                       max_age_s=limits.state_timeout_s)
+
+
 @dataclass
 class ShutdownResult:
     """What the shutdown confirmed, for the exit code: ``stop_confirmed``, the arm was seen at rest after its
@@ -482,11 +493,8 @@ async def serve(service: Service, config: StackConfig, arm: str, result: Shutdow
     """The service's main: connect the arm, then servo at ``limits.servo_rate_hz`` (``limits.idle_rate_hz`` while
     idle) and answer ``arm enable`` until cancelled; the shutdown's confirmation goes to ``result``."""
     from hydrosoft.drivers.ur.arm import URArm
-    from hydrosoft.drivers.ur.config import URArmConfig
 
-    driver = URArm(URArmConfig(host=config.arm(arm).ur_host, servo_rate_hz=config.limits.servo_rate_hz,
-                               state_rate_hz=config.limits.servo_rate_hz, max_tcp_speed_m_s=config.limits.max_speed_m_s,
-                               max_age_s=config.limits.state_timeout_s))
+    driver = URArm(driver_config(config, arm))
     await driver.connect()
     commander = Commander(service, config, arm, driver)
 

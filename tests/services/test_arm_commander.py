@@ -28,7 +28,8 @@ from hydrosoft.drivers.base import ArmState
 from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SIM_CONTROL_PORT, URArmConfig
 from hydrosoft.services import arm_enable
 from hydrosoft.services import messages as msg
-from hydrosoft.services.arm_commander import EXIT_STOP_UNCONFIRMED, MAX_STEP_PERIODS, NO_TARGET, ServoLogic
+from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, MAX_STEP_PERIODS, NO_TARGET, ServoLogic,
+                                             driver_config)
 from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.config import LimitsConfig, load_config
 from loopback import free_ur_host
@@ -292,6 +293,14 @@ def test_a_hung_solve_stops_the_arm_within_max_plan_age_s_while_heartbeats_and_t
             last_servo_ns = now
     assert (last_servo_ns - T0) <= LIMITS.max_plan_age_s * S < (last_servo_ns - T0) + 2 * 12 * PERIOD_NS
     assert "no plan completed" in logic.reason
+
+
+def test_the_driver_takes_its_speed_rates_and_state_age_from_the_limits():
+    config = load_config(Path(__file__).parents[2] / "deploy" / "lab.toml")
+    driver = driver_config(config, "bubble")
+    assert driver.max_tcp_speed_m_s == config.limits.max_speed_m_s
+    assert driver.servo_rate_hz == driver.state_rate_hz == config.limits.servo_rate_hz
+    assert driver.max_age_s == config.limits.state_timeout_s and driver.host == config.arms[0].ur_host
 
 
 # --- the service process against a simulated controller -----------------------------------------------------------
