@@ -24,7 +24,13 @@ import numpy as np
 class ArmState:
     """One reading of an arm: ``tcp_pose (7,)`` in the base frame (m, wxyz), ``tcp_speed (6,)`` (m/s, rad/s),
     whether the controller is executing our commands (``running``), its protective/emergency stop flags and the
-    stamps."""
+    stamps.
+
+    controller_stop: the controller's named reason for not running our program ("" while it runs it normally), e.g.
+    "safeguard stop", "program paused", "robot mode POWER_OFF". safety_flags: the names of every safety stop the
+    controller reports at once (most severe first). link_since_ns: when the driver's link to the controller last
+    came up (``time.monotonic_ns()``; 0 when the driver does not say): a reconnect changes it.
+    """
 
     tcp_pose: np.ndarray
     tcp_speed: np.ndarray
@@ -33,6 +39,9 @@ class ArmState:
     emergency_stop: bool
     stamp_ns: int
     hw_stamp_ns: int | None
+    controller_stop: str = ""
+    safety_flags: tuple[str, ...] = ()
+    link_since_ns: int = 0
 
 
 @dataclass(frozen=True)

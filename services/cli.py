@@ -36,6 +36,9 @@ GROUPS = {
     "ft": ("the F/T sensors of a running stack (see `ft COMMAND --help`)", {
         "tare": ("hydrosoft.services.ft_command", "tare an arm's F/T sensor now (refused unless the arm is at rest and its bubble touches nothing); the bias is stored and kept across restarts"),
     }),
+    "arm": ("act on a running stack's arm (see `arm ACTION --help`)", {
+        "enable": ("hydrosoft.services.arm_enable", "re-enable an arm after an external stop (pendant, dashboard, protective, safeguard or emergency stop): refused while the controller still reports one"),
+    }),
     "capture": ("capture what a device needs before a run (see `capture WHAT --help`)", {
         "reference": ("hydrosoft.services.capture_reference", "a Soft Bubble's reference membrane (its undeformed depth image, the median of N frames) for lab mode, as a .npz file"),
     }),

@@ -153,39 +153,102 @@ class DepthConfig(Strict):
 class ArmConfig(Strict):
     """One arm. name: the scene body it carries (its TCP frame is that body's frame). ur_host: the UR controller's
     address (sim: a 127.0.0.N loopback address for the simulated controller). ft_port: the FT 300's serial port
-    (sim: a path under run_dir that sim_world links to its pseudo-terminal). depth: the bubble's depth camera."""
+    (sim: a path under run_dir that sim_world links to its pseudo-terminal). depth: the bubble's depth camera.
+    nominal_tcp: the TCP's nominal orientation [qw, qx, qy, qz] in the base frame (the scene body's, turned by
+    scene.task_frame; identity: the membrane faces down), from which ``limits.max_tilt_deg`` and
+    ``limits.yaw_range_deg`` are measured."""
 
     name: str
     ur_host: str = "127.0.0.2"
     ft_port: str = ""
     depth: DepthConfig = DepthConfig()
+    nominal_tcp: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        unit = abs(math.sqrt(sum(v * v for v in self.nominal_tcp)) - 1.0) <= 1e-6
+        _require(all(math.isfinite(v) for v in self.nominal_tcp) and unit, f"arms.{self.name}.nominal_tcp",
+                 f"must be a unit quaternion [qw, qx, qy, qz], got {self.nominal_tcp}")
+
+
+#: Upper bounds of the arm commander's limits, each with its reason. A config past one is a typo or a wrong unit,
+#: not a choice: the commander refuses to start on it.
+LIMIT_BOUNDS = {
+    "max_speed_m_s": 0.25,  # ISO 10218-1's reduced speed for work beside people (250 mm/s)
+    "max_angular_speed_rad_s": 3.14,  # half a turn per second: faster turns the bubble too fast to watch
+    "max_force_n": 150.0,  # ISO/TS 15066's quasi-static limit for a hand (140 N), rounded up; the FT 300's range
+    "servo_rate_hz": 500.0,  # an e-Series controller's cycle
+    "idle_rate_hz": 500.0,  # at most servo_rate_hz (checked there)
+    "heartbeat_timeout_s": 2.0,  # longer, a dead planner's last target would steer the arm for seconds
+    "state_timeout_s": 1.0,  # longer, the arm would move blind past ur_rtde's own 2.5 s read deadline
+    "max_target_lead_s": 5.0,  # a target is a plan step, valid for a fraction of a second, not a program
+    "max_plan_age_s": 10.0,  # a planner that solved nothing for this long is hung, not slow
+    "max_tilt_deg": 90.0,  # the bubble faces sideways at most: past it the tool turns over
+    "max_yaw_deg": 180.0,  # a full turn either way
+}
+#: Largest workspace box edge, m (a UR5e reaches 0.85 m; the box is the table's corner the task uses).
+MAX_WORKSPACE_EDGE_M = 1.0
 
 
 class LimitsConfig(Strict):
-    """The arm commander's limits. workspace_min/max: the box (m, base frame) every TCP target must lie in.
-    max_speed_m_s, max_angular_speed_rad_s: the interpolation's speed limit. max_force_n: a target is refused and
-    the arm stopped while the F/T force exceeds this. servo_rate_hz: the rate of servo commands.
-    idle_rate_hz: the commander's rate while it holds the arm at rest with no target (it checks the arm and
-    publishes its state this often, and wakes at once on a target). heartbeat_timeout_s: stop when the planner's
-    heartbeat is older. state_timeout_s: stop when the arm driver's state has not advanced for this long."""
+    """The arm commander's limits. workspace_min/max: the box (m, base frame) every TCP target, and the straight
+    path to it, must lie in. max_speed_m_s, max_angular_speed_rad_s: the interpolation's speed limit (the UR
+    driver's ``max_tcp_speed_m_s`` is this). max_force_n: above this contact force (N) only a target that moves
+    the bubble away from the contact is servoed (a retreat); release_force_n: normal servoing resumes only once
+    the force has fallen below this (N, < max_force_n; default 0.75 x max_force_n). servo_rate_hz: the rate of
+    servo commands. idle_rate_hz: the commander's rate while it holds the arm at rest with no target (it checks
+    the arm and publishes its state this often, and wakes at once on a target). heartbeat_timeout_s: stop when
+    the planner's heartbeat is older. state_timeout_s: stop when the arm driver's state has not advanced for this
+    long. max_target_lead_s: a target's deadline is clamped to at most this far after its arrival (s).
+    max_plan_age_s: stop when the plan behind the target was completed longer ago than this (s; a hung solve).
+    max_tilt_deg: the largest angle between a target's tool z axis and the arm's nominal one
+    (``ArmConfig.nominal_tcp``); yaw_range_deg: the range of the turn about the nominal tool z axis, relative to
+    the nominal orientation (deg). Every limit has an upper bound (``LIMIT_BOUNDS``)."""
 
     workspace_min: Vec3 = (-0.15, -0.15, 0.0)
     workspace_max: Vec3 = (0.15, 0.15, 0.2)
     max_speed_m_s: float = 0.1
     max_angular_speed_rad_s: float = 1.0
     max_force_n: float = 40.0
+    release_force_n: float | None = None
     servo_rate_hz: float = 125.0
     idle_rate_hz: float = 25.0
     heartbeat_timeout_s: float = 0.5
     state_timeout_s: float = 0.2
+    max_target_lead_s: float = 1.0
+    max_plan_age_s: float = 2.0
+    max_tilt_deg: float = 30.0
+    yaw_range_deg: tuple[float, float] = (-180.0, 180.0)
 
     def __post_init__(self) -> None:
         _positive(self, "limits", "max_speed_m_s", "max_angular_speed_rad_s", "max_force_n", "servo_rate_hz",
-                  "idle_rate_hz", "heartbeat_timeout_s", "state_timeout_s")
+                  "idle_rate_hz", "heartbeat_timeout_s", "state_timeout_s", "max_target_lead_s",
+                  "max_plan_age_s", "max_tilt_deg")
+        for name, bound in LIMIT_BOUNDS.items():
+            if name != "max_yaw_deg":
+                _require(getattr(self, name) <= bound, f"limits.{name}",
+                         f"must be at most {bound} (LIMIT_BOUNDS gives the reason), got {getattr(self, name)}")
+        _require(self.release_force_n is None or 0 <= self.release_force_n < self.max_force_n,
+                 "limits.release_force_n",
+                 f"must be >= 0 and below max_force_n ({self.max_force_n} N), got {self.release_force_n}")
         _require(self.idle_rate_hz <= self.servo_rate_hz, "limits.idle_rate_hz",
                  f"must be at most servo_rate_hz ({self.servo_rate_hz} Hz), got {self.idle_rate_hz}")
+        _require(all(math.isfinite(v) for v in (*self.workspace_min, *self.workspace_max)), "limits.workspace_min",
+                 f"must be finite, got {self.workspace_min} and {self.workspace_max}")
         _require(all(lo < hi for lo, hi in zip(self.workspace_min, self.workspace_max)), "limits.workspace_min",
                  f"must be below workspace_max on every axis, got {self.workspace_min} and {self.workspace_max}")
+        _require(all(hi - lo <= MAX_WORKSPACE_EDGE_M for lo, hi in zip(self.workspace_min, self.workspace_max)),
+                 "limits.workspace_max", f"every edge of the box must be at most {MAX_WORKSPACE_EDGE_M} m (a UR5e's "
+                 f"reach), got {self.workspace_min} .. {self.workspace_max}")
+        low, high = self.yaw_range_deg
+        bound = LIMIT_BOUNDS["max_yaw_deg"]
+        _require(-bound <= low < high <= bound, "limits.yaw_range_deg",
+                 f"must be [low, high] with -{bound} <= low < high <= {bound} deg, got {self.yaw_range_deg}")
+
+    @property
+    def release_level_n(self) -> float:
+        """The force (N) below which normal servoing resumes after ``max_force_n`` was exceeded:
+        ``release_force_n``, or three quarters of ``max_force_n`` when it is not set."""
+        return 0.75 * self.max_force_n if self.release_force_n is None else self.release_force_n
 
 
 class PlannerConfig(Strict):

@@ -333,11 +333,18 @@ class Wrench(SensorMessage, frozen=True, kw_only=True):
     tared: bool
 
 
+StopOwner = Literal["", "stack", "external"]
+
+
 class ArmState(SensorMessage, frozen=True, kw_only=True):
     """An arm's state as its commander sees it. tcp_pose: ``(7,)`` float64, base frame (m, wxyz). tcp_speed:
     ``(6,)`` float64 (m/s, rad/s), base frame. running: the controller executes our program. protective_stop,
     emergency_stop: the controller's stop flags. servo_active: the commander is servoing towards targets (False:
-    stopped). stop_reason: why it stopped ("" while servoing)."""
+    stopped). stop_reason: why it stopped ("" while servoing). stop_owner: who stopped it: "stack" (the commander's
+    own rules), "external" (a person or the controller: pendant, dashboard, safety system; latched until ``arm
+    enable``) or "" while servoing. controller_stop: the controller's own named stop ("" when it runs our program
+    normally; e.g. "safeguard stop", "program paused"). safety_flags: every safety stop the controller reports.
+    latched: an external stop holds the arm until a person re-enables it (``hydrosoft-stack arm enable ARM``)."""
 
     topic = "arm_state"
     ARRAYS = {"tcp_pose": POSE, "tcp_speed": TWIST}
@@ -350,6 +357,10 @@ class ArmState(SensorMessage, frozen=True, kw_only=True):
     emergency_stop: bool
     servo_active: bool
     stop_reason: str = ""
+    stop_owner: StopOwner = ""
+    controller_stop: str = ""
+    safety_flags: tuple[str, ...] = ()
+    latched: bool = False
 
 
 # --- planner outputs ---------------------------------------------------------------------------------------------
@@ -357,8 +368,12 @@ class ArmState(SensorMessage, frozen=True, kw_only=True):
 
 class ArmTarget(Message, frozen=True, kw_only=True):
     """The pose the arm should servo towards. tcp_pose: ``(7,)`` float64, base frame (m, wxyz). deadline_ns:
-    ``time.monotonic_ns()`` after which the target is void and the arm stops. plan_seq: ``seq`` of the plan it
-    came from."""
+    ``time.monotonic_ns()`` after which the target is void and the arm stops (the commander caps how far ahead it
+    may lie: ``limits.max_target_lead_s``). plan_seq: ``seq`` of the plan it came from. goal_started_ns: when the
+    goal it serves was started (the planner's ``time.monotonic_ns()``; 0: no goal): a commander servoes only on
+    goals started after its own start, its last reconnect and its last ``arm enable``. plan_done_ns: when the plan
+    it comes from was completed (the end of its solve, or when a waypoint or halt was computed); the commander stops
+    when it is older than ``limits.max_plan_age_s``."""
 
     topic = "arm_target"
     ARRAYS = {"tcp_pose": POSE}
@@ -367,9 +382,14 @@ class ArmTarget(Message, frozen=True, kw_only=True):
     tcp_pose: np.ndarray
     deadline_ns: int
     plan_seq: int
+    goal_started_ns: int = 0
+    plan_done_ns: int = 0
 
     def check(self) -> None:
         _positive(self, deadline_ns=self.deadline_ns)
+        for name in ("goal_started_ns", "plan_done_ns"):
+            if getattr(self, name) < 0:
+                raise OutOfRange(f"ArmTarget.{name} must be >= 0, got {getattr(self, name)}")
 
 
 class Plan(Message, frozen=True, kw_only=True):
@@ -572,6 +592,23 @@ class Tare(Request, frozen=True, kw_only=True):
 
     topic = "cmd/tare"
     reply = TareReply
+class ArmEnableReply(Reply, frozen=True, kw_only=True):
+    """The reply to EnableArm. cleared: the external stop that was cleared ("" when none was latched)."""
+
+    topic = "reply/arm_enable"
+
+    cleared: str = ""
+
+
+class EnableArm(Request, frozen=True, kw_only=True):
+    """A person re-enables an arm after an external stop (to its commander's ``cmd`` endpoint). arm: the arm's
+    name. by: who asks (free text for the log)."""
+
+    topic = "cmd/enable_arm"
+    reply = ArmEnableReply
+
+    arm: str
+    by: str = ""
 
 
 # --- ground truth (simulation only; the planner never subscribes to eval/) ---------------------------------------
@@ -635,8 +672,8 @@ def _register(*kinds: type[Message]) -> dict[str, type[Message]]:
 
 KINDS: dict[str, type[Message]] = _register(
     DepthFrame, CameraImage, MembraneDeformation, TagDetections, ObjectPose, Wrench, ArmState, ArmTarget, Plan,
-    Heartbeat, ServiceStatus, CommandReply, StatusReply, SetGoal, Start, Stop, GetStatus, EvalObjectPose,
-    EvalContactForces, TareReply, Tare,
+    Heartbeat, ServiceStatus, CommandReply, StatusReply, SetGoal, Start, Stop, GetStatus, EnableArm, ArmEnableReply,
+    Tare, TareReply, EvalObjectPose, EvalContactForces,
 )
 """Every message kind by its topic."""
 

@@ -486,10 +486,14 @@ class Planner:
 
     async def send_targets(self, poses: dict[str, np.ndarray], deadline_ns: int) -> None:
         """Send each arm's TCP target ``(7,)`` (m, wxyz, base frame), all with one new ``plan_seq`` and
-        ``deadline_ns`` (the plan they come from: a solve, a re-approach waypoint, or the halt at a goal's end)."""
+        ``deadline_ns`` (the plan they come from: a solve, a re-approach waypoint, or the halt at a goal's end),
+        stamped with the goal's start and with now as the plan's completion (it is sent as soon as it is made)."""
         self.plan_seq += 1
+        episode, plan_done_ns = self.episode or self.last_outcome, time.monotonic_ns()
+        goal_started_ns = 0 if episode is None else int(episode.started_s * 1e9)  # time.monotonic() in ns
         for name, pose in poses.items():
-            await self.out.send(msg.ArmTarget(arm=name, tcp_pose=pose, deadline_ns=deadline_ns, plan_seq=self.plan_seq),
+            await self.out.send(msg.ArmTarget(arm=name, tcp_pose=pose, deadline_ns=deadline_ns, plan_seq=self.plan_seq,
+                                              goal_started_ns=goal_started_ns, plan_done_ns=plan_done_ns),
                                 topic=f"arm_target/{name}")
 
     def _fail(self, episode: Episode, reason: str) -> None:

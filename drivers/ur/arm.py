@@ -18,15 +18,18 @@ Safety behaviour:
 - ``connect`` arms the controller's watchdog (``setWatchdog(watchdog_min_hz)``): when no command reaches the
   controller for ``1 / watchdog_min_hz`` s (this process died or hangs) the script stops and so does the arm. While
   connected, a supervisor task kicks the watchdog whenever no other command went out within a quarter period.
-- ``servo_to`` reads the state first and never commands while the stream is stale, while protectively or
-  emergency stopped, or while the control script is not running: it raises ``Stale`` or ``DeviceFault`` instead.
+- ``servo_to`` reads the state first and never commands while the stream is stale, while the controller reports a
+  stop of its own (any safety stop bit, a robot mode other than RUNNING, the program not playing: named in
+  ``ArmState.controller_stop`` by ``safety_status.py``): it raises ``Stale`` or ``DeviceFault`` instead.
 - ``read_state`` raises ``Stale`` when the newest state is older than ``max_age_s``, its age estimated from the
   controller's RTDE timestamp against the host clock (``stream_age.py``; ur_rtde keeps returning the last values
   for about 2.5 s after the stream stops, and says nothing about when they arrived).
 - When the stream closes (controller gone, or stalled for 2.5 s), the supervisor disconnects both clients and
-  reconnects with doubling back-off; calls raise ``NotConnected`` meanwhile. A stopped script or a protective stop
-  is not undone automatically: the caller decides (``restart_script``; an operator unlocks protective stops).
-- ``close`` stops the arm, runs ``stopScript`` (a disconnect alone leaves the script running) and disconnects.
+  reconnects with doubling back-off; calls raise ``NotConnected`` meanwhile (``ArmState.link_since_ns`` tells the
+  caller a reconnect happened). A stopped script or a protective stop is not undone automatically: the caller
+  decides (``restart_script``; a person unlocks protective stops).
+- ``close`` stops the arm (servoStop, sent before the driver counts as closed), runs ``stopScript`` (a disconnect
+  alone leaves the script running) and disconnects.
 
 ``counters`` counts by name what the driver refused or detected (``stale``, ``not_connected``,
 ``refused_safety_stop``, ``refused_script_not_running``, ``rejected_target``, ``command_rejected``,
@@ -51,6 +54,7 @@ from hydrosoft.drivers.errors import DeviceFault, NotConnected, Stale
 from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SCRIPT_PORT, URArmConfig
 from hydrosoft.drivers.ur.pose import pose_to_ur, ur_to_pose
 from hydrosoft.drivers.ur.probe import error_text, probe_port, probe_rtde_stream
+from hydrosoft.drivers.ur.safety_status import RuntimeState, controller_stop, safety_flags
 from hydrosoft.drivers.ur.stream_age import StreamAge
 
 try:
@@ -63,10 +67,12 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "actual_TCP_speed", "runtime_state", "safety_status_bits"]
-RUNTIME_STATE_PLAYING = 2
+RECEIVE_VARIABLES = ["timestamp", "actual_TCP_pose", "actual_TCP_speed", "runtime_state", "safety_status_bits",
+                     "robot_mode"]
+#: The safety bits that forbid motion (``safety_status.SAFETY_STATUS_BITS``): protective, safeguard and every
+#: emergency stop, violation, fault, stopped due to safety, recovery mode.
 SAFETY_BIT_PROTECTIVE_STOP = 1 << 2
-SAFETY_BIT_EMERGENCY_STOP = 1 << 7
+EMERGENCY_STOP_BITS = (1 << 5) | (1 << 6) | (1 << 7)
 
 # Limits of the waits on the worker threads. ur_rtde's own waits are longer (a real-time command spins up to ~4 s
 # for "ready", a stop up to 300 s), so these bound how long a caller waits, not how long the thread is busy.
@@ -99,6 +105,7 @@ class URArm:
         self._age = StreamAge()
         self._supervisor: asyncio.Task | None = None
         self._link_up = False
+        self._link_since_ns = 0
         self._closed = False
 
     def __str__(self) -> str:
@@ -126,7 +133,7 @@ class URArm:
         older than ``max_age_s`` (judged from the controller's timestamp, see ``stream_age.py``)."""
         receive = self._require_link()
         try:
-            connected, stamp_s, ur_pose, speed, runtime_state, safety_bits = await self._on_thread(
+            connected, stamp_s, ur_pose, speed, runtime_state, safety_bits, robot_mode = await self._on_thread(
                 self._receive_thread, lambda: _read_receive(receive), REALTIME_CALL_TIMEOUT_S
             )
         except asyncio.TimeoutError as exc:
@@ -147,11 +154,14 @@ class URArm:
         return ArmState(
             tcp_pose=ur_to_pose(ur_pose),
             tcp_speed=np.asarray(speed, dtype=np.float64),
-            running=runtime_state == RUNTIME_STATE_PLAYING,
+            running=runtime_state == RuntimeState.PLAYING,
             protective_stop=bool(safety_bits & SAFETY_BIT_PROTECTIVE_STOP),
-            emergency_stop=bool(safety_bits & SAFETY_BIT_EMERGENCY_STOP),
+            emergency_stop=bool(safety_bits & EMERGENCY_STOP_BITS),
             stamp_ns=now_ns,
             hw_stamp_ns=round(stamp_s * 1e9),
+            controller_stop=controller_stop(safety_bits, robot_mode, runtime_state),
+            safety_flags=safety_flags(safety_bits),
+            link_since_ns=self._link_since_ns,
         )
 
     async def servo_to(self, tcp_pose: np.ndarray) -> None:
@@ -182,12 +192,13 @@ class URArm:
     async def stop(self) -> None:
         """Decelerate the TCP to rest at ``stop_decel_m_s2`` (servoStop) and return once it is at rest.
 
-        Safe to repeat. When protectively stopped or when the script is not running, the controller has already
-        stopped the arm and nothing is sent. Raises ``NotConnected`` when the controller cannot be reached (its
-        watchdog then stops the arm) and ``DeviceFault`` when the running script refuses the stop.
+        Safe to repeat. When the controller reports a stop of its own (``ArmState.controller_stop``: a safety
+        stop, the script not running or paused, the arm not powered), it has already stopped the arm and nothing
+        is sent. Raises ``NotConnected`` when the controller cannot be reached (its watchdog then stops the arm)
+        and ``DeviceFault`` when the running script refuses the stop.
         """
         state = await self._state_for_stop()
-        if state is not None and (state.protective_stop or state.emergency_stop or not state.running):
+        if state is not None and state.controller_stop:
             return
         decel = self.config.stop_decel_m_s2
         stopped = await self._control_call(
@@ -195,24 +206,27 @@ class URArm:
         )
         if not stopped:
             after = await self._state_for_stop()
-            if after is not None and (after.protective_stop or after.emergency_stop or not after.running):
+            if after is not None and after.controller_stop:
                 return
             self.counters["command_rejected"] += 1
             raise DeviceFault(f"{self}: the controller did not complete servoStop")
         self.counters["stops"] += 1
 
     async def close(self) -> None:
-        """Stop the arm, stop the control script (stopScript) and disconnect both clients. Idempotent."""
+        """Stop the arm (servoStop, sent while the link still counts as open), stop the control script
+        (stopScript) and disconnect both clients. Idempotent."""
         if self._closed:
             return
-        self._closed = True
         if self._supervisor is not None:
             self._supervisor.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._supervisor
-        if self._link_up:
+        link_up = self._link_up
+        if link_up:
             with contextlib.suppress(NotConnected, Stale, DeviceFault):
                 await self.stop()
+        self._closed = True
+        if link_up:
             with contextlib.suppress(NotConnected, DeviceFault):
                 await self._control_call(lambda c: c.stopScript(), SETUP_CALL_TIMEOUT_S)
                 self.counters["script_stops"] += 1
@@ -226,8 +240,9 @@ class URArm:
         """Upload and start the control script again (after a watchdog expiry or an operator's stop) and re-arm
         the watchdog. Raises ``DeviceFault`` while protectively stopped or when the controller refuses."""
         state = await self.read_state()
-        if state.protective_stop or state.emergency_stop:
-            raise DeviceFault(f"{self}: cannot restart the script while stopped by the safety system")
+        if state.safety_flags:
+            raise DeviceFault(f"{self}: cannot restart the script while the controller reports a "
+                              f"{state.safety_flags[0]}")
         if not await self._control_call(lambda c: c.reuploadScript(), SETUP_CALL_TIMEOUT_S):
             raise DeviceFault(f"{self}: the controller did not restart the control script")
         await self._wait_running()
@@ -269,6 +284,7 @@ class URArm:
             await self._retire_clients()
             raise NotConnected(f"{self}: RTDE control interface failed to start: {error_text(exc)}") from exc
         self._link_up = True
+        self._link_since_ns = time.monotonic_ns()
         self._age.reset()  # the controller may have restarted: its clock too
         try:
             await self._arm_watchdog()
@@ -321,13 +337,15 @@ class URArm:
         return receive
 
     def _require_commandable(self, state: ArmState, command: str) -> None:
-        if state.protective_stop or state.emergency_stop:
+        """Raise ``DeviceFault`` (counted) while the controller reports a safety stop, or any other stop of its own
+        (``controller_stop``: the program not playing, the arm not powered)."""
+        if state.safety_flags:
             self.counters["refused_safety_stop"] += 1
-            kind = "emergency" if state.emergency_stop else "protective"
-            raise DeviceFault(f"{self}: {kind} stop active; {command} not sent")
-        if not state.running:
+            raise DeviceFault(f"{self}: {state.safety_flags[0]} active; {command} not sent")
+        if state.controller_stop:
             self.counters["refused_script_not_running"] += 1
-            raise DeviceFault(f"{self}: the control script is not running; {command} not sent")
+            raise DeviceFault(f"{self}: the control script is not running ({state.controller_stop}); "
+                              f"{command} not sent")
 
     async def _state_for_stop(self) -> ArmState | None:
         """State for ``stop``: None when only staleness prevents reading it (the stop is sent anyway)."""
@@ -413,7 +431,7 @@ class URArm:
             return await loop.run_in_executor(thread, call)
 
 
-def _read_receive(receive: Any) -> tuple[bool, float, list[float], list[float], int, int]:
+def _read_receive(receive: Any) -> tuple[bool, float, list[float], list[float], int, int, int]:
     """One consistent-enough read of the receive client (each getter locks ur_rtde's state separately)."""
     return (
         receive.isConnected(),
@@ -422,5 +440,6 @@ def _read_receive(receive: Any) -> tuple[bool, float, list[float], list[float], 
         receive.getActualTCPSpeed(),
         receive.getRuntimeState(),
         receive.getSafetyStatusBits(),
+        receive.getRobotMode(),
     )
 

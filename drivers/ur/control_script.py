@@ -172,6 +172,14 @@ class ControlScript:
         self.registers.int_out[offset + 2] = 0
         self.registers.int_out[offset] = SIGNAL_READY
 
+    def pause(self) -> None:
+        """Pause the program (dashboard or pendant ``pause``): it no longer reads commands and the TCP decelerates
+        to rest; ``start`` (dashboard ``play`` restarts the program) ends the pause."""
+        if not self.running:
+            return
+        self.stop()
+        self.runtime_state = RuntimeState.PAUSED
+
     def stop(self) -> None:
         """End the program (stopScript, dashboard ``stop``, watchdog, fault): the TCP decelerates to rest."""
         if not self.running:

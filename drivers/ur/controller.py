@@ -5,9 +5,11 @@
 variable for a data package, ``write_inputs`` applies a client's input data package, ``load_program`` takes what
 arrived on the script port. Everything runs on one thread (the simulator's event loop); nothing here blocks.
 
-Status words follow the RTDE guide (devices.md section 6.3): ``robot_status_bits`` bit 0 power on, bit 1 program
-running; ``safety_status_bits`` bit 0 normal, bit 2 protective stop, bit 7 emergency stop; ``robot_mode`` 7 =
-RUNNING; ``safety_mode`` 1 = NORMAL, 3 = PROTECTIVE_STOP, 7 = ROBOT_EMERGENCY_STOP.
+Status words follow the RTDE guide (names in ``safety_status.py``): ``robot_status_bits`` bit 0 power on, bit 1
+program running; ``safety_status_bits`` bit 0 normal, bit 2 protective stop, bit 4 safeguard stop, bit 7 emergency
+stop; ``robot_mode`` 7 = RUNNING (3 = POWER_OFF after an emergency stop); ``safety_mode`` 1 = NORMAL, 3 =
+PROTECTIVE_STOP, 5 = SAFEGUARD_STOP, 7 = ROBOT_EMERGENCY_STOP. The stops a person causes (safeguard and emergency
+stop, a paused program) are injected through the simulator's control endpoint and the dashboard.
 """
 
 from __future__ import annotations
@@ -30,14 +32,19 @@ from hydrosoft.drivers.ur.pose import rotvec_from_quat
 from hydrosoft.drivers.ur.rtde_protocol import OUTPUT_TYPES, REGISTER_COUNT, VECTOR_LENGTHS
 
 ROBOT_MODE_RUNNING = 7
+ROBOT_MODE_POWER_OFF = 3
 SAFETY_MODE_NORMAL = 1
 SAFETY_MODE_PROTECTIVE_STOP = 3
+SAFETY_MODE_SAFEGUARD_STOP = 5
 SAFETY_MODE_ROBOT_EMERGENCY_STOP = 7
 ROBOT_STATUS_POWER_ON = 1 << 0
 ROBOT_STATUS_PROGRAM_RUNNING = 1 << 1
 SAFETY_STATUS_NORMAL = 1 << 0
 SAFETY_STATUS_PROTECTIVE_STOP = 1 << 2
+SAFETY_STATUS_SAFEGUARD_STOP = 1 << 4
 SAFETY_STATUS_EMERGENCY_STOP = 1 << 7
+#: servoL's command id (``control_script.CMD_SERVOL``) as a client writes it into the command register.
+SERVOL_COMMAND = 24
 JOINT_MODE_RUNNING = 253
 # A plausible UR5e joint configuration (rad) reported as actual_q; the simulator has no kinematics.
 HOME_JOINTS_RAD = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
@@ -92,6 +99,7 @@ class URControllerModel:
         self.script.motion_allowed = self.motion_allowed
         self.script.on_protective_stop_request = self.trigger_protective_stop
         self.protective_stop = False
+        self.safeguard_stop = False
         self.emergency_stop = False
         self.program: str | None = None
         self.digital_output_bits = 0
@@ -125,7 +133,32 @@ class URControllerModel:
     # -- safety and program ----------------------------------------------------------------------------------
 
     def motion_allowed(self) -> bool:
-        return not (self.protective_stop or self.emergency_stop)
+        return not (self.protective_stop or self.safeguard_stop or self.emergency_stop)
+
+    def trigger_safeguard_stop(self) -> None:
+        """Safeguard stop (a light curtain or door opened): the TCP stops; motion is refused until released."""
+        self.counters["safeguard_stop"] += 1
+        self.safeguard_stop = True
+        self.motion.stop(self.motion.limits.protective_stop_decel_m_s2)
+
+    def trigger_emergency_stop(self) -> None:
+        """Emergency stop: the program ends, the TCP stops and the arm powers off (robot mode POWER_OFF) until
+        released."""
+        self.counters["emergency_stop"] += 1
+        self.emergency_stop = True
+        self.script.stop()
+        self.motion.stop(self.motion.limits.protective_stop_decel_m_s2)
+
+    def release_safety_stop(self) -> None:
+        """A person resets a safeguard or emergency stop (sim only: a real controller needs its inputs reset and,
+        after an emergency stop, the arm powered on again). The program stays as it is."""
+        self.safeguard_stop = self.emergency_stop = False
+        self.counters["safety_stop_released"] += 1
+
+    def pause_program(self) -> None:
+        """Dashboard ``pause`` (or the pendant's pause): the program pauses and the TCP decelerates to rest."""
+        self.counters["pause"] += 1
+        self.script.pause()
 
     def trigger_protective_stop(self) -> None:
         """Protective stop: the TCP stops at the protective deceleration; motion commands are refused until unlock."""
@@ -154,6 +187,9 @@ class URControllerModel:
         except ValueError:
             self.counters["bad_program"] += 1
             return
+        if self.emergency_stop:  # the arm is powered off: nothing runs until a person resets it
+            self.counters["program_refused"] += 1
+            return
         self.program = text
         self.counters["program_loaded"] += 1
         self.script.stop()
@@ -161,7 +197,7 @@ class URControllerModel:
 
     def play(self) -> bool:
         """Dashboard ``play``: restart the loaded program; False when none is loaded."""
-        if self.program is None:
+        if self.program is None or self.emergency_stop:
             return False
         self.script.stop()
         self.script.start(register_offset(self.program))
@@ -183,6 +219,8 @@ class URControllerModel:
         for name, value in values.items():
             if name.startswith("input_int_register_"):
                 index = int(name.rsplit("_", 1)[1])
+                if index in (0, 24) and int(value) == SERVOL_COMMAND:  # type: ignore[call-overload]
+                    self.counters["servol_received"] += 1  # reached the controller, acted on or not
                 regs.int_in[index] = int(value)  # type: ignore[call-overload]
                 regs.int_in_written_ns[index] = now_ns
             elif name.startswith("input_double_register_"):
@@ -201,18 +239,26 @@ class URControllerModel:
         return bits
 
     def safety_status_bits(self) -> int:
+        bits = 0
         if self.emergency_stop:
-            return SAFETY_STATUS_EMERGENCY_STOP
+            bits |= SAFETY_STATUS_EMERGENCY_STOP
+        if self.safeguard_stop:
+            bits |= SAFETY_STATUS_SAFEGUARD_STOP
         if self.protective_stop:
-            return SAFETY_STATUS_PROTECTIVE_STOP
-        return SAFETY_STATUS_NORMAL
+            bits |= SAFETY_STATUS_PROTECTIVE_STOP
+        return bits or SAFETY_STATUS_NORMAL
 
     def safety_mode(self) -> int:
         if self.emergency_stop:
             return SAFETY_MODE_ROBOT_EMERGENCY_STOP
+        if self.safeguard_stop:
+            return SAFETY_MODE_SAFEGUARD_STOP
         if self.protective_stop:
             return SAFETY_MODE_PROTECTIVE_STOP
         return SAFETY_MODE_NORMAL
+
+    def robot_mode(self) -> int:
+        return ROBOT_MODE_POWER_OFF if self.emergency_stop else ROBOT_MODE_RUNNING
 
     def output_values(self) -> dict[str, object]:
         """Every name of ``OUTPUT_TYPES`` with its current value (vectors as lists), for data packages."""
@@ -233,6 +279,7 @@ class URControllerModel:
             runtime_state=int(self.runtime_state),
             robot_status_bits=self.robot_status_bits(),
             safety_status_bits=self.safety_status_bits(),
+            robot_mode=self.robot_mode(),
         )
         values.update(zip(_INT_OUTPUT_REGISTERS, self.registers.int_out.tolist()))
         values.update(zip(_DOUBLE_OUTPUT_REGISTERS, self.registers.double_out.tolist()))
@@ -254,7 +301,6 @@ _CONSTANT_OUTPUTS: dict[str, object] = {
     "target_q": list(HOME_JOINTS_RAD),
     "actual_q": list(HOME_JOINTS_RAD),
     "joint_temperatures": [30.0] * 6,
-    "robot_mode": ROBOT_MODE_RUNNING,
     "joint_mode": [JOINT_MODE_RUNNING] * 6,
     "actual_tool_accelerometer": [0.0, 0.0, -9.81],
     "actual_main_voltage": 48.0,

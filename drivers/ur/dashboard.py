@@ -41,21 +41,26 @@ def dashboard_reply(model: URControllerModel, line: str) -> str:
     if command == "play":
         return "Starting program" if model.play() else "Failed to execute: play"
     if command == "pause":
+        model.pause_program()
         return "Pausing program"
     if command == "unlock protective stop":
         return "Protective stop releasing" if model.unlock_protective_stop() else UNLOCK_TOO_EARLY
     if command == "running":
         return f"Program running: {'true' if model.script.running else 'false'}"
     if command == "programstate":
+        if model.runtime_state == RuntimeState.PAUSED:
+            return "PAUSED rtde_control"
         return "PLAYING rtde_control" if model.runtime_state == RuntimeState.PLAYING else "STOPPED <unnamed>"
     if command == "isprogramsaved":
         return "True rtde_control"
     if command == "robotmode":
-        return "Robotmode: RUNNING"
+        return f"Robotmode: {'POWER_OFF' if model.emergency_stop else 'RUNNING'}"
     if command in ("safetymode", "safetystatus"):
         label = "Safetymode" if command == "safetymode" else "Safetystatus"
         if model.emergency_stop:
             return f"{label}: ROBOT_EMERGENCY_STOP"
+        if model.safeguard_stop:
+            return f"{label}: SAFEGUARD_STOP"
         return f"{label}: {'PROTECTIVE_STOP' if model.protective_stop else 'NORMAL'}"
     if command == "power on":
         return "Powering on"

@@ -22,12 +22,16 @@ overwrites the TCP pose (the active command carries on from there). Call them fr
 Fault knobs, each counted in ``faults`` (injected) and mirrored on the control endpoint: ``stall_stream(duration_s)``
 (RTDE outputs stop, connections stay open), ``stall_control_stream(duration_s)`` (only the outputs to connections
 that own input registers stop: the control client falls behind the receive client), ``trigger_protective_stop()``,
-``stop_script()`` (the program ends, as a pendant stop), ``drop(duration_s)`` (every socket closed, connections
-refused, then the controller comes back).
+``trigger_safeguard_stop()``, ``trigger_emergency_stop()`` (the program ends, the arm powers off),
+``release_safety_stop()`` (sim only: a person resets the safeguard or emergency stop), ``stop_script()`` (the
+program ends, as a pendant stop), ``drop(duration_s)`` (every socket closed, connections refused, then the
+controller comes back). The dashboard's ``stop`` and ``pause`` act as on a real controller. ``counters``
+``servol_received`` counts the servoL packages that reached the controller, whether or not it acted on them.
 
 Control endpoint: one JSON object per line, one reply line ``{"ok": true, ...}`` or ``{"ok": false, "error": ...}``.
 Requests: ``{"op": "state"}`` (pose, twist, runtime_state, protective_stop, watchdog_period_s, faults, counters),
 ``{"op": "stall", "duration_s": s}``, ``{"op": "stall_control", "duration_s": s}``, ``{"op": "protective_stop"}``,
+``{"op": "safeguard_stop"}``, ``{"op": "emergency_stop"}``, ``{"op": "release_safety_stop"}``,
 ``{"op": "stop_script"}``, ``{"op": "drop", "duration_s": s}``, ``{"op": "impose_pose", "pose": [7 floats]}``.
 """
 
@@ -200,6 +204,20 @@ class SimulatedURController:
         self.faults["protective_stop"] += 1
         self.model.trigger_protective_stop()
 
+    def trigger_safeguard_stop(self) -> None:
+        """Safeguard stop: the TCP stops, motion is refused until ``release_safety_stop``."""
+        self.faults["safeguard_stop"] += 1
+        self.model.trigger_safeguard_stop()
+
+    def trigger_emergency_stop(self) -> None:
+        """Emergency stop: the program ends and the arm powers off until ``release_safety_stop``."""
+        self.faults["emergency_stop"] += 1
+        self.model.trigger_emergency_stop()
+
+    def release_safety_stop(self) -> None:
+        """Sim only, a person's reset: clear a safeguard or emergency stop (the program stays stopped)."""
+        self.model.release_safety_stop()
+
     def stop_script(self) -> None:
         """End the control program as a pendant stop would (runtime_state goes to STOPPED)."""
         self.faults["stop_script"] += 1
@@ -236,6 +254,8 @@ class SimulatedURController:
             "twist": self.tcp_twist().tolist(),
             "runtime_state": int(model.runtime_state),
             "protective_stop": model.protective_stop,
+            "safeguard_stop": model.safeguard_stop,
+            "emergency_stop": model.emergency_stop,
             "watchdog_period_s": model.script.watchdog_period_s,
             "rtde_sessions": len(self._sessions),
             "output_rates_hz": sorted(1e9 / period_ns for session, _ in self._sessions.values()
@@ -390,6 +410,12 @@ class SimulatedURController:
             self.stall_control_stream(_duration(request))
         elif op == "protective_stop":
             self.trigger_protective_stop()
+        elif op == "safeguard_stop":
+            self.trigger_safeguard_stop()
+        elif op == "emergency_stop":
+            self.trigger_emergency_stop()
+        elif op == "release_safety_stop":
+            self.release_safety_stop()
         elif op == "stop_script":
             self.stop_script()
         elif op == "drop":
@@ -400,8 +426,8 @@ class SimulatedURController:
         elif op == "impose_pose":
             self.impose_tcp_pose(check_pose(request["pose"]))
         else:
-            raise ValueError(f"unknown op {op!r}; expected state, stall, stall_control, protective_stop, stop_script, "
-                             "drop, impose_pose")
+            raise ValueError(f"unknown op {op!r}; expected state, stall, stall_control, protective_stop, "
+                             "safeguard_stop, emergency_stop, release_safety_stop, stop_script, drop, impose_pose")
         return {}
 
 

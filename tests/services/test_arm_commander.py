@@ -8,6 +8,7 @@ the TCP through the simulator's inspection port. Every wait has a timeout; every
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
 import os
@@ -19,13 +20,16 @@ import sys
 import time
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
 from hydrosoft.drivers.base import ArmState
-from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT, URArmConfig
+from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SIM_CONTROL_PORT, URArmConfig
+from hydrosoft.services import arm_enable
 from hydrosoft.services import messages as msg
-from hydrosoft.services.arm_commander import MAX_STEP_PERIODS, NO_TARGET, ServoLogic
+from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, MAX_STEP_PERIODS, NO_TARGET, UNTARED_FT,
+                                             ServoLogic, driver_config)
 from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.config import LimitsConfig, load_config
 from loopback import free_ur_host
@@ -34,41 +38,55 @@ from loopback import free_ur_host
 
 LIMITS = LimitsConfig(workspace_min=(0.1, -0.4, 0.1), workspace_max=(0.5, 0.0, 0.5), max_speed_m_s=0.1,
                       max_angular_speed_rad_s=1.0, max_force_n=40.0, servo_rate_hz=125.0, heartbeat_timeout_s=0.3,
-                      state_timeout_s=0.2)
+                      state_timeout_s=0.2, max_target_lead_s=0.5, max_plan_age_s=0.6)
 HOME = np.array([0.3, -0.2, 0.4, 0.0, 0.0, 1.0, 0.0])  # the simulator's default TCP: 0.4 m up, tool down
 S = 1_000_000_000
 PERIOD_NS = S // 125
 T0 = 100 * S
 
 
-def target(pose, stamp_ns: int, lead_s: float = 1.0, arm: str = "bubble") -> msg.ArmTarget:
+GOAL_NS = T0 - S  # the played goal's start: after the commander's (0)
+
+
+def target(pose, stamp_ns: int, lead_s: float = 1.0, arm: str = "bubble", goal_ns: int = GOAL_NS,
+           plan_done_ns: int | None = None) -> msg.ArmTarget:
     return msg.ArmTarget(arm=arm, tcp_pose=np.asarray(pose, dtype=np.float64), deadline_ns=stamp_ns + int(lead_s * S),
-                         plan_seq=1, seq=1, stamp_ns=stamp_ns, source="planner")
+                         plan_seq=1, seq=1, stamp_ns=stamp_ns, source="planner", goal_started_ns=goal_ns,
+                         plan_done_ns=stamp_ns if plan_done_ns is None else plan_done_ns)
 
 
-def state(now_ns: int, pose=HOME, speed=np.zeros(6)) -> ArmState:
+def state(now_ns: int, pose=HOME, speed=np.zeros(6), controller_stop: str = "", safety_flags=(),
+          link_since_ns: int = 0) -> ArmState:
     return ArmState(tcp_pose=np.asarray(pose, dtype=np.float64), tcp_speed=np.asarray(speed, dtype=np.float64),
-                    running=True, protective_stop=False, emergency_stop=False, stamp_ns=now_ns, hw_stamp_ns=now_ns)
+                    running=not controller_stop, protective_stop="protective stop" in safety_flags,
+                    emergency_stop=False, stamp_ns=now_ns, hw_stamp_ns=now_ns, controller_stop=controller_stop,
+                    safety_flags=tuple(safety_flags), link_since_ns=link_since_ns)
 
 
-def step(logic: ServoLogic, now_ns: int, pose=HOME, speed=np.zeros(6), heartbeat_ns=None, force_n=0.0, **kwargs):
-    reading = state(now_ns, pose, speed)
+def step(logic: ServoLogic, now_ns: int, pose=HOME, speed=np.zeros(6), heartbeat_ns=None, force=(0.0, 0.0, 0.0),
+         reading: ArmState | None = None, **kwargs):
+    reading = state(now_ns, pose, speed) if reading is None else reading
     logic.observe(reading)
-    return logic.decide(now_ns, reading, None, now_ns if heartbeat_ns is None else heartbeat_ns, force_n, **kwargs)
+    return logic.decide(now_ns, reading, None, now_ns if heartbeat_ns is None else heartbeat_ns,
+                        None if force is None else np.asarray(force, dtype=np.float64), **kwargs)
 
 
-def servoing_logic() -> ServoLogic:
-    logic = ServoLogic(LIMITS, "bubble")
-    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0)) is None
+def new_logic(limits: LimitsConfig = LIMITS) -> ServoLogic:
+    return ServoLogic(limits, "bubble", HOME[3:], started_ns=0)
+
+
+def servoing_logic(limits: LimitsConfig = LIMITS) -> ServoLogic:
+    logic = new_logic(limits)
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0), T0) is None
     assert step(logic, T0).command is not None
     return logic
 
 
 def test_servo_commands_step_from_the_measured_pose_then_from_the_last_command():
-    logic = ServoLogic(LIMITS, "bubble")
+    logic = new_logic(msgspec.structs.replace(LIMITS, max_target_lead_s=1.0))  # the late tick lies 0.5 s on
     first = step(logic, T0)
     assert first.command is None and first.reason == NO_TARGET and not first.stop
-    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0))
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0), T0)
     a = step(logic, T0, pose=HOME + [0.001, 0, 0, 0, 0, 0, 0])
     b = step(logic, T0 + PERIOD_NS, pose=HOME)  # the arm lags: the next step still starts at the last command
     assert a.reason == "" and logic.servoing
@@ -81,12 +99,12 @@ def test_servo_commands_step_from_the_measured_pose_then_from_the_last_command()
 
 def test_a_refused_target_stops_the_arm_and_drops_the_valid_one():
     logic = servoing_logic()
-    reason = logic.offer(target(HOME + [0.5, 0, 0, 0, 0, 0, 0], T0 + 1))
-    assert "outside the workspace" in reason
+    kind, reason = logic.offer(target(HOME + [0.5, 0, 0, 0, 0, 0, 0], T0 + 1), T0 + 1)
+    assert kind == "target_refused" and "outside the workspace" in reason
     decision = step(logic, T0 + PERIOD_NS)
     assert decision.command is None and decision.stop and decision.reason.startswith("target refused")
     assert logic.target is None
-    assert "not 'bubble'" in logic.offer(target(HOME, T0 + 2, arm="other"))
+    assert "not 'bubble'" in logic.offer(target(HOME, T0 + 2, arm="other"), T0 + 2)[1]
 
 
 def test_a_stop_spends_the_target_and_only_a_fresh_target_with_a_fresh_heartbeat_resumes():
@@ -94,13 +112,13 @@ def test_a_stop_spends_the_target_and_only_a_fresh_target_with_a_fresh_heartbeat
     stale_ns = T0 - int(0.31 * S)
     decision = step(logic, T0 + PERIOD_NS, heartbeat_ns=stale_ns)
     assert decision.stop and "heartbeat" in decision.reason
-    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0)) is None  # the same target again: ignored
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0), T0) is None  # the same target again: ignored
     assert step(logic, T0 + 2 * PERIOD_NS).command is None  # fresh heartbeat, no fresh target: hold
-    assert "heartbeat" in logic.reason
-    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 3 * PERIOD_NS))  # fresh target, stale heartbeat:
-    assert step(logic, T0 + 3 * PERIOD_NS, heartbeat_ns=stale_ns).command is None  # spent, not kept for later
+    assert "heartbeat" in logic.reason and logic.owner == "stack"
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 3 * PERIOD_NS), T0 + 3 * PERIOD_NS)  # fresh target,
+    assert step(logic, T0 + 3 * PERIOD_NS, heartbeat_ns=stale_ns).command is None  # stale heartbeat: spent
     assert step(logic, T0 + 4 * PERIOD_NS).command is None
-    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 5 * PERIOD_NS))
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 5 * PERIOD_NS), T0 + 5 * PERIOD_NS)
     assert step(logic, T0 + 5 * PERIOD_NS).command is not None
 
 
@@ -116,7 +134,7 @@ def test_the_stop_is_sent_once_and_again_only_when_the_arm_moves():
 
 
 def test_only_a_held_arm_at_rest_with_no_target_and_no_stop_in_flight_counts_as_idle():
-    logic = ServoLogic(LIMITS, "bubble")
+    logic = new_logic()
     moving = np.array([0.05, 0, 0, 0, 0, 0])
     assert logic.holding_at_rest(state(T0), stopping=False)
     assert not logic.holding_at_rest(state(T0, speed=moving), stopping=False)  # drifting: watch it at full rate
@@ -143,19 +161,158 @@ def test_driver_errors_a_frozen_state_and_the_force_rules_stop_the_arm():
     assert "not advancing" in decision.reason and 0.2 * S < k * PERIOD_NS <= 0.2 * S + PERIOD_NS
 
     logic = servoing_logic()
-    assert "above the limit" in step(logic, T0 + PERIOD_NS, force_n=40.5).reason
+    assert "over the limit" in step(logic, T0 + PERIOD_NS, force=[0, 0, 40.5]).reason
     logic = servoing_logic()
-    assert step(logic, T0 + PERIOD_NS, force_n=None).reason == "no fresh F/T reading"
+    assert step(logic, T0 + PERIOD_NS, force=None).reason == "no fresh F/T reading"
+    logic = servoing_logic()
+    assert step(logic, T0 + PERIOD_NS, force=[0, 0, np.nan]).reason == "no fresh F/T reading"
+
+
+def test_an_untared_ft_reading_holds_the_arm_whatever_force_it_reads():
+    """A wrench the F/T reader could not tare (no stored bias) is off by the sensor's offset: the arm stops with a
+    cause that says so, even when the force it reads is small; a fresh target servoes again on tared readings."""
+    logic = servoing_logic()
+    decision = step(logic, T0 + PERIOD_NS, force=[0.0, 0.0, 0.1], untared=True)
+    assert decision.command is None and decision.stop and decision.reason == UNTARED_FT
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 2 * PERIOD_NS), T0 + 2 * PERIOD_NS) is None
+    assert step(logic, T0 + 2 * PERIOD_NS, force=[0.0, 0.0, 0.1], untared=True).reason == UNTARED_FT
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 3 * PERIOD_NS), T0 + 3 * PERIOD_NS) is None
+    assert step(logic, T0 + 3 * PERIOD_NS, force=[0.0, 0.0, 0.1]).command is not None
 
 
 def test_a_fresh_target_during_a_stop_waits_for_its_end():
     logic = servoing_logic()
     late_ns = T0 + int(1.1 * S)
     step(logic, late_ns)
-    logic.offer(target(HOME, late_ns))
+    logic.offer(target(HOME, late_ns), late_ns)
     decision = step(logic, late_ns + PERIOD_NS, stopping=True)
     assert decision.command is None and "deadline passed" in decision.reason
     assert step(logic, late_ns + 2 * PERIOD_NS).command is not None
+
+
+def test_an_external_stop_latches_until_a_person_enables_and_only_a_new_goal_moves_the_arm():
+    logic = servoing_logic()
+    paused = state(T0 + PERIOD_NS, controller_stop="program paused")
+    decision = step(logic, T0 + PERIOD_NS, reading=paused)
+    assert decision.command is None and decision.stop and logic.owner == "external"
+    assert "external stop: program paused" in decision.reason and logic.external == "program paused"
+    for k in range(2, 10):  # the controller plays again (someone pressed play), targets keep coming: held
+        now = T0 + k * PERIOD_NS
+        logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now), now)
+        assert step(logic, now).command is None and logic.owner == "external"
+    protective = state(T0, controller_stop="protective stop", safety_flags=("protective stop",))
+    assert "protective stop" in ServoLogic.enable_refusal(protective)
+    assert ServoLogic.enable_refusal(state(T0, controller_stop="robot mode POWER_OFF")).startswith("the controller")
+    assert ServoLogic.enable_refusal(None) is not None and ServoLogic.enable_refusal(state(T0)) is None
+    enabled_ns = T0 + 10 * PERIOD_NS
+    assert logic.enable(enabled_ns) == "program paused" and logic.external is None
+    now = enabled_ns + PERIOD_NS
+    kind, text = logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now), now)  # the goal from before: not acted on
+    assert kind == "old_goal" and "arm enable" in text and step(logic, now).command is None
+    now += PERIOD_NS
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now, goal_ns=enabled_ns + 1), now) is None
+    assert step(logic, now).command is not None and logic.owner == ""
+
+
+@pytest.mark.parametrize("cause", ["program stopped", "safeguard stop", "emergency stop", "safety fault",
+                                   "robot mode POWER_OFF"])
+def test_every_controller_stop_latches_as_external(cause):
+    logic = servoing_logic()
+    step(logic, T0 + PERIOD_NS, reading=state(T0 + PERIOD_NS, controller_stop=cause))
+    assert logic.owner == "external" and cause in logic.reason and "arm enable bubble" in logic.reason
+
+
+def test_goals_started_before_the_commander_or_its_last_reconnect_do_not_move_the_arm():
+    logic = ServoLogic(LIMITS, "bubble", HOME[3:], started_ns=T0)  # a commander (re)started at T0
+    kind, text = logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 1, goal_ns=T0 - S), T0 + 1)
+    assert kind == "old_goal" and "the commander's start" in text
+    assert step(logic, T0 + PERIOD_NS).command is None
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 2, goal_ns=T0 + 1), T0 + 2) is None
+    assert step(logic, T0 + 2 * PERIOD_NS).command is not None
+    reconnected = state(T0 + 3 * PERIOD_NS, link_since_ns=T0 + 3 * PERIOD_NS - 1)
+    assert step(logic, T0 + 3 * PERIOD_NS, reading=reconnected).command is None  # the target is void
+    kind, text = logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 4 * PERIOD_NS, goal_ns=T0 + 1),
+                             T0 + 4 * PERIOD_NS)
+    assert kind == "old_goal" and "reconnect" in text
+
+
+def test_a_refused_target_holds_the_arm_for_the_rest_of_its_goal():
+    logic = servoing_logic()
+    now = T0 + PERIOD_NS
+    assert logic.offer(target(HOME + [0.5, 0, 0, 0, 0, 0, 0], now), now)[0] == "target_refused"
+    step(logic, now)
+    now += PERIOD_NS
+    assert logic.offer(target(HOME + [0.05, 0, 0, 0, 0, 0, 0], now), now)[0] == "old_goal"  # same goal: held
+    assert step(logic, now).command is None
+    now += PERIOD_NS
+    assert logic.offer(target(HOME + [0.05, 0, 0, 0, 0, 0, 0], now, goal_ns=GOAL_NS + 1), now) is None
+    assert step(logic, now).command is not None
+
+
+def test_a_flipped_tool_target_is_refused_and_a_move_from_outside_the_box_is_not_started():
+    logic = servoing_logic()
+    flipped = np.array([0.3, -0.2, 0.1, 1.0, 0.0, 0.0, 0.0])  # tool z up, at the lowest height of the box
+    kind, reason = logic.offer(target(flipped, T0 + 1), T0 + 1)
+    assert kind == "target_refused" and "tilted 180.0 deg" in reason
+    assert step(logic, T0 + PERIOD_NS).command is None
+    logic = new_logic()
+    below = HOME - [0, 0, 0.35, 0, 0, 0, 0]  # z = 0.05 m, under the box's 0.1 m
+    logic.offer(target(HOME, T0), T0)
+    decision = step(logic, T0, pose=below)
+    assert decision.command is None and "path starts outside" in decision.refusal
+
+
+def test_over_the_force_limit_a_retreat_moves_a_push_is_refused_and_release_needs_the_lower_level():
+    logic = servoing_logic()  # moving along +x; tool down: the TCP's -z is base +z
+    up_n = np.array([0.0, 0.0, -41.0])  # the table pushes the bubble up, over the 40 N limit
+    now = T0 + PERIOD_NS
+    decision = step(logic, now, force=up_n)
+    assert decision.command is None and "over the limit" in decision.reason and "off the direction" in decision.reason
+    now += PERIOD_NS
+    logic.offer(target(HOME + [0, 0, 0.02, 0, 0, 0, 0], now), now)  # up, away from the table: a retreat
+    assert step(logic, now, force=up_n).command is not None
+    now += PERIOD_NS
+    logic.offer(target(HOME - [0, 0, 0.02, 0, 0, 0, 0], now), now)  # down, into the table: refused
+    assert step(logic, now, force=up_n * 35.0 / 41.0).command is None  # 35 N: below the limit, above the release
+    now += PERIOD_NS
+    logic.offer(target(HOME + [0.05, 0, 0, 0, 0, 0, 0], now), now)
+    assert step(logic, now, force=[0.0, 0.0, -31.0]).command is None  # still above the 30 N release level
+    now += PERIOD_NS
+    logic.offer(target(HOME + [0.05, 0, 0, 0, 0, 0, 0], now), now)
+    assert step(logic, now, force=[0.0, 0.0, -29.0]).command is not None  # released: normal servoing
+
+
+def test_a_target_lead_of_1e12_ns_holds_only_for_max_target_lead_s():
+    logic = new_logic()
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0, lead_s=1e3), T0)  # a deadline 1e12 ns ahead
+    last_servo_ns = T0
+    for k in range(0, int(3 * S / PERIOD_NS)):
+        now = T0 + k * PERIOD_NS
+        if step(logic, now, reading=state(now)).command is not None:
+            last_servo_ns = now
+    assert last_servo_ns <= T0 + int(LIMITS.max_target_lead_s * S) and "deadline passed" in logic.reason
+
+
+def test_a_hung_solve_stops_the_arm_within_max_plan_age_s_while_heartbeats_and_targets_go_on():
+    logic = new_logic()
+    plan_done_ns = T0
+    last_servo_ns = T0
+    for k in range(0, int(4 * S / PERIOD_NS)):
+        now = T0 + k * PERIOD_NS
+        if k % 12 == 0:  # re-sent targets of the last plan, fresh heartbeats (step's default)
+            logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now, plan_done_ns=plan_done_ns), now)
+        if step(logic, now).command is not None:
+            last_servo_ns = now
+    assert (last_servo_ns - T0) <= LIMITS.max_plan_age_s * S < (last_servo_ns - T0) + 2 * 12 * PERIOD_NS
+    assert "no plan completed" in logic.reason
+
+
+def test_the_driver_takes_its_speed_rates_and_state_age_from_the_limits():
+    config = load_config(Path(__file__).parents[2] / "deploy" / "lab.toml")
+    driver = driver_config(config, "bubble")
+    assert driver.max_tcp_speed_m_s == config.limits.max_speed_m_s
+    assert driver.servo_rate_hz == driver.state_rate_hz == config.limits.servo_rate_hz
+    assert driver.max_age_s == config.limits.state_timeout_s and driver.host == config.arms[0].ur_host
 
 
 # --- the service process against a simulated controller -----------------------------------------------------------
@@ -239,6 +396,7 @@ mode = "sim"
 [[arms]]
 name = "{ARM}"
 ur_host = "{self.host}"
+nominal_tcp = {HOME[3:].tolist()}
 [limits]
 workspace_min = {list(LIMITS.workspace_min)}
 workspace_max = {list(LIMITS.workspace_max)}
@@ -247,6 +405,8 @@ max_force_n = {LIMITS.max_force_n}
 servo_rate_hz = {LIMITS.servo_rate_hz}
 heartbeat_timeout_s = {LIMITS.heartbeat_timeout_s}
 state_timeout_s = {LIMITS.state_timeout_s}
+max_target_lead_s = {LIMITS.max_target_lead_s}
+max_plan_age_s = {LIMITS.max_plan_age_s}
 [planner]
 heartbeat_period_s = {HEARTBEAT_PERIOD_S}
 """)
@@ -331,12 +491,15 @@ class PlayedPlanner:
         self.listener = LatestSubscriber(self.bus, [config.endpoint(NAME), config.endpoint(NAME, "status")],
                                          topics=[f"arm_state/{ARM}", f"status/{NAME}"])
         self.goal: np.ndarray | None = None
+        self.goal_started_ns = 0  # the played goal's start: set when the scenario begins, after the commander's
+        self.plan_done_ns: int | None = None  # None: each target's plan completed as it is sent
         self.heartbeats = True
         self.force_n: float | None = 0.0
         self.last_heartbeat_ns = 0
         self._tasks: list[asyncio.Task] = []
 
     async def __aenter__(self) -> PlayedPlanner:
+        self.new_goal()
         self._tasks = [asyncio.create_task(coro) for coro in
                        (self.listener.run(), self._heartbeat(), self._wrench(), self._replan())]
         return self
@@ -367,10 +530,16 @@ class PlayedPlanner:
                 await self.send_target(self.goal, TARGET_LEAD_S)
             await asyncio.sleep(REPLAN_PERIOD_S)
 
+    def new_goal(self) -> None:
+        """A person starts a new goal now: the targets from here on belong to it."""
+        self.goal_started_ns = time.monotonic_ns()
+
     async def send_target(self, pose, lead_s: float) -> msg.ArmTarget:
+        now_ns = time.monotonic_ns()
         return await self.targets.send(msg.ArmTarget(
-            arm=ARM, tcp_pose=np.asarray(pose, dtype=np.float64), deadline_ns=time.monotonic_ns() + int(lead_s * S),
-            plan_seq=1), f"arm_target/{ARM}")
+            arm=ARM, tcp_pose=np.asarray(pose, dtype=np.float64), deadline_ns=now_ns + int(lead_s * S),
+            plan_seq=1, goal_started_ns=self.goal_started_ns,
+            plan_done_ns=now_ns if self.plan_done_ns is None else self.plan_done_ns), f"arm_target/{ARM}")
 
     def arm_state(self) -> msg.ArmState | None:
         try:
@@ -556,7 +725,7 @@ def test_the_arm_stops_when_the_force_exceeds_the_limit_or_the_ft_goes_silent(ri
         return over_limit, planner.arm_state().stop_reason
 
     (reason, stop_s), silent_reason = scenario(run, rig)
-    assert "above the limit" in reason
+    assert "over the limit" in reason
     assert stop_s < WRENCH_PERIOD_S + SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S, stop_s
     assert silent_reason == "no fresh F/T reading"
 
@@ -574,11 +743,11 @@ def test_a_held_arm_reads_the_newest_of_all_the_wrenches_that_came_since_its_las
         await planner.wrenches.send(msg.Wrench(sensor=ARM, wrench=over, tared=True), f"wrench/{ARM}")
         sent = await planner.send_target(HOME + [0.01, 0, 0, 0, 0, 0, 0], TARGET_LEAD_S)
         state = await until(lambda: (s := planner.arm_state()) and s.stamp_ns > sent.stamp_ns and (
-            s.servo_active or "above the limit" in s.stop_reason) and s, 1.0, "servoing or a stop for the force")
+            s.servo_active or "over the limit" in s.stop_reason) and s, 1.0, "servoing or a stop for the force")
         return state.servo_active, state.stop_reason
 
     servo_active, reason = scenario(run, rig)
-    assert not servo_active and "above the limit" in reason, reason
+    assert not servo_active and "over the limit" in reason, reason
 
 
 def test_a_held_arm_is_checked_at_the_idle_rate_and_a_target_wakes_the_commander_at_once(rig):
@@ -618,6 +787,182 @@ def test_a_held_arm_is_checked_at_the_idle_rate_and_a_target_wakes_the_commander
     assert np.median(wakes_ms) < idle_period_s * 1e3 / 4, wakes_ms
 
 
+def test_a_target_lead_of_1e12_ns_stops_the_arm_within_max_target_lead_s(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        sent = await planner.targets.send(msg.ArmTarget(
+            arm=ARM, tcp_pose=HOME + [0.15, 0, 0, 0, 0, 0, 0], deadline_ns=time.monotonic_ns() + 10**12, plan_seq=1,
+            goal_started_ns=planner.goal_started_ns, plan_done_ns=time.monotonic_ns()), f"arm_target/{ARM}")
+        await moving_at_speed(tcp)
+        rest_ns, _ = await at_rest(tcp, 3.0)
+        return (rest_ns - sent.stamp_ns) * 1e-9, planner.arm_state()
+
+    rest_s, arm_state = scenario(run, rig)
+    assert rest_s < LIMITS.max_target_lead_s + STOP_TIME_S + SCHEDULING_SLACK_S, rest_s
+    assert "deadline passed" in arm_state.stop_reason and arm_state.stop_owner == "stack"
+
+
+def test_a_hung_solve_stops_the_arm_process_within_max_plan_age_s(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.plan_done_ns = time.monotonic_ns()  # the last solve ended now; targets of it keep coming
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        rest_ns, _ = await at_rest(tcp, 3.0)
+        reason = planner.arm_state().stop_reason
+        return (rest_ns - planner.plan_done_ns) * 1e-9, reason, planner.last_heartbeat_ns
+
+    rest_s, reason, last_heartbeat_ns = scenario(run, rig)
+    assert rest_s < LIMITS.max_plan_age_s + SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S, rest_s
+    assert "no plan completed" in reason
+    assert (time.monotonic_ns() - last_heartbeat_ns) * 1e-9 < 5.0  # the heartbeats went on throughout
+
+
+def test_a_flipped_tool_target_is_refused_and_never_approached(rig):
+    flipped = np.array([HOME[0], HOME[1], LIMITS.workspace_min[2], 1.0, 0.0, 0.0, 0.0])  # tool up, lowest height
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        await planner.send_target(flipped, TARGET_LEAD_S)
+        poses = []
+        deadline_ns = time.monotonic_ns() + S
+        while time.monotonic_ns() < deadline_ns:
+            poses.append((await tcp.read())[1])
+            await asyncio.sleep(POLL_PERIOD_S)
+        assert np.abs(np.array(poses) - HOME).max() < 1e-6  # neither turned nor lowered
+        status = await until(lambda: (s := planner.status()) and "tilted" in s.last_error and s, 3.0,
+                             "the refusal counted")
+        return planner.arm_state(), status
+
+    arm_state, status = scenario(run, rig)
+    assert not arm_state.servo_active and "tilted 180.0 deg" in arm_state.stop_reason
+    assert status.errors.get("target_refused", 0) >= 1
+
+
+def test_over_the_force_limit_a_retreat_moves_the_arm_and_a_push_is_refused(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.force_n = -(LIMITS.max_force_n + 1.0)  # the tool's -z is base +z: the bubble is pushed up
+        await asyncio.sleep(0.1)
+        planner.goal = HOME + [0, 0, 0.05, 0, 0, 0, 0]  # up, along the force: a retreat
+        await moving_at_speed(tcp)
+        retreating = planner.arm_state()
+        planner.new_goal()  # a new goal (its first target's refusal must not hold the next one)
+        planner.goal = HOME - [0, 0, 0.05, 0, 0, 0, 0]  # down, into the contact
+        _, rest = await at_rest(tcp, 2.0)
+        await asyncio.sleep(3 * REPLAN_PERIOD_S)
+        _, still, _ = await tcp.read()
+        return retreating, np.linalg.norm(still - rest), planner.arm_state()
+
+    retreating, drift_m, pushing = scenario(run, rig)
+    assert retreating.servo_active and retreating.tcp_pose[2] > HOME[2]
+    assert drift_m < 1e-6 and not pushing.servo_active and "over the limit" in pushing.stop_reason
+
+
+async def dashboard(host: str, line: str) -> str:
+    """One request to the simulated controller's dashboard (29999), as a person at the pendant would; its reply."""
+    reader, writer = await asyncio.wait_for(asyncio.open_connection(host, DASHBOARD_PORT), SOCKET_TIMEOUT_S)
+    try:
+        await asyncio.wait_for(reader.readline(), SOCKET_TIMEOUT_S)  # the banner
+        writer.write(f"{line}\n".encode())
+        return (await asyncio.wait_for(reader.readline(), SOCKET_TIMEOUT_S)).decode().strip()
+    finally:
+        writer.close()
+
+
+#: Each external stop: how a person or the controller causes it, the cause the commander names, and how a person
+#: clears it on the controller's side (None: nothing to clear; ``arm enable`` restarts the program).
+EXTERNAL_STOPS = {
+    "dashboard stop": (("dashboard", "stop"), "program stopped", None),
+    "dashboard pause": (("dashboard", "pause"), "program paused", None),
+    "protective stop": (("sim", "protective_stop"), "protective stop", ("dashboard", "unlock protective stop")),
+    "safeguard stop": (("sim", "safeguard_stop"), "safeguard stop", ("sim", "release_safety_stop")),
+    "emergency stop": (("sim", "emergency_stop"), "emergency stop", ("sim", "release_safety_stop")),
+}
+HELD_CHECK_S = 0.6  # how long fresh targets keep coming while the test checks that nothing reaches the controller
+STOP_SEEN_S = 0.1  # after the TCP came to rest: the commander has read the controller's stop (every 8 ms) by then
+
+
+@pytest.mark.parametrize("kind", list(EXTERNAL_STOPS))
+def test_an_external_stop_latches_until_arm_enable_and_a_new_goal(rig, kind):
+    (inject_via, inject), cause, clear = EXTERNAL_STOPS[kind]
+
+    async def act(tcp: SimTcp, via: str, what: str) -> None:
+        if via == "dashboard":
+            await dashboard(rig.host, what)
+        else:
+            await tcp.request(what)
+
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        await act(tcp, inject_via, inject)
+        await at_rest(tcp, 2.0)
+        await asyncio.sleep(STOP_SEEN_S)
+        before = (await tcp.request("state"))["counters"]
+
+        async def assert_held(when: str) -> None:
+            await asyncio.sleep(HELD_CHECK_S)  # the goal's targets keep coming meanwhile
+            counters = (await tcp.request("state"))["counters"]
+            for counter in ("servol_received", "program_loaded"):  # no servo command reached it, no program restart
+                assert counters.get(counter, 0) == before.get(counter, 0), (counter, when)
+
+        await assert_held("while the controller reports the stop")
+        latched, refused = planner.arm_state(), None
+        degraded = await until(lambda: (s := planner.status()) and s.state == "degraded" and s, 2.0, "degraded")
+        if clear is not None:  # a person clears the controller's own stop: the arm stays held
+            await act(tcp, *clear)
+            await assert_held("after the controller's stop was cleared")
+            await act(tcp, inject_via, inject)  # again: arm enable is refused while the controller reports it
+            await until(lambda: planner.arm_state().controller_stop == cause, 2.0, "the stop reported again")
+            refused = await arm_enable.enable(str(rig.config_path), ARM, "test")
+            await act(tcp, *clear)
+            await until(lambda: planner.arm_state().controller_stop != cause, 2.0, "the stop cleared again")
+        held_counters, held = (await tcp.request("state"))["counters"], planner.arm_state()
+        enable_code = await asyncio.to_thread(arm_enable.run, argparse.Namespace(
+            arm=ARM, config=str(rig.config_path), by="lab safety officer"))
+        await asyncio.sleep(HELD_CHECK_S)  # the old goal's targets keep coming
+        old_goal_counters, old_goal = (await tcp.request("state"))["counters"], planner.arm_state()
+        ready = await until(lambda: (s := planner.status()) and s.state == "ready" and s, 2.0, "ready again")
+        planner.new_goal()
+        await moving_at_speed(tcp)
+        return latched, before, refused, held_counters, held, enable_code, old_goal_counters, old_goal, degraded, ready
+
+    (latched, before, refused, held_counters, held, enable_code, old_goal_counters, old_goal, degraded,
+     ready) = scenario(run, rig)
+    assert latched.stop_owner == "external" and cause in latched.stop_reason, latched
+    assert degraded.errors.get("external_stop", 0) > 0 and cause in degraded.last_error, degraded  # for `status`
+    assert ready.state == "ready"
+    assert latched.controller_stop == cause and not latched.servo_active
+    assert held_counters.get("program_loaded", 0) == before.get("program_loaded", 0)
+    assert held.latched and held.stop_owner == "external" and cause in held.stop_reason, held
+    if refused is not None:
+        assert not refused.ok and cause in refused.error, refused
+    assert enable_code == 0
+    assert old_goal_counters.get("servol_received", 0) == before.get("servol_received", 0)  # the old goal: held
+    assert not old_goal.latched and not old_goal.servo_active and "arm enable" in old_goal.stop_reason, old_goal
+    log = rig.log_path.read_text()
+    assert "arm enabled by 'lab safety officer'" in log
+
+
+def test_a_commander_restarted_mid_goal_does_not_move_the_arm_until_a_new_goal(rig):
+    async def run(planner: PlayedPlanner, tcp: SimTcp):
+        planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
+        await moving_at_speed(tcp)
+        await asyncio.to_thread(stop_process, rig.commander, signal.SIGKILL)
+        await asyncio.to_thread(rig.start_commander)
+        ready_ns = time.monotonic_ns()
+        await until(lambda: (s := planner.arm_state()) and s.stamp_ns > ready_ns, 5.0, "the new commander's state")
+        await at_rest(tcp, 2.0)
+        before = (await tcp.request("state"))["counters"]
+        await asyncio.sleep(2 * HELD_CHECK_S)  # the goal from before the restart keeps sending targets
+        after, held = (await tcp.request("state"))["counters"], planner.arm_state()
+        planner.new_goal()
+        await moving_at_speed(tcp)
+        return before, after, held, planner.status()
+
+    before, after, held, status = scenario(run, rig)
+    assert after.get("servol_received", 0) == before.get("servol_received", 0)
+    assert not held.servo_active and "before the commander's start" in held.stop_reason, held
+    assert status.errors.get("old_goal", 0) > 0
+
+
 def test_sigint_stops_the_arm_then_exits_0_and_stops_the_script(rig):
     async def run(planner: PlayedPlanner, tcp: SimTcp):
         planner.goal = HOME + [0.15, 0, 0, 0, 0, 0, 0]
@@ -635,3 +980,17 @@ def test_sigint_stops_the_arm_then_exits_0_and_stops_the_script(rig):
     assert after["counters"].get("stop_script", 0) == before.get("stop_script", 0) + 1
     assert after["runtime_state"] != 2  # the program no longer plays
     assert log.rindex("arm stopped and at rest") < log.rindex("stopped (exit 0)")
+
+
+def test_a_stop_never_confirmed_at_rest_exits_3(rig):
+    """The controller gone at shutdown: the commander cannot see the arm at rest and says so by its exit code (the
+    controller's own watchdog is then what stops the arm)."""
+    commander = rig.start_commander()
+    with socket.create_connection((rig.host, SIM_CONTROL_PORT), timeout=SOCKET_TIMEOUT_S) as conn:
+        conn.sendall(b'{"op": "drop", "duration_s": 3.0}\n')
+        assert json.loads(conn.makefile().readline())["ok"]
+    time.sleep(0.3)  # the commander's driver has lost the link
+    exit_code = stop_process(commander, signal.SIGINT)
+    log = rig.log_path.read_text()
+    assert exit_code == EXIT_STOP_UNCONFIRMED, log[-2000:]
+    assert "not seen at rest" in log[log.rindex("SIGINT received"):]

@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from hydrosoft.services.config import LimitsConfig
-from hydrosoft.services.safety import (NO_TARGET, check_target, interpolate, is_moving, outside_workspace,
-                                      rotation_angle_rad, watchdog)
+from hydrosoft.services.config import LIMIT_BOUNDS, ConfigError, LimitsConfig
+from hydrosoft.services.safety import (NO_TARGET, check_path, check_target, clamped_deadline_ns, interpolate,
+                                      is_moving, outside_workspace, retreat_refusal, rotation_angle_rad,
+                                      tilt_and_yaw_deg, watchdog)
 
 LIMITS = LimitsConfig(workspace_min=(-0.1, -0.1, 0.0), workspace_max=(0.1, 0.1, 0.2), max_speed_m_s=0.1,
                       max_angular_speed_rad_s=1.0, max_force_n=20.0, heartbeat_timeout_s=0.5, state_timeout_s=0.2)
@@ -89,9 +90,76 @@ def test_the_watchdog_passes_a_healthy_arm_and_fires_on_each_rule():
     assert "no arm state" in why(state_stamp_ns=None)
     assert why(state_stamp_ns=now - S // 5) is None
     assert "not advancing" in why(state_stamp_ns=now - S // 5 - 1)
-    assert why(force_n=20.0) is None and "above the limit" in why(force_n=20.01)
-    assert "above the limit" in why(force_n=float("nan"))
     assert why(force_n=None) == "no fresh F/T reading"
+    assert why(plan_done_ns=now - 2 * S) is None  # the default max_plan_age_s
+    assert "no plan completed for 2.001 s" in why(plan_done_ns=now - 2 * S - S // 1000)
+
+
+TOOL_DOWN = np.array([0.0, 0.0, 1.0, 0.0])  # a half turn about y: the tool z axis points down
+ORIENTED = LimitsConfig(max_tilt_deg=20.0, yaw_range_deg=(-90.0, 45.0))
+
+
+def quat(axis, angle_deg: float) -> np.ndarray:
+    half = math.radians(angle_deg) / 2
+    return np.array([math.cos(half), *(math.sin(half) * np.asarray(axis, dtype=np.float64))])
+
+
+def turned(q_first: np.ndarray, q_then: np.ndarray) -> np.ndarray:
+    """``q_first`` then ``q_then`` about the tool's own axes."""
+    w0, x0, y0, z0 = q_first
+    w1, x1, y1, z1 = q_then
+    return np.array([w0 * w1 - x0 * x1 - y0 * y1 - z0 * z1, w0 * x1 + x0 * w1 + y0 * z1 - z0 * y1,
+                     w0 * y1 - x0 * z1 + y0 * w1 + z0 * x1, w0 * z1 + x0 * y1 - y0 * x1 + z0 * w1])
+
+
+def test_tilt_and_yaw_are_measured_from_the_nominal_tool_orientation():
+    assert tilt_and_yaw_deg(TOOL_DOWN, TOOL_DOWN) == pytest.approx((0.0, 0.0))
+    assert tilt_and_yaw_deg(turned(TOOL_DOWN, quat([1, 0, 0], 25.0)), TOOL_DOWN)[0] == pytest.approx(25.0)
+    assert tilt_and_yaw_deg(turned(TOOL_DOWN, quat([0, 0, 1], -60.0)), TOOL_DOWN) == pytest.approx((0.0, -60.0))
+    assert tilt_and_yaw_deg([1.0, 0.0, 0.0, 0.0], TOOL_DOWN)[0] == pytest.approx(180.0)  # flipped: tool z up
+
+
+def test_a_flipped_or_tilted_tool_and_a_yaw_outside_the_range_are_refused_at_any_height():
+    position = [0.0, 0.0, 0.0]  # the lowest height of the box
+    ok = np.concatenate([position, turned(TOOL_DOWN, quat([0, 1, 0], 19.9))])
+    assert check_target(ok, ORIENTED, TOOL_DOWN) is None
+    flipped = np.concatenate([position, [1.0, 0.0, 0.0, 0.0]])
+    assert "tilted 180.0 deg" in check_target(flipped, ORIENTED, TOOL_DOWN)
+    assert "tilted 20.1 deg" in check_target(np.concatenate([position, turned(TOOL_DOWN, quat([1, 1, 0] / np.sqrt(2),
+                                                                                              20.1))]),
+                                             ORIENTED, TOOL_DOWN)
+    for yaw, allowed in ((-90.0, True), (-90.5, False), (45.0, True), (45.5, False)):
+        pose = np.concatenate([position, turned(TOOL_DOWN, quat([0, 0, 1], yaw))])
+        assert (check_target(pose, ORIENTED, TOOL_DOWN) is None) == allowed, yaw
+
+
+def test_a_straight_move_is_refused_when_it_starts_outside_the_box_or_the_orientation_limits():
+    target = np.concatenate([[0.0, 0.0, 0.1], TOOL_DOWN])
+    assert check_path(target, target, ORIENTED, TOOL_DOWN) is None
+    below = np.concatenate([[0.0, 0.0, -0.01], TOOL_DOWN])  # the arm below the box: its move up would cross it
+    assert "path starts outside" in check_path(below, target, ORIENTED, TOOL_DOWN)
+    tilted = np.concatenate([[0.0, 0.0, 0.1], turned(TOOL_DOWN, quat([1, 0, 0], 40.0))])
+    assert "tilted 40.0 deg" in check_path(tilted, target, ORIENTED, TOOL_DOWN)
+
+
+def test_over_the_force_limit_only_a_move_along_the_contact_force_is_a_retreat():
+    current = np.concatenate([[0.0, 0.0, 0.1], TOOL_DOWN])
+    up_in_tcp = [0.0, 0.0, -30.0]  # the table pushes the bubble up: base +z is the tool's -z
+    up = current + [0, 0, 0.005, 0, 0, 0, 0]
+    assert retreat_refusal(current, up, up_in_tcp) is None
+    assert "off the direction" in retreat_refusal(current, current - [0, 0, 0.005, 0, 0, 0, 0], up_in_tcp)  # pushes
+    assert "off the direction" in retreat_refusal(current, current + [0.005, 0, 0, 0, 0, 0, 0], up_in_tcp)  # slides
+    assert retreat_refusal(current, current + [0.005, 0, 0.006, 0, 0, 0, 0], up_in_tcp) is None  # 40 deg off: away
+    assert "does not move" in retreat_refusal(current, current, up_in_tcp)
+    turning = np.concatenate([up[:3], turned(TOOL_DOWN, quat([1, 0, 0], 5.0))])
+    assert "turns the tool" in retreat_refusal(current, turning, up_in_tcp)
+
+
+def test_a_deadline_is_clamped_to_the_longest_lead_after_arrival():
+    limits = LimitsConfig(max_target_lead_s=0.5)
+    arrived = 100 * S
+    assert clamped_deadline_ns(arrived + S // 4, arrived, limits) == arrived + S // 4
+    assert clamped_deadline_ns(arrived + 10**12, arrived, limits) == arrived + S // 2
 
 
 def test_moving_is_judged_on_linear_and_angular_speed():
@@ -99,3 +167,23 @@ def test_moving_is_judged_on_linear_and_angular_speed():
     assert not is_moving([0.001, 0, 0, 0, 0, 0.005])
     assert is_moving([0, 0.003, 0, 0, 0, 0])
     assert is_moving([0, 0, 0, 0.02, 0, 0])
+
+
+@pytest.mark.parametrize("name", [name for name in LIMIT_BOUNDS if name != "max_yaw_deg"])
+def test_every_limit_has_an_upper_bound(name):
+    bound = LIMIT_BOUNDS[name]
+    others = {"idle_rate_hz": 1.0} if name == "servo_rate_hz" else {}
+    LimitsConfig(**{name: bound, **others, **({"servo_rate_hz": bound} if name == "idle_rate_hz" else {})})
+    with pytest.raises(ConfigError, match=f"limits.{name}: must be at most {bound}"):
+        LimitsConfig(**{name: bound * 1.01, **others})
+
+
+def test_the_release_level_lies_below_the_force_limit_and_the_yaw_range_is_ordered():
+    assert LimitsConfig(max_force_n=40.0).release_level_n == 30.0
+    assert LimitsConfig(max_force_n=40.0, release_force_n=10.0).release_level_n == 10.0
+    with pytest.raises(ConfigError, match="release_force_n"):
+        LimitsConfig(max_force_n=40.0, release_force_n=40.0)
+    with pytest.raises(ConfigError, match="yaw_range_deg"):
+        LimitsConfig(yaw_range_deg=(10.0, -10.0))
+    with pytest.raises(ConfigError, match="workspace_max"):
+        LimitsConfig(workspace_min=(-1.0, 0.0, 0.0), workspace_max=(1.0, 0.1, 0.1))

@@ -247,15 +247,38 @@ def test_protective_stop_refuses_commands_until_unlocked(sim, arm, loop_thread, 
     assert wait_servo_count(sim, before + 1) == before + 1
 
 
+def test_a_safeguard_stop_and_a_pause_are_named_in_the_state_and_refuse_commands(sim, arm, loop_thread, dashboard):
+    before = servo_count(sim)
+    sim.request("safeguard_stop")
+    state = loop_thread.run(wait_for_state(arm, lambda s: s.controller_stop, 1.0), CALL_TIMEOUT_S)
+    assert state.controller_stop == "safeguard stop" and state.safety_flags == ("safeguard stop",)
+    with pytest.raises(DeviceFault, match="safeguard stop"):
+        loop_thread.run(arm.servo_to(state.tcp_pose), CALL_TIMEOUT_S)
+    with pytest.raises(DeviceFault, match="safeguard stop"):
+        loop_thread.run(arm.restart_script(), CALL_TIMEOUT_S)
+    sim.request("release_safety_stop")
+    loop_thread.run(wait_for_state(arm, lambda s: not s.controller_stop, 1.0), CALL_TIMEOUT_S)
+    assert dashboard(sim.host, "pause") == "Pausing program"
+    state = loop_thread.run(wait_for_state(arm, lambda s: s.controller_stop, 1.0), CALL_TIMEOUT_S)
+    assert state.controller_stop == "program paused" and not state.running and state.safety_flags == ()
+    with pytest.raises(DeviceFault, match="program paused"):
+        loop_thread.run(arm.servo_to(state.tcp_pose), CALL_TIMEOUT_S)
+    assert wait_servo_count(sim, before + 1, timeout_s=0.1) == before
+    loop_thread.run(arm.restart_script(), CALL_TIMEOUT_S)
+    state = loop_thread.run(wait_for_state(arm, lambda s: not s.controller_stop, 1.0), CALL_TIMEOUT_S)
+    assert state.link_since_ns > 0
+
+
 def test_stopped_script_is_detected_and_restarted(sim, arm, loop_thread):
     before = servo_count(sim)
+    refused_before = arm.counters["refused_script_not_running"]
     sim.request("stop_script")
     state = loop_thread.run(wait_for_state(arm, lambda s: not s.running, 1.0), CALL_TIMEOUT_S)
     with pytest.raises(DeviceFault, match="not running"):
         loop_thread.run(arm.servo_to(state.tcp_pose), CALL_TIMEOUT_S)
     assert wait_servo_count(sim, before + 1, timeout_s=0.1) == before
     assert sim.state()["faults"]["stop_script"] == 1
-    assert arm.counters["refused_script_not_running"] == 1
+    assert arm.counters["refused_script_not_running"] == refused_before + 1
     loop_thread.run(arm.restart_script(), CALL_TIMEOUT_S)
     assert sim.state()["watchdog_period_s"] == pytest.approx(0.25)  # re-armed in the new program
     loop_thread.run(arm.servo_to(state.tcp_pose), CALL_TIMEOUT_S)
@@ -321,11 +344,13 @@ def test_bad_targets_are_refused_and_counted(sim, arm, loop_thread):
     assert wait_servo_count(sim, before + 1, timeout_s=0.1) == before
 
 
-def test_close_runs_stop_script(sim, arm, loop_thread):
-    before = sim.state()["counters"].get("stop_script", 0)
+def test_close_sends_servo_stop_then_runs_stop_script(sim, arm, loop_thread):
+    before = sim.state()["counters"]
     loop_thread.run(arm.close(), CALL_TIMEOUT_S)
     state = sim.state()
-    assert state["counters"]["stop_script"] == before + 1
+    assert state["counters"].get("commands[16]", 0) == before.get("commands[16]", 0) + 1  # servoStop
+    assert arm.counters["stops"] >= 1
+    assert state["counters"]["stop_script"] == before.get("stop_script", 0) + 1
     assert state["runtime_state"] == 1
     assert arm.counters["script_stops"] == 1
     with pytest.raises(NotConnected, match="closed"):

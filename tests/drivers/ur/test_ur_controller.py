@@ -8,7 +8,8 @@ import numpy as np
 
 from hydrosoft.drivers.ur import rtde_protocol as rtde
 from hydrosoft.drivers.ur.control_script import RuntimeState
-from hydrosoft.drivers.ur.controller import SAFETY_STATUS_NORMAL, SAFETY_STATUS_PROTECTIVE_STOP, URControllerModel
+from hydrosoft.drivers.ur.controller import (SAFETY_STATUS_NORMAL, SAFETY_STATUS_PROTECTIVE_STOP, URControllerModel)
+from hydrosoft.drivers.ur.safety_status import controller_stop
 from hydrosoft.drivers.ur.dashboard import UNLOCK_TOO_EARLY, dashboard_reply
 
 START = np.array([0.3, -0.2, 0.4, 0.0, 0.0, 1.0, 0.0])
@@ -97,3 +98,36 @@ def test_tick_listeners_see_the_pose_and_twist():
     assert [s[0] for s in seen] == [2_000_000, 4_000_000]
     assert seen[-1][2][0] == 0.1
     assert seen[-1][1][0] > 0.3
+
+
+def test_safeguard_emergency_stop_and_pause_are_injected_with_their_status_words():
+    m = model()
+    m.load_program(PROGRAM.format(0))
+
+    def cause() -> str:
+        values = m.output_values()
+        return controller_stop(values["safety_status_bits"], values["robot_mode"], values["runtime_state"])
+
+    assert cause() == ""
+    m.trigger_safeguard_stop()
+    assert cause() == "safeguard stop" and not m.motion_allowed()
+    assert dashboard_reply(m, "safetystatus") == "Safetystatus: SAFEGUARD_STOP"
+    m.release_safety_stop()
+    assert cause() == "" and m.motion_allowed()
+    assert dashboard_reply(m, "pause") == "Pausing program"
+    assert cause() == "program paused" and dashboard_reply(m, "programState") == "PAUSED rtde_control"
+    assert dashboard_reply(m, "play") == "Starting program" and cause() == ""
+    m.trigger_emergency_stop()
+    assert cause() == "emergency stop" and m.output_values()["robot_mode"] == 3  # POWER_OFF
+    m.load_program(PROGRAM.format(0))  # a program cannot start while the arm is powered off
+    assert m.counters["program_refused"] == 1 and m.runtime_state == RuntimeState.STOPPED
+    m.release_safety_stop()
+    assert cause() == "program stopped"
+
+
+def test_servol_packages_are_counted_as_they_reach_the_controller_whether_or_not_it_acts():
+    m = model()
+    m.write_inputs({"input_int_register_0": 24}, now_ns=1)  # no program runs: not acted on, still counted
+    m.write_inputs({"input_int_register_24": 24}, now_ns=2)
+    m.write_inputs({"input_int_register_0": 16}, now_ns=3)
+    assert m.counters["servol_received"] == 2
