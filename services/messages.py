@@ -42,6 +42,8 @@ MAX_FRAME_BYTES = 2048 * 2048 * 4
 MAX_HEADER_BYTES = 64 * 1024
 #: Largest topic frame, bytes.
 MAX_TOPIC_BYTES = 256
+#: Longest task name a Goal may carry, characters (the task names of ``hydrosoft.tasks`` are a few words).
+MAX_TASK_CHARS = 64
 #: A quaternion is a unit quaternion when ``| ||q|| - 1 | <= QUATERNION_NORM_TOLERANCE`` (float32 rounding of a
 #: normalised quaternion stays below 1e-6).
 QUATERNION_NORM_TOLERANCE = 1e-5
@@ -467,6 +469,8 @@ class Goal(Payload, frozen=True, kw_only=True):
         if self.target_pose is not None and (self.dx_m, self.dy_m, self.dyaw_rad, self.droll_rad) != (0.0,) * 4:
             raise OutOfRange("Goal takes either target_pose or dx_m/dy_m/dyaw_rad/droll_rad, not both")
         _positive(self, tolerance_mm=self.tolerance_mm, tolerance_deg=self.tolerance_deg, timeout_s=self.timeout_s)
+        if len(self.task) > MAX_TASK_CHARS:
+            raise OutOfRange(f"Goal.task has {len(self.task)} characters, more than {MAX_TASK_CHARS}")
 
 
 class Reply(Message, frozen=True, kw_only=True):
