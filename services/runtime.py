@@ -323,6 +323,7 @@ async def _run(name: str, config: RuntimeConfig, main: Callable[[Service], Await
         log.error("%s cannot start: %s", name, error)
         bus.close()
         return EXIT_FAILED
+    service.log.info("started (pid %d, stack launch %s, restart %d)", service.pid, service.instance, service.restarts)
     try:
         exit_code = await _run_main(service, main)
         exit_code = max(exit_code, await _shut_down(service))
@@ -378,4 +379,7 @@ async def _shut_down(service: Service) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.remove_signal_handler(sig)
+        # ignored from here to the exit: a second stop signal (a killed launcher's parent-death SIGTERM can come
+        # twice) must not end the process before its last lines are written; SIGKILL still ends it
+        signal.signal(sig, signal.SIG_IGN)
     return exit_code
