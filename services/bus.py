@@ -51,6 +51,7 @@ import zmq
 import zmq.asyncio
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
+from zmq.utils.monitor import parse_monitor_message
 
 from hydrosoft.services.messages import (
     MAX_FRAME_BYTES,
@@ -77,8 +78,11 @@ SUB_RCVHWM = 4
 #: carries a larger frame and does not connect it again, which would cut a subscriber off its publisher for good.
 #: So it sits well above ``MAX_FRAME_BYTES``: a frame between the two arrives and is rejected by ``decode`` as
 #: ``oversized_frame`` (counted, the link stays up); only a frame past this bound (a broken or hostile sender,
-#: never one of ours, as ``encode`` refuses them) drops the link, and memory stays bounded.
+#: never one of ours, as ``encode`` refuses them) drops the link, and memory stays bounded. libzmq says nothing
+#: when it does: a subscriber watches its socket's monitor and counts every dropped link as ``link_dropped``.
 MAX_RECEIVE_BYTES = 4 * MAX_FRAME_BYTES
+#: Longest a subscriber waits without checking its socket's monitor for dropped links, ms.
+LINK_CHECK_MS = 1000
 #: Most messages one ``drain`` call decodes (~10 us each), so that a flood cannot hold the event loop for long.
 MAX_DRAIN_MESSAGES = 1000
 #: A received ``stamp_ns`` may lie this far in the future of the receiver's clock (same host: scheduling only).
@@ -397,8 +401,9 @@ class LatestSubscriber:
     coroutine may wait on a subscriber at a time. ``drain`` (called by both and by ``latest``) reads everything
     queued without blocking; invalid messages (and those stamped in the future, or before the newest one held
     for their topic) are counted in ``errors`` by kind (logged once per ``LOG_EVERY_N``) and dropped, never
-    raised. ``received`` counts valid messages per topic. Topics are matched by prefix, as ZeroMQ subscriptions
-    are (``""``: all).
+    raised; so are the links it lost (``link_dropped``, checked at least every ``LINK_CHECK_MS`` while it waits).
+    ``received`` counts valid messages per topic. Topics are matched by prefix, as ZeroMQ subscriptions are
+    (``""``: all).
 
     A subscriber that is not reading when a publisher exits can lose that publisher's last messages: libzmq
     discards what it had not yet read from a closed connection (seen with a final ``stopping`` status). Read
@@ -423,10 +428,22 @@ class LatestSubscriber:
         options: list[tuple[int, int | bytes]] = [(zmq.RCVHWM, rcvhwm), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)]
         options += [(zmq.SUBSCRIBE, topic.encode()) for topic in topics]
         self._sock = bus.socket(zmq.SUB, endpoints, bind=False, curve=curve, options=options)
+        self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+
+    def _count_dropped_links(self) -> None:
+        """Count (``link_dropped``) and log every connection the socket lost since the last call: its publisher
+        exited (libzmq connects again when it is back), or it sent a frame over ``MAX_RECEIVE_BYTES`` (libzmq
+        drops the link for good and would say nothing)."""
+        while self._monitor.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+            event = parse_monitor_message(self._monitor.recv_multipart(zmq.NOBLOCK).result())
+            endpoint = event["endpoint"].decode(errors="replace")
+            self.errors.count("link_dropped", f"the link to {endpoint} dropped: its publisher exited, or it sent a "
+                                              f"frame over {MAX_RECEIVE_BYTES} bytes (then the link stays down)")
 
     def drain(self) -> set[str]:
         """Read every message queued now (at most ``MAX_DRAIN_MESSAGES``) and keep the newest valid one per
-        topic. Returns the topics that got a new message."""
+        topic. Returns the topics that got a new message. Dropped links are counted first (``link_dropped``)."""
+        self._count_dropped_links()
         updated: set[str] = set()
         for _ in range(MAX_DRAIN_MESSAGES):
             if not self._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a recv that fails with Again
@@ -472,7 +489,7 @@ class LatestSubscriber:
             updated = self.drain()
             while not updated:
                 if deadline_s is None:
-                    await self._sock.poll()
+                    await self._sock.poll(LINK_CHECK_MS)  # then drain, which counts links dropped meanwhile
                 else:
                     remaining_s = deadline_s - loop.time()
                     if remaining_s <= 0 or not await self._sock.poll(math.ceil(remaining_s * 1000)):

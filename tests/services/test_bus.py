@@ -569,3 +569,44 @@ def test_a_request_flood_leaves_the_event_loop_its_period_and_other_clients_thei
             assert answered["rate_limited"] > 0 and answered["ok"] >= b.CLIENT_REQUEST_BURST, answered
 
     run(scenario())
+
+
+def test_a_frame_over_the_receive_limit_drops_the_link_and_the_drop_is_counted(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            endpoint = f"ipc://{ipc_dir}/huge"
+            raw = bus.socket(zmq.PUB, endpoint, bind=True)
+            subscriber = b.LatestSubscriber(bus, endpoint, ["wrench"])
+            frames = m.encode(msgspec.structs.replace(WRENCH, seq=1, stamp_ns=time.monotonic_ns()))
+            while "wrench" not in await subscriber.wait(0.02):  # slow joiner
+                await raw.send_multipart(frames)
+            assert subscriber.errors.counts["link_dropped"] == 0
+            await raw.send_multipart([b"wrench", b"\x80", bytes(b.MAX_RECEIVE_BYTES + 1)])
+            deadline_s = time.monotonic() + CONNECT_TIMEOUT_S
+            while subscriber.errors.counts["link_dropped"] == 0:
+                assert time.monotonic() < deadline_s, "the dropped link was not counted"
+                await subscriber.wait(0.05)
+            assert "dropped" in subscriber.errors.last_error and endpoint in subscriber.errors.last_error
+
+    run(scenario())
+
+
+def test_a_background_reader_counts_a_dropped_link_without_new_messages(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            endpoint = f"ipc://{ipc_dir}/gone"
+            raw = bus.socket(zmq.PUB, endpoint, bind=True)
+            subscriber = b.LatestSubscriber(bus, endpoint, ["wrench"])
+            reading = asyncio.create_task(subscriber.run())
+            frames = m.encode(msgspec.structs.replace(WRENCH, seq=1, stamp_ns=time.monotonic_ns()))
+            while not subscriber.received["wrench"]:
+                await raw.send_multipart(frames)
+                await asyncio.sleep(0.02)
+            raw.close(linger=0)  # the publisher goes away
+            deadline_s = time.monotonic() + b.LINK_CHECK_MS * 1e-3 + CONNECT_TIMEOUT_S
+            while subscriber.errors.counts["link_dropped"] == 0:
+                assert time.monotonic() < deadline_s, "the dropped link was not counted"
+                await asyncio.sleep(0.05)
+            reading.cancel()
+
+    run(scenario())
