@@ -80,13 +80,23 @@ def launcher_running(run_dir: str | Path) -> bool | None:
         return None
     if not text.isdigit():
         return None
+    return process_running(int(text))
+
+
+def process_running(pid: int) -> bool:
+    """Whether process ``pid`` runs: it exists and is not a zombie (a killed launcher stays one until its parent
+    reaps it; ``/proc`` tells, where there is one)."""
     try:
-        os.kill(int(text), 0)
+        os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:  # another user's process: it exists
+        pass
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
+    except (OSError, IndexError):
         return True
-    return True
+    return state not in ("Z", "X")
 
 
 @dataclass(frozen=True)

@@ -157,3 +157,12 @@ def test_the_launcher_check_reads_the_lock_file(tmp_path):
     assert c.launcher_running(tmp_path) is True
     (tmp_path / c.LAUNCHER_LOCK).write_text(f"{dead_pid()}\n")
     assert c.launcher_running(tmp_path) is False
+    zombie = subprocess.Popen([sys.executable, "-c", "pass"])  # exited, not yet reaped: as a killed launcher is
+    try:
+        (tmp_path / c.LAUNCHER_LOCK).write_text(f"{zombie.pid}\n")
+        deadline_s = time.monotonic() + 10.0
+        while c.launcher_running(tmp_path):
+            assert time.monotonic() < deadline_s, "a zombie launcher counts as running"
+            time.sleep(0.05)
+    finally:
+        zombie.wait(10)
