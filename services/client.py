@@ -211,9 +211,9 @@ class StackClient:
         running, or (without ``resume``) it has been silent for ``SILENT_LIMIT_S``."""
         running = launcher_running(self.config.run_dir)
         if running is False:
-            raise StackGone(f"the stack is gone: its launcher is not running ({Path(self.config.run_dir) / LAUNCHER_LOCK}"
-                            f" names a pid that has exited) and the planner did not answer ({error}); its goal "
-                            "was not finished") from None
+            lock = Path(self.config.run_dir) / LAUNCHER_LOCK
+            raise StackGone(f"the stack is gone: its launcher is not running ({lock} names a pid that has exited) "
+                            f"and the planner did not answer ({error}); its goal was not finished") from None
         if not resume and silent_s >= SILENT_LIMIT_S:
             raise StackGone(f"the planner has not answered for {silent_s:.1f} s ({error}): the stack is gone or "
                             "the planner died (its goal is then interrupted; goal --resume waits for a restarted "

@@ -9,8 +9,9 @@ is a report, not an error: the exit code is 0, or 2 for a bad config.
 
 ``--json`` prints one document ``{"services": {NAME: {state, pid, uptime_s, published_hz, received_hz, restarts,
 errors, last_error, heartbeat_age_s, instance} | null}}``; ``instance`` is the stack launch the service belongs to
-(the table prints it once, or per service when they differ). Refused requests are error kinds like any other (``rate_limited``, ``busy``,
-``reply_too_large``, ``request_failed``, ``other_instance``).
+(the table prints it once, or per service when they differ). Refused requests are error kinds like any other
+(``rate_limited``, ``busy``, ``reply_too_large``, ``request_failed``, ``other_instance``), as are the links a
+subscriber lost (``link_dropped``).
 
 A status endpoint that is not local (a ``tcp://`` address beyond loopback, which needs CURVE client keys the config
 does not hold) is not read; the service is reported as ``null`` and a note goes to stderr.

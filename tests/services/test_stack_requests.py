@@ -76,7 +76,8 @@ def launch(tmp_path_factory):
 
 def service_pids(stack: Stack) -> dict[str, int]:
     """The pid of each service the launcher reported ready (the newest run of each)."""
-    return {name: int(pid) for name, pid in re.findall(r"\[launcher\] (\S+) ready (?:again )?\(pid (\d+)", stack.text())}
+    found = re.findall(r"\[launcher\] (\S+) ready (?:again )?\(pid (\d+)", stack.text())
+    return {name: int(pid) for name, pid in found}
 
 
 def alive(pid: int) -> bool:
