@@ -40,7 +40,7 @@ import itertools
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +51,7 @@ import zmq
 import zmq.asyncio
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
+from zmq.utils.monitor import parse_monitor_message
 
 from hydrosoft.services.messages import (
     MAX_FRAME_BYTES,
@@ -58,6 +59,7 @@ from hydrosoft.services.messages import (
     CommandReply,
     Message,
     MessageError,
+    OversizedFrame,
     Reply,
     Request,
     UnknownTopic,
@@ -76,8 +78,11 @@ SUB_RCVHWM = 4
 #: carries a larger frame and does not connect it again, which would cut a subscriber off its publisher for good.
 #: So it sits well above ``MAX_FRAME_BYTES``: a frame between the two arrives and is rejected by ``decode`` as
 #: ``oversized_frame`` (counted, the link stays up); only a frame past this bound (a broken or hostile sender,
-#: never one of ours, as ``encode`` refuses them) drops the link, and memory stays bounded.
+#: never one of ours, as ``encode`` refuses them) drops the link, and memory stays bounded. libzmq says nothing
+#: when it does: a subscriber watches its socket's monitor and counts every dropped link as ``link_dropped``.
 MAX_RECEIVE_BYTES = 4 * MAX_FRAME_BYTES
+#: Longest a subscriber waits without checking its socket's monitor for dropped links, ms.
+LINK_CHECK_MS = 1000
 #: Most messages one ``drain`` call decodes (~10 us each), so that a flood cannot hold the event loop for long.
 MAX_DRAIN_MESSAGES = 1000
 #: A received ``stamp_ns`` may lie this far in the future of the receiver's clock (same host: scheduling only).
@@ -396,8 +401,9 @@ class LatestSubscriber:
     coroutine may wait on a subscriber at a time. ``drain`` (called by both and by ``latest``) reads everything
     queued without blocking; invalid messages (and those stamped in the future, or before the newest one held
     for their topic) are counted in ``errors`` by kind (logged once per ``LOG_EVERY_N``) and dropped, never
-    raised. ``received`` counts valid messages per topic. Topics are matched by prefix, as ZeroMQ subscriptions
-    are (``""``: all).
+    raised; so are the links it lost (``link_dropped``, checked at least every ``LINK_CHECK_MS`` while it waits).
+    ``received`` counts valid messages per topic. Topics are matched by prefix, as ZeroMQ subscriptions are
+    (``""``: all).
 
     A subscriber that is not reading when a publisher exits can lose that publisher's last messages: libzmq
     discards what it had not yet read from a closed connection (seen with a final ``stopping`` status). Read
@@ -422,10 +428,22 @@ class LatestSubscriber:
         options: list[tuple[int, int | bytes]] = [(zmq.RCVHWM, rcvhwm), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)]
         options += [(zmq.SUBSCRIBE, topic.encode()) for topic in topics]
         self._sock = bus.socket(zmq.SUB, endpoints, bind=False, curve=curve, options=options)
+        self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+
+    def _count_dropped_links(self) -> None:
+        """Count (``link_dropped``) and log every connection the socket lost since the last call: its publisher
+        exited (libzmq connects again when it is back), or it sent a frame over ``MAX_RECEIVE_BYTES`` (libzmq
+        drops the link for good and would say nothing)."""
+        while self._monitor.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+            event = parse_monitor_message(self._monitor.recv_multipart(zmq.NOBLOCK).result())
+            endpoint = event["endpoint"].decode(errors="replace")
+            self.errors.count("link_dropped", f"the link to {endpoint} dropped: its publisher exited, or it sent a "
+                                              f"frame over {MAX_RECEIVE_BYTES} bytes (then the link stays down)")
 
     def drain(self) -> set[str]:
         """Read every message queued now (at most ``MAX_DRAIN_MESSAGES``) and keep the newest valid one per
-        topic. Returns the topics that got a new message."""
+        topic. Returns the topics that got a new message. Dropped links are counted first (``link_dropped``)."""
+        self._count_dropped_links()
         updated: set[str] = set()
         for _ in range(MAX_DRAIN_MESSAGES):
             if not self._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a recv that fails with Again
@@ -471,7 +489,7 @@ class LatestSubscriber:
             updated = self.drain()
             while not updated:
                 if deadline_s is None:
-                    await self._sock.poll()
+                    await self._sock.poll(LINK_CHECK_MS)  # then drain, which counts links dropped meanwhile
                 else:
                     remaining_s = deadline_s - loop.time()
                     if remaining_s <= 0 or not await self._sock.poll(math.ceil(remaining_s * 1000)):
@@ -504,13 +522,99 @@ class LatestSubscriber:
 
 Handler = Callable[[Request], Awaitable[Reply]]
 
+#: Most characters of user text (a task name, a reason) that a reply or a log line quotes.
+QUOTE_CHARS = 80
+#: Most characters of a reply's ``error`` text: with ``QUOTE_CHARS`` this keeps every refusal far below
+#: ``MAX_HEADER_BYTES``, so that a refusal can always be sent.
+MAX_ERROR_CHARS = 1000
+#: Requests one client (one DEALER connection) may have handled per second, sustained. A client polls its goal's
+#: status at 4/s; beyond this budget a request is refused at once (``rate_limited``, not decoded, not handled), so
+#: a flooding client costs the server a few tens of microseconds per request and never starves the others.
+CLIENT_REQUESTS_PER_S = 50.0
+#: Requests one client may send back to back before its budget applies: a script's burst of requests answered
+#: one by one (a test's ~60 fuzzed requests) stays within it.
+CLIENT_REQUEST_BURST = 100
+#: Requests all clients together may have handled per second, sustained, and back to back; beyond it requests are
+#: refused as ``busy``. Handling a GetStatus costs the planner ~0.2 ms of its event loop, so this bounds the loop's
+#: share spent on requests to a few percent.
+SERVER_REQUESTS_PER_S = 200.0
+SERVER_REQUEST_BURST = 200
+#: Clients whose budgets a server keeps; the least recently seen is forgotten beyond it (memory stays bounded).
+MAX_CLIENTS = 256
+
+
+def quote(text: str, limit: int = QUOTE_CHARS) -> str:
+    """``text`` quoted (``repr``), cut to its first ``limit`` characters with its full length said when longer."""
+    if len(text) <= limit:
+        return repr(text)
+    return f"{text[:limit]!r}... ({len(text)} characters)"
+
+
+def bounded(text: str, limit: int = MAX_ERROR_CHARS) -> str:
+    """``text`` cut to at most ``limit`` characters (the cut marked with ``...``)."""
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+class RateLimit:
+    """A token bucket: ``take`` grants up to ``burst`` calls at once and ``rate_per_s`` calls per second sustained.
+    clock_s: the time source (s, ``time.monotonic``)."""
+
+    def __init__(self, rate_per_s: float, burst: int, clock_s: Callable[[], float] = time.monotonic) -> None:
+        if not (rate_per_s > 0 and burst >= 1):
+            raise ValueError(f"RateLimit needs rate_per_s > 0 and burst >= 1, got {rate_per_s!r}, {burst!r}")
+        self.rate_per_s, self.burst = rate_per_s, burst
+        self._clock_s = clock_s
+        self._tokens = float(burst)
+        self._then_s = clock_s()
+
+    def take(self) -> bool:
+        """Whether one more call is within the budget now (and, if so, spend it)."""
+        now_s = self._clock_s()
+        self._tokens = min(self.burst, self._tokens + (now_s - self._then_s) * self.rate_per_s)
+        self._then_s = now_s
+        if self._tokens < 1.0:
+            return False
+        self._tokens -= 1.0
+        return True
+
+
+class RequestBudget:
+    """The request budgets of one server: one ``RateLimit`` per client identity (the ``MAX_CLIENTS`` most recently
+    seen) and one for all clients together. ``admit`` names why a request is refused, or returns None."""
+
+    def __init__(self, clock_s: Callable[[], float] = time.monotonic) -> None:
+        self._clock_s = clock_s
+        self._server = RateLimit(SERVER_REQUESTS_PER_S, SERVER_REQUEST_BURST, clock_s)
+        self._clients: OrderedDict[bytes, RateLimit] = OrderedDict()
+
+    def admit(self, identity: bytes) -> str | None:
+        """None when a request of client ``identity`` may be handled now; else the error kind: ``rate_limited``
+        (this client is over its budget) or ``busy`` (all clients together are)."""
+        limit = self._clients.pop(identity, None)
+        if limit is None:
+            limit = RateLimit(CLIENT_REQUESTS_PER_S, CLIENT_REQUEST_BURST, self._clock_s)
+            if len(self._clients) >= MAX_CLIENTS:
+                self._clients.popitem(last=False)
+        self._clients[identity] = limit
+        if not limit.take():
+            return "rate_limited"
+        if not self._server.take():
+            return "busy"
+        return None
+
 
 class RequestServer:
     """A ROUTER socket answering the client's requests with ``handler``, one at a time.
 
     Frames: ``[client identity, request id, message frames...]`` in, the same identity and id with the reply's
-    frames out. A request that does not decode, is not a ``Request``, has passed its ``deadline_ns`` or makes the
-    handler raise gets ``CommandReply(ok=False, error=...)`` and is counted in ``errors``; the server carries on.
+    frames out. A request that does not decode, is not a ``Request``, has passed its ``deadline_ns``, is over its
+    client's or the server's budget (``RequestBudget``) or makes the handler raise gets ``CommandReply(ok=False,
+    error=...)`` (or its kind's reply) and is counted in ``errors``; a reply that cannot be encoded (too large) is
+    replaced by a short refusal, counted as ``reply_too_large``; any other failure of one request is counted as
+    ``request_failed`` and logged. The server carries on in every case: ``serve`` ends only when cancelled or when
+    its socket is closed. It yields to the event loop after every request, so that a flood of queued requests
+    (which ``recv_multipart`` hands out without ever suspending) cannot hold the loop. Error texts are cut to
+    ``MAX_ERROR_CHARS``.
     """
 
     def __init__(
@@ -523,10 +627,12 @@ class RequestServer:
         bind: bool = True,
         curve: Curve | None = None,
         errors: ErrorCounter | None = None,
+        budget: RequestBudget | None = None,
     ) -> None:
         self.source = source
         self.errors = errors if errors is not None else ErrorCounter()
         self._handler = handler
+        self._budget = budget if budget is not None else RequestBudget()
         self._replies = 0
         self._sock = bus.socket(zmq.ROUTER, endpoint, bind=bind, curve=curve,
                                 options=[(zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)])
@@ -537,9 +643,16 @@ class RequestServer:
         return _bound_endpoint(self._sock)
 
     async def serve(self) -> None:
-        """Answer requests until cancelled."""
+        """Answer requests until cancelled (or until the socket is closed, which raises ``zmq.ZMQError``)."""
         while True:
-            await self.handle_one()
+            try:
+                await self.handle_one()
+            except Exception as error:  # noqa: BLE001 - one request never ends the server
+                if self._sock.closed:
+                    raise
+                log.exception("request failed")
+                self.errors.count("request_failed", bounded(repr(error)))
+            await asyncio.sleep(0)  # let the heartbeat and the planning loop run between two queued requests
 
     async def handle_one(self) -> None:
         """Wait for one request and answer it."""
@@ -548,35 +661,52 @@ class RequestServer:
             self.errors.count("frame_count", f"a request of {len(frames)} frame(s) has no request id")
             return
         identity, request_id = frames[0], frames[1]
-        reply = await self._answer(frames[2:])
-        self._replies += 1
-        reply = msgspec.structs.replace(reply, seq=self._replies, stamp_ns=time.monotonic_ns(), source=self.source)
-        await self._sock.send_multipart([identity, request_id, *encode(reply)], copy=False)
+        refusal = self._budget.admit(identity.bytes)
+        if refusal is not None:
+            self.errors.count(refusal, f"request refused: {refusal.replace('_', ' ')}")
+            reply: Reply = CommandReply(ok=False, error=f"{refusal}: too many requests, try again later")
+            kind: type[Reply] = CommandReply
+        else:
+            kind, reply = await self._answer(frames[2:])
+        await self._sock.send_multipart([identity, request_id, *self._encode(kind, reply)], copy=False)
 
-    async def _answer(self, frames: Sequence[zmq.Frame]) -> Reply:
+    def _encode(self, kind: type[Reply], reply: Reply) -> list[bytes | object]:
+        """The frames of ``reply`` (stamped, its error text bounded), or of a short refusal of ``kind`` when the
+        reply cannot be encoded."""
+        self._replies += 1
+        stamp = {"seq": self._replies, "stamp_ns": time.monotonic_ns(), "source": self.source}
+        try:
+            return encode(msgspec.structs.replace(reply, error=bounded(reply.error), **stamp))
+        except MessageError as error:
+            text = f"the reply {type(reply).__name__} could not be sent: {bounded(str(error), QUOTE_CHARS * 2)}"
+            self.errors.count("reply_too_large" if isinstance(error, OversizedFrame) else "reply_encode", text)
+            return encode(kind(ok=False, error=text, **stamp))
+
+    async def _answer(self, frames: Sequence[zmq.Frame]) -> tuple[type[Reply], Reply]:
+        """The reply kind the request expects and the reply to it."""
         try:
             topic, request = decode(frames)
             if not isinstance(request, Request):
-                raise UnknownTopic(f"{topic!r} is not a request topic")
+                raise UnknownTopic(f"{quote(topic)} is not a request topic")
         except MessageError as error:
-            self.errors.count(error.kind, f"bad request: {error}")
-            return CommandReply(ok=False, error=f"{error.kind}: {error}")
+            self.errors.count(error.kind, bounded(f"bad request: {error}"))
+            return CommandReply, CommandReply(ok=False, error=f"{error.kind}: {error}")
+        kind = request.reply
         if request.deadline_ns and time.monotonic_ns() > request.deadline_ns:
-            text = f"{type(request).__name__} from {request.source!r} arrived after its deadline"
+            text = f"{type(request).__name__} from {quote(request.source)} arrived after its deadline"
             self.errors.count("expired_request", text)
-            return request.reply(ok=False, error=text)
+            return kind, kind(ok=False, error=text)
         try:
             reply = await self._handler(request)
         except Exception as error:  # the server outlives a failing handler; the client gets the reason
             log.exception("handler failed on %s", type(request).__name__)
-            self.errors.count("handler", f"{type(request).__name__}: {error!r}")
-            return request.reply(ok=False, error=f"handler failed: {error!r}")
-        if not isinstance(reply, request.reply):
-            text = (f"handler answered {type(request).__name__} with {type(reply).__name__}, "
-                    f"not {request.reply.__name__}")
+            self.errors.count("handler", bounded(f"{type(request).__name__}: {error!r}"))
+            return kind, kind(ok=False, error=f"handler failed: {error!r}")
+        if not isinstance(reply, kind):
+            text = f"handler answered {type(request).__name__} with {type(reply).__name__}, not {kind.__name__}"
             self.errors.count("handler", text)
-            return request.reply(ok=False, error=text)
-        return reply
+            return kind, kind(ok=False, error=text)
+        return kind, reply
 
 
 class RequestClient:

@@ -14,9 +14,18 @@ command line; with ``--json`` it prints one document ``{"status", "error_mm", "e
 ``eval/object_pose``, plus ``"resumes"`` when the goal was sent again to a restarted planner and
 ``"reapproaches"`` when the bubble was brought back onto a lost object (``services/reapproach.py``).
 
-A planner that dies while a goal runs stops the arm (the commander's watchdog) and is restarted by the launcher;
-the restarted planner has no goal. ``wait`` then resumes the goal this client started: the same absolute target
-(resolved by the first Start), the rest of its timeout (``--no-resume`` / ``resume=False`` turns this off).
+Goals belong to one stack launch. Every status reply names the launch (``ServiceStatus.instance``); the client
+learns it from the first and stamps its goals with it (``Goal.instance``), so a planner of another launch refuses
+them, and ``wait`` ends with ``StackGone`` as soon as another launch answers: a goal is never sent to another
+stack. A planner that dies while a goal runs stops the arm (the commander's watchdog) and is restarted by the
+launcher with no goal: ``wait`` then reports the goal ``interrupted`` (exit 1), unless ``resume`` was asked for
+(``goal --resume``; off by default), which sends it again to the restarted planner of the same launch: the same
+absolute target (resolved by the first Start), the rest of its timeout.
+
+A stack that is gone is noticed within seconds, not at the end of ``--wait``: when the planner does not answer, the
+launcher's pid (``RUN_DIR/launcher.lock``) is checked, and a launcher that is no longer running ends ``wait`` with
+``StackGone``; without ``resume``, so does a planner silent for ``SILENT_LIMIT_S``. ``hydrosoft-stack goal`` then
+prints why and exits 3.
 """
 
 from __future__ import annotations
@@ -43,18 +52,58 @@ DEFAULT_CONFIG = "deploy/sim.toml"
 CONFIG_ENV = "HYDROSOFT_CONFIG"  # the config path when --config is not given
 POLL_PERIOD_S = 0.25  # s between status polls while waiting for an outcome
 REQUEST_TIMEOUT_S = 3.0
-FINAL = ("reached", "failed", "timeout", "stopped")
+#: Without ``resume``, the longest the planner may stay silent before ``wait`` gives the stack up, s (a restarted
+#: planner takes longer than this to build its model, and its goal would be interrupted anyway).
+SILENT_LIMIT_S = 5.0
+#: The file in run_dir that holds the running launcher's pid (``launcher.LOCK_FILE``).
+LAUNCHER_LOCK = "launcher.lock"
+FINAL = ("reached", "failed", "timeout", "stopped", "interrupted")
+#: Exit status of ``hydrosoft-stack goal`` when the stack is gone or was launched again.
+EXIT_STACK_GONE = 3
 
 
 class ClientError(RuntimeError):
     """The stack refused a request; the message says why."""
 
 
+class StackGone(ClientError):
+    """The stack this client set its goal on is gone (its launcher is not running, its planner silent) or was
+    launched again (another instance answers); the message says which."""
+
+
+def launcher_running(run_dir: str | Path) -> bool | None:
+    """Whether the launcher whose pid ``RUN_DIR/launcher.lock`` holds is running: None when that cannot be told (no
+    such file: the stack runs elsewhere or without a launcher)."""
+    try:
+        text = (Path(run_dir) / LAUNCHER_LOCK).read_text().strip()
+    except OSError:
+        return None
+    if not text.isdigit():
+        return None
+    return process_running(int(text))
+
+
+def process_running(pid: int) -> bool:
+    """Whether process ``pid`` runs: it exists and is not a zombie (a killed launcher stays one until its parent
+    reaps it; ``/proc`` tells, where there is one)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: it exists
+        pass
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
+    except (OSError, IndexError):
+        return True
+    return state not in ("Z", "X")
+
+
 @dataclass(frozen=True)
 class Pursuit:
     """A goal this client started: the planner (pid) that accepted it, the goal with its target resolved to an
-    absolute pose (so a resumed goal aims where the first one did, not relative to where the object is now), and
-    when it started (``time.monotonic()``, s)."""
+    absolute pose (so a resumed goal aims where the first one did, not relative to where the object is now) and its
+    stack launch (``goal.instance``), and when it started (``time.monotonic()``, s)."""
 
     planner_pid: int
     goal: msg.Goal
@@ -64,7 +113,8 @@ class Pursuit:
 class StackClient:
     """An async connection to a running stack's planner (requests) and to any service's topics.
 
-    ``resumes`` counts the goals ``wait`` re-sent to a restarted planner."""
+    ``resumes`` counts the goals ``wait`` re-sent to a restarted planner; ``instance`` is the stack launch this
+    client talks to, learned from the first status reply (None before)."""
 
     def __init__(self, config: StackConfig | str | Path) -> None:
         self.config = config if isinstance(config, StackConfig) else load_config(config)
@@ -73,6 +123,7 @@ class StackClient:
                                       timeout_s=REQUEST_TIMEOUT_S)
         self.pursuit: Pursuit | None = None
         self.resumes = 0
+        self.instance: str | None = None
 
     def close(self) -> None:
         self.bus.close()
@@ -93,9 +144,12 @@ class StackClient:
                        droll_rad: float = 0.0, target_pose: np.ndarray | None = None, tolerance_mm: float = 5.0,
                        timeout_s: float = 180.0) -> None:
         """Set the planner's goal (a displacement from the object's pose at ``start``, or an absolute pose; see
-        ``messages.Goal``)."""
+        ``messages.Goal``), for the stack launch this client talks to (a planner of another launch refuses it)."""
+        if self.instance is None:
+            await self.status()  # learns the launch the goal is for
         goal = msg.Goal(task=task, target_pose=target_pose, dx_m=dx_m, dy_m=dy_m, dyaw_rad=dyaw_rad,
-                        droll_rad=droll_rad, tolerance_mm=tolerance_mm, timeout_s=timeout_s)
+                        droll_rad=droll_rad, tolerance_mm=tolerance_mm, timeout_s=timeout_s,
+                        instance=self.instance or "")
         await self._command(msg.SetGoal(goal=goal))
 
     async def start(self) -> None:
@@ -111,30 +165,67 @@ class StackClient:
         await self._command(msg.Stop(reason=reason))
 
     async def status(self) -> msg.StatusReply:
-        """The planner's status: outcome, error, solves."""
-        return await self._command(msg.GetStatus())
+        """The planner's status: outcome, error, solves. The first reply sets ``instance``; a reply from another
+        stack launch raises StackGone."""
+        reply = await self._command(msg.GetStatus())
+        instance = reply.status.instance if reply.status is not None else ""
+        if self.instance is None:
+            self.instance = instance
+        elif instance != self.instance:
+            raise StackGone(f"the stack was launched again (launch {instance!r} answers; this client's goal was set "
+                            f"on launch {self.instance!r}): the goal is not sent to the new stack")
+        return reply
 
-    async def wait(self, timeout_s: float, resume: bool = True) -> msg.StatusReply:
+    async def wait(self, timeout_s: float, resume: bool = False) -> msg.StatusReply:
         """Poll the status until the goal ends or ``timeout_s`` passes (then the last status, outcome running).
 
-        A planner that does not answer (it died; the launcher restarts it) is polled again until the deadline,
-        which then raises TimeoutError. With ``resume``, a goal this client started that a restarted planner
-        (another pid) no longer pursues is sent to it again, with the same absolute target and what is left of
-        its timeout (``resume_goal``); the arm is stopped meanwhile by the commander's watchdog.
+        A planner that does not answer is polled again while its launcher runs, until the deadline (which then
+        raises TimeoutError); a launcher that is gone, or without ``resume`` a planner silent for
+        ``SILENT_LIMIT_S``, raises StackGone at once, as does an answer from another stack launch. A goal this
+        client started that a restarted planner (another pid, same launch) no longer pursues is ``interrupted``
+        (the reply says so); with ``resume`` it is sent to it again, with the same absolute target and what is
+        left of its timeout (``resume_goal``); the arm is stopped meanwhile by the commander's watchdog.
         """
         deadline = time.monotonic() + timeout_s
+        answered_s = time.monotonic()
         while True:
             try:
                 reply = await self.status()
-            except TimeoutError:
+            except TimeoutError as error:
+                self._check_alive(time.monotonic() - answered_s, resume, error)
                 if time.monotonic() >= deadline:
                     raise
                 continue
-            if resume and self._lost_by_restart(reply) and await self.resume_goal():
-                continue
+            answered_s = time.monotonic()
+            if self._lost_by_restart(reply):
+                if not resume:
+                    return self._interrupted(reply)
+                if await self.resume_goal():
+                    continue
             if reply.outcome in FINAL or time.monotonic() >= deadline:
                 return reply
             await asyncio.sleep(POLL_PERIOD_S)
+
+    def _check_alive(self, silent_s: float, resume: bool, error: TimeoutError) -> None:
+        """Raise StackGone when a planner silent for ``silent_s`` s means the stack is gone: its launcher is not
+        running, or (without ``resume``) it has been silent for ``SILENT_LIMIT_S``."""
+        running = launcher_running(self.config.run_dir)
+        if running is False:
+            lock = Path(self.config.run_dir) / LAUNCHER_LOCK
+            raise StackGone(f"the stack is gone: its launcher is not running ({lock} names a pid that has exited) "
+                            f"and the planner did not answer ({error}); its goal was not finished") from None
+        if not resume and silent_s >= SILENT_LIMIT_S:
+            raise StackGone(f"the planner has not answered for {silent_s:.1f} s ({error}): the stack is gone or "
+                            "the planner died (its goal is then interrupted; goal --resume waits for a restarted "
+                            "planner)") from None
+
+    def _interrupted(self, reply: msg.StatusReply) -> msg.StatusReply:
+        """``reply`` of a restarted planner, as the verdict on this client's goal: ``interrupted``."""
+        pid = self.pursuit.planner_pid
+        self.pursuit = None
+        return msgspec.structs.replace(
+            reply, outcome="interrupted", outcome_reason=f"the planner restarted (pid {pid} -> {reply.status.pid}) "
+                                                         "and the goal was not resumed (goal --resume)")
 
     def _lost_by_restart(self, reply: msg.StatusReply) -> bool:
         """Whether ``reply`` comes from a planner other than the one pursuing this client's goal, and idle."""
@@ -198,7 +289,7 @@ class BlockingClient:
     def status(self) -> msg.StatusReply:
         return self._loop.run_until_complete(self._client.status())
 
-    def wait(self, timeout_s: float, resume: bool = True) -> msg.StatusReply:
+    def wait(self, timeout_s: float, resume: bool = False) -> msg.StatusReply:
         return self._loop.run_until_complete(self._client.wait(timeout_s, resume))
 
 
@@ -235,8 +326,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tolerance-mm", type=float, default=5.0, help="success when the ADD error is below (mm)")
     parser.add_argument("--timeout", type=float, default=None, help="the stack gives up after this long (s; default --wait or 180)")
     parser.add_argument("--wait", type=float, default=0.0, help="wait up to this long for the outcome (s); 0: start and return")
-    parser.add_argument("--no-resume", action="store_true",
-                        help="while waiting, do not send the goal again to a planner the launcher restarted")
+    parser.add_argument("--resume", action="store_true",
+                        help="while waiting, send the goal again to a planner the launcher restarted (same launch "
+                        "only); without it such a goal ends interrupted")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
 
 
@@ -247,7 +339,7 @@ async def _goal(args: argparse.Namespace) -> dict:
                               droll_rad=math.radians(args.droll),
                               tolerance_mm=args.tolerance_mm, timeout_s=timeout_s)
         await client.start()
-        reply = await (client.wait(args.wait, resume=not args.no_resume) if args.wait > 0 else client.status())
+        reply = await (client.wait(args.wait, resume=args.resume) if args.wait > 0 else client.status())
         result = {"status": reply.outcome, "error_mm": reply.error_mm, "elapsed_s": reply.elapsed_s,
                   "solves": reply.solves, "mean_solve_ms": reply.mean_solve_ms}
         if reply.outcome_reason:
@@ -264,9 +356,13 @@ async def _goal(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    """``hydrosoft-stack goal``: exit 0 when reached (or started, without --wait), 1 otherwise, 2 when refused."""
+    """``hydrosoft-stack goal``: exit 0 when reached (or started, without --wait), 1 otherwise, 2 when refused, 3
+    when the stack is gone or was launched again (``StackGone``)."""
     try:
         result = asyncio.run(_goal(args))
+    except StackGone as err:
+        print(f"hydrosoft-stack goal: {err}", file=sys.stderr)
+        return EXIT_STACK_GONE
     except (ClientError, TimeoutError) as err:
         print(f"hydrosoft-stack goal: {err}", file=sys.stderr)
         return 2

@@ -6,6 +6,7 @@ bad key raises ``ConfigError`` naming the file and the key (``limits.max_speed_m
 Layout (see ``deploy/sim.toml`` for a commented example)::
 
     run_dir, log_level, mode          where ipc sockets and pty links live; "sim" or "lab"
+    log_dir                           where each service writes its own log file NAME.log (default RUN_DIR/logs)
     compile_cache_dir                 torch's compile cache for the compiled planner and plant (kept between
                                       launches; default /tmp/torchinductor_USER)
     state_dir                         what the stack keeps between launches (the F/T sensors' stored tares);
@@ -385,6 +386,7 @@ class StackConfig(Strict):
     arms: list[ArmConfig]
     run_dir: str = "/tmp/hydrosoft"
     log_level: str = "INFO"
+    log_dir: str | None = None
     compile_cache_dir: str | None = None
     state_dir: str = "state"
     mode: Literal["sim", "lab"] = "sim"
@@ -451,9 +453,15 @@ class StackConfig(Strict):
         return self.endpoints.get(f"{service}.{kind}", f"ipc://{self.run_dir}/{service}.{kind}")
 
     def runtime(self, service: str) -> RuntimeConfig:
-        """The runtime settings of ``service`` (the planner's heartbeat at ``planner.heartbeat_period_s``)."""
+        """The runtime settings of ``service`` (the planner's heartbeat at ``planner.heartbeat_period_s``, its log
+        file in ``service_log_dir``)."""
         heartbeat = {"heartbeat_period_s": self.planner.heartbeat_period_s} if service == "planner" else {}
-        return RuntimeConfig(status_endpoint=self.endpoint(service, "status"), log_level=self.log_level, **heartbeat)
+        return RuntimeConfig(status_endpoint=self.endpoint(service, "status"), log_level=self.log_level,
+                             log_file=str(self.service_log_dir() / f"{service}.log"), **heartbeat)
+
+    def service_log_dir(self) -> Path:
+        """Where each service writes its own log file ``NAME.log``: ``log_dir``, or ``RUN_DIR/logs``."""
+        return Path(self.log_dir).expanduser() if self.log_dir is not None else Path(self.run_dir) / "logs"
 
     def state_path(self) -> Path:
         """The folder of what the stack keeps between launches (``state_dir``; a relative one lies under

@@ -4,9 +4,12 @@ Start. The launcher takes ``config.run_dir`` (creates it, holds ``run_dir/launch
 drives the same arms, removes stale ipc socket files of its endpoints), then starts every service of
 ``config.service_names()`` (or the ``--only`` subset) in that order as
 ``python -m hydrosoft.services.MODULE CONFIG --name NAME`` (MODULE = NAME before the first ``-``). Each runs in its
-own session and process group, with ``HYDROSOFT_RESTARTS`` set to its restart count and stdin closed; on Linux it
-gets SIGTERM if the launcher dies, so a killed launcher leaves no unsupervised arm commander behind. Every line
-of its stdout and stderr is echoed as ``[NAME] line`` (and appended to ``LOG_DIR/NAME.log`` with ``--log-dir``).
+own session and process group, with ``HYDROSOFT_RESTARTS`` set to its restart count, ``HYDROSOFT_INSTANCE`` to
+the launch's id (one per launch, shared by all its services and shown in their status: a goal set on one launch
+is refused by the next) and stdin closed; on Linux it gets SIGTERM if the launcher dies, so a killed launcher
+leaves no unsupervised arm commander behind. Every line of its stdout and stderr is echoed as ``[NAME] line``
+(and appended to ``LOG_DIR/NAME.log`` with ``--log-dir``); each service also writes its own log file
+(``config.service_log_dir()``), which holds its shutdown lines even when the launcher was killed.
 The next service starts once this one printed ``READY NAME PID`` (within its ``ready_timeout_s``); one that exits
 or stays silent fails the launch: the error names it and everything started is stopped again.
 
@@ -53,7 +56,7 @@ from pathlib import Path
 from typing import IO
 
 from hydrosoft.services.config import ConfigError, ServiceConfig, StackConfig, load_config
-from hydrosoft.services.runtime import RESTARTS_ENV
+from hydrosoft.services.runtime import INSTANCE_ENV, RESTARTS_ENV, new_instance_id
 
 #: The package holding the service modules.
 SERVICE_PACKAGE = "hydrosoft.services"
@@ -443,13 +446,14 @@ class Launcher:
         self.given_up: set[str] = set()
         self.stopping = asyncio.Event()
         self.none_left = asyncio.Event()
+        self.instance = new_instance_id()
         self._keepers: dict[str, asyncio.Task[None]] = {}
 
     def log(self, text: str) -> None:
         self.sink.launcher(text)
 
     async def _start(self, name: str) -> ServiceProcess:
-        env = {**os.environ, RESTARTS_ENV: str(self.restarts[name])}
+        env = {**os.environ, RESTARTS_ENV: str(self.restarts[name]), INSTANCE_ENV: self.instance}
         process = await ServiceProcess.start(name, self.command(name, self.config_path), env, self.sink)
         self.processes[name] = process
         return process
@@ -457,6 +461,7 @@ class Launcher:
     async def start_all(self) -> None:
         """Start every service in order, each after the previous one is READY; then supervise them. Raises
         LaunchError naming the first service that did not get ready."""
+        self.log(f"launch instance {self.instance}")
         for name in self.names:
             if self.stopping.is_set():
                 return

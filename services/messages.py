@@ -42,6 +42,8 @@ MAX_FRAME_BYTES = 2048 * 2048 * 4
 MAX_HEADER_BYTES = 64 * 1024
 #: Largest topic frame, bytes.
 MAX_TOPIC_BYTES = 256
+#: Longest task name and instance id a Goal may carry, characters (task names are a few words, ids 32 hex digits).
+MAX_TASK_CHARS = 64
 #: A quaternion is a unit quaternion when ``| ||q|| - 1 | <= QUATERNION_NORM_TOLERANCE`` (float32 rounding of a
 #: normalised quaternion stays below 1e-6).
 QUATERNION_NORM_TOLERANCE = 1e-5
@@ -449,7 +451,8 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
     started. published_hz, received_hz: per topic, messages per second over the last status period. errors:
     count per error kind since start. last_error: text of the newest error ("" if none). restarts: how often the
     launcher restarted it. note: the service's own one-line account of a state worth knowing ("" if none; the F/T
-    reader's bias and its age, or why it publishes untared readings)."""
+    reader's bias and its age, or why it publishes untared readings). instance: the id of the stack launch it
+    belongs to (the launcher's, passed to all its services; a service started alone makes its own)."""
 
     topic = "status"
 
@@ -462,6 +465,7 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
     last_error: str = ""
     restarts: int = 0
     note: str = ""
+    instance: str = ""
 
 
 # --- client API: requests and replies ----------------------------------------------------------------------------
@@ -471,7 +475,9 @@ class Goal(Payload, frozen=True, kw_only=True):
     """What the planner should achieve. task: a task name of ``hydrosoft.tasks`` ("pushing", "rotation", ...).
     Either target_pose: ``(7,)`` float64 object pose in the robot base frame (m, wxyz), or (target_pose None) a
     displacement of the object from its pose at Start: dx_m, dy_m (m, base frame), dyaw_rad (rad, about base z) and
-    droll_rad (rad, about base x: in-hand rotation's grasp axis), both turns about the object's centre. tolerance_mm, tolerance_deg: position and yaw tolerance for success. timeout_s: give up after this long."""
+    droll_rad (rad, about base x: in-hand rotation's grasp axis), both turns about the object's centre. tolerance_mm, tolerance_deg: position and yaw tolerance for success. timeout_s: give up after this long.
+    instance: the stack launch (``ServiceStatus.instance``) the goal is meant for; a planner of another launch
+    refuses it. "" = any (a script that sets goals on whatever stack runs)."""
 
     ARRAYS = {"target_pose": POSE._replace(optional=True)}
 
@@ -484,11 +490,15 @@ class Goal(Payload, frozen=True, kw_only=True):
     tolerance_mm: float
     tolerance_deg: float = 5.0
     timeout_s: float
+    instance: str = ""
 
     def check(self) -> None:
         if self.target_pose is not None and (self.dx_m, self.dy_m, self.dyaw_rad, self.droll_rad) != (0.0,) * 4:
             raise OutOfRange("Goal takes either target_pose or dx_m/dy_m/dyaw_rad/droll_rad, not both")
         _positive(self, tolerance_mm=self.tolerance_mm, tolerance_deg=self.tolerance_deg, timeout_s=self.timeout_s)
+        for name in ("task", "instance"):
+            if len(getattr(self, name)) > MAX_TASK_CHARS:
+                raise OutOfRange(f"Goal.{name} has {len(getattr(self, name))} characters, more than {MAX_TASK_CHARS}")
 
 
 class Reply(Message, frozen=True, kw_only=True):
@@ -509,14 +519,15 @@ class CommandReply(Reply, frozen=True, kw_only=True):
     topic = "reply/command"
 
 
-Outcome = Literal["", "running", "reached", "failed", "timeout", "stopped"]
+Outcome = Literal["", "running", "reached", "failed", "timeout", "stopped", "interrupted"]
 
 
 class StatusReply(Reply, frozen=True, kw_only=True):
     """The reply to GetStatus. running: a goal is being pursued. goal: the current goal, if any, with
     target_pose resolved once started (the object pose it must reach, base frame). status: the server's own
-    ServiceStatus. outcome: "" (never started), running, reached, failed (reason in outcome_reason), timeout or
-    stopped. error_mm: the latest ADD error of the object (its tracked pose) against the target, mm. elapsed_s:
+    ServiceStatus. outcome: "" (never started), running, reached, failed (reason in outcome_reason), timeout,
+    stopped or interrupted (the client's verdict on a goal whose planner restarted: it is not resumed unless
+    asked). error_mm: the latest ADD error of the object (its tracked pose) against the target, mm. elapsed_s:
     since Start, s. solves: MPC solves since Start. mean_solve_ms: their mean wall time, ms. reapproaches: how often
     the bubble was brought back onto a lost object since Start."""
 

@@ -9,7 +9,8 @@ the plan's first actions, applied to the arms' current TCP poses, are the absolu
 commanders, each with a deadline. Stale inputs mean no solve and no target, also when an input went stale during the
 solve: the commander's watchdog then stops the arm.
 
-The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. ``Start`` is refused without
+The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. A goal set for another stack
+launch (``Goal.instance``, not this service's ``instance``) is refused. ``Start`` is refused without
 fresh inputs to start from (the drift cost is anchored at the object and TCP poses the goal starts at). A goal ends
 ``reached`` (the tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed``
 (with a reason: an unknown task, an unreachable goal, an object lost) or ``stopped``.
@@ -56,7 +57,7 @@ from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, mean_point_distanc
 from hydrosoft.tasks.evaluation import (METRIC_SPACING_M, PlannerSettings, planner_calls, with_contact,
                                         with_solver_steps)
 from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Stale
+from hydrosoft.services.bus import Stale, quote
 from hydrosoft.services import service_main
 from hydrosoft.services.config import PlannerConfig, StackConfig
 from hydrosoft.services.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
@@ -268,12 +269,18 @@ class Planner:
     # --- client API ---
 
     async def handle(self, request: msg.Request) -> msg.Reply:
-        """The reply to one client request; a refused one is counted (``unknown_task``, ``start_refused``)."""
+        """The reply to one client request; a refused one is counted (``unknown_task``, ``other_instance``: a goal
+        set for another stack launch, ``start_refused``)."""
         if isinstance(request, msg.SetGoal):
             if request.goal.task != self.config.scene.task:
-                error = (f"unknown task {request.goal.task!r} for this stack: it serves {self.config.scene.task!r} "
-                         "(see the config's scene.task)")
+                error = (f"unknown task {quote(request.goal.task)} for this stack: it serves "
+                         f"{self.config.scene.task!r} (see the config's scene.task)")
                 self.service.count_error("unknown_task", error)
+                return msg.CommandReply(ok=False, error=error)
+            if request.goal.instance not in ("", self.service.instance):
+                error = (f"the goal was set for the stack launch {quote(request.goal.instance)}; this is launch "
+                         f"{self.service.instance!r}: a goal never moves to another launch (set it again)")
+                self.service.count_error("other_instance", error)
                 return msg.CommandReply(ok=False, error=error)
             self.goal = request.goal
             return msg.CommandReply(ok=True)
@@ -566,7 +573,7 @@ async def run(service: Service, config: StackConfig) -> None:
         service.log.info("planner step compiled in %.1f s", seconds)
     planner = Planner(service, config, core)
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
-    serving = asyncio.create_task(server.serve(), name="planner.serve")
+    serving = service.supervise(asyncio.create_task(server.serve(), name="planner.serve"))
     await service.ready()
     try:
         while True:

@@ -9,8 +9,10 @@ waiting on sockets or timers (never spinning: an idle service sleeps). ``run_ser
 
 What the runtime does around ``main``:
 
-- logs to stderr as ``<time> <service> <LEVEL> <logger>: <text>``; stdout carries only ``READY <name> <pid>``,
-  printed (and flushed) by ``ready()`` for a launcher to wait on;
+- logs to stderr as ``<time> <service> <LEVEL> <logger>: <text>``, and the same lines to its own file
+  (``RuntimeConfig.log_file``, rotated at ``LOG_FILE_BYTES``), so that its shutdown lines survive a launcher that
+  was killed (its stderr then goes nowhere); stdout carries only ``READY <name> <pid>``, printed (and flushed) by
+  ``ready()`` for a launcher to wait on;
 - on SIGINT or SIGTERM cancels ``main``; when ``main`` ends (cancelled, returned or raised) publishes state
   ``stopping``, runs the shutdown hooks (newest first) within ``shutdown_timeout_s`` and exits 0, or 1 when
   ``main`` raised or the hooks overran. The bound holds for hooks that await; a hook that blocks the loop
@@ -19,7 +21,10 @@ What the runtime does around ``main``:
   ``Heartbeat`` on ``heartbeat/<name>`` every ``heartbeat_period_s``, both on ``status_endpoint``;
 - counts errors by kind (``count_error``, and every malformed message its subscribers and request servers see)
   and reports the counts and the newest text in the status, with the restart count the launcher passes in the
-  environment variable ``HYDROSOFT_RESTARTS``.
+  environment variable ``HYDROSOFT_RESTARTS``, and the id of the stack launch it belongs to (``instance``), which
+  the launcher passes in ``HYDROSOFT_INSTANCE`` (a service started alone makes its own);
+- supervises the tasks ``main`` hands to ``supervise`` (a request server's ``serve``): one that ends other than
+  by cancellation is logged and counted, and the service reports itself ``degraded`` from then on.
 
 A long computation (a planner's solve) should run in an executor (``loop.run_in_executor``): while it holds the
 loop, no timer fires, no heartbeat leaves and no subscriber reads.
@@ -33,9 +38,11 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import logging.handlers
 import signal
 import sys
 import time
+import uuid
 from collections import Counter
 from collections.abc import Awaitable, Callable, Iterable, Sequence
 
@@ -57,10 +64,16 @@ from hydrosoft.services.bus import (
 )
 from hydrosoft.services.messages import BusError, Heartbeat, ServiceState, ServiceStatus, topic_for
 
-__all__ = ["Latest", "Received", "RuntimeConfig", "Service", "Stale", "run_service"]
+__all__ = ["Latest", "Received", "RuntimeConfig", "Service", "Stale", "new_instance_id", "run_service"]
 
 #: Environment variable in which the launcher passes how often it restarted the service.
 RESTARTS_ENV = "HYDROSOFT_RESTARTS"
+#: Environment variable in which the launcher passes the id of its launch to every service.
+INSTANCE_ENV = "HYDROSOFT_INSTANCE"
+#: A service's log file is rotated when it reaches this size, bytes; ``LOG_FILE_BACKUPS`` older files are kept
+#: (``NAME.log.1`` ...), so one service's logs take at most (1 + LOG_FILE_BACKUPS) * LOG_FILE_BYTES on disk.
+LOG_FILE_BYTES = 10 * 1024 * 1024
+LOG_FILE_BACKUPS = 3
 #: Exit codes: a requested stop or a normal end; a failure of ``main`` or of the shutdown.
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -76,7 +89,8 @@ class RuntimeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     status_endpoint: where the service binds the PUB socket for its status and heartbeat (``ipc://`` or
     ``tcp://127.0.0.1:PORT``). status_period_s: seconds between status messages. heartbeat_period_s: seconds
     between heartbeats (readers should time out after more than twice this). shutdown_timeout_s: the longest the
-    shutdown hooks may take, s. log_level: a ``logging`` level name.
+    shutdown hooks may take, s. log_level: a ``logging`` level name. log_file: where the service also writes its
+    log (its directory is created), or None for stderr only.
     """
 
     status_endpoint: str
@@ -84,6 +98,7 @@ class RuntimeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     heartbeat_period_s: float = 0.1
     shutdown_timeout_s: float = 2.0
     log_level: str = "INFO"
+    log_file: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("status_period_s", "heartbeat_period_s", "shutdown_timeout_s"):
@@ -113,11 +128,13 @@ class Service:
         self.state: ServiceState = "starting"
         self.restarts = _restarts_from_environment(self.log)
         self.note = ""  # a line for the status on a state worth knowing (ServiceStatus.note); set it any time
+        self.instance = new_instance_id() if not os.environ.get(INSTANCE_ENV) else os.environ[INSTANCE_ENV][:64]
         self._started_ns = time.monotonic_ns()
         self._publishers: list[Publisher] = []
         self._subscribers: list[LatestSubscriber] = []
         self._shutdown_hooks: list[ShutdownHook] = []
         self._tasks: set[asyncio.Task[None]] = set()  # held here: the loop keeps only weak references to tasks
+        self._degraded_by: set[str] = set()  # the supervised tasks that ended
         self._rates_since_ns = self._started_ns
         self._published_then: Counter[str] = Counter()
         self._received_then: Counter[str] = Counter()
@@ -156,6 +173,23 @@ class Service:
         ``serve()`` as a task of ``main``."""
         return RequestServer(self.bus, endpoint, handler, source=self.name, curve=curve, errors=self.errors)
 
+    def supervise(self, task: asyncio.Task[None]) -> asyncio.Task[None]:
+        """Hold ``task`` (a request server's ``serve``) until the service stops; should it end other than by
+        cancellation, log and count it (``task_ended``) and report the service ``degraded`` from then on. (A
+        request server's ``serve`` ends only when its socket fails: restarting it would fail the same way.)"""
+        self._tasks.add(task)
+        task.add_done_callback(self._on_supervised_end)
+        return task
+
+    def _on_supervised_end(self, task: asyncio.Task[None]) -> None:
+        if task.cancelled() or self.state == "stopping":
+            return
+        error = task.exception()
+        self.log.error("task %s ended: %r; the service is degraded", task.get_name(), error)
+        self.count_error("task_ended", f"{task.get_name()} ended: {error!r}")
+        self._degraded_by.add(task.get_name())
+        self._tasks.add(asyncio.get_running_loop().create_task(self._send_health(self.set_state("degraded"))))
+
     # --- health ---
 
     def count_error(self, kind: str, text: str) -> None:
@@ -172,7 +206,10 @@ class Service:
         print(f"READY {self.name} {self.pid}", flush=True)
 
     async def set_state(self, state: ServiceState) -> None:
-        """Change the state (starting, ready, degraded, stopping) and publish the status at once."""
+        """Change the state (starting, ready, degraded, stopping) and publish the status at once. A service
+        whose supervised task ended stays ``degraded`` (it may still go to ``stopping``)."""
+        if state == "ready" and self._degraded_by:
+            state = "degraded"
         if state != self.state:
             self.log.info("state %s -> %s", self.state, state)
         self.state = state
@@ -190,6 +227,7 @@ class Service:
             last_error=self.errors.last_error,
             restarts=self.restarts,
             note=self.note,
+            instance=self.instance,
         )
 
     async def publish_status(self) -> None:
@@ -249,15 +287,33 @@ def _restarts_from_environment(logger: logging.Logger) -> int:
     return 0
 
 
-def setup_logging(name: str, level: str) -> None:
-    """Log to stderr with the service's name in every line."""
-    logging.basicConfig(level=level, stream=sys.stderr, force=True,
+def new_instance_id() -> str:
+    """A fresh id for a stack launch (or a service started alone): 32 hex digits, unique across launches."""
+    return uuid.uuid4().hex
+
+
+def setup_logging(name: str, level: str, log_file: str | None = None) -> None:
+    """Log to stderr with the service's name in every line, and to ``log_file`` too (appended, rotated at
+    ``LOG_FILE_BYTES``; each line is written as it is logged). A log file that cannot be opened is reported on
+    stderr and the service logs there only."""
+    handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
+    problem = None
+    if log_file is not None:
+        try:
+            os.makedirs(os.path.dirname(os.path.abspath(log_file)), exist_ok=True)
+            handlers.append(logging.handlers.RotatingFileHandler(log_file, maxBytes=LOG_FILE_BYTES,
+                                                                 backupCount=LOG_FILE_BACKUPS))
+        except OSError as error:
+            problem = f"cannot write the log file {log_file}: {error}; logging to stderr only"
+    logging.basicConfig(level=level, handlers=handlers, force=True,
                         format=f"%(asctime)s {name} %(levelname)s %(name)s: %(message)s")
+    if problem is not None:
+        log.warning(problem)
 
 
 def run_service(name: str, config: RuntimeConfig, main: Callable[[Service], Awaitable[None]]) -> int:
     """Run ``main(service)`` in a fresh asyncio loop as the service ``name``; return the exit code."""
-    setup_logging(name, config.log_level)
+    setup_logging(name, config.log_level, config.log_file)
     return asyncio.run(_run(name, config, main))
 
 
@@ -269,6 +325,7 @@ async def _run(name: str, config: RuntimeConfig, main: Callable[[Service], Await
         log.error("%s cannot start: %s", name, error)
         bus.close()
         return EXIT_FAILED
+    service.log.info("started (pid %d, stack launch %s, restart %d)", service.pid, service.instance, service.restarts)
     try:
         exit_code = await _run_main(service, main)
         exit_code = max(exit_code, await _shut_down(service))
@@ -324,4 +381,7 @@ async def _shut_down(service: Service) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.remove_signal_handler(sig)
+        # ignored from here to the exit: a second stop signal (a killed launcher's parent-death SIGTERM can come
+        # twice) must not end the process before its last lines are written; SIGKILL still ends it
+        signal.signal(sig, signal.SIG_IGN)
     return exit_code

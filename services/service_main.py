@@ -4,6 +4,7 @@ NAME]``, shared by sim_world, the tag tracker and the planner (per-arm services:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import logging
 import os
@@ -65,6 +66,7 @@ def exit_process(code: int) -> NoReturn:
     everything a service must finish (the arm's stop, the bus's last messages, a recording's file) is done in its
     shutdown hooks, before ``run_service`` returns; any process it started is swept by the launcher with its group."""
     logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a killed launcher's pipe: the log file holds the lines
+            stream.flush()
     os._exit(code)

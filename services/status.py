@@ -9,7 +9,10 @@ untared). A service that sent no status in the window is listed as ``no status``
 is a report, not an error: the exit code is 0, or 2 for a bad config.
 
 ``--json`` prints one document ``{"services": {NAME: {state, pid, uptime_s, published_hz, received_hz, restarts,
-errors, last_error, heartbeat_age_s[, note]} | null}}`` (``note`` only when the service set one).
+errors, last_error, heartbeat_age_s, instance[, note]} | null}}`` (``note`` only when the service set one);
+``instance`` is the stack launch the service belongs to (the table prints it once, or per service when they differ).
+Refused requests are error kinds like any other (``rate_limited``, ``busy``, ``reply_too_large``, ``request_failed``,
+``other_instance``), as are the links a subscriber lost (``link_dropped``).
 
 A status endpoint that is not local (a ``tcp://`` address beyond loopback, which needs CURVE client keys the config
 does not hold) is not read; the service is reported as ``null`` and a note goes to stderr.
@@ -55,6 +58,7 @@ def report_for(status: ServiceStatus | None, heartbeat_age_s: float | None) -> R
         "errors": dict(sorted(status.errors.items())),
         "last_error": status.last_error,
         "heartbeat_age_s": None if heartbeat_age_s is None else round(heartbeat_age_s, 3),
+        "instance": status.instance,
     }
     if status.note:
         report["note"] = status.note
@@ -87,6 +91,12 @@ def format_table(reports: dict[str, Report]) -> str:
         if errors:
             counts = ", ".join(f"{kind} {n}" for kind, n in report["errors"].items())
             lines.append(f"{'':<4}errors: {counts}; last: {report['last_error']}")
+    launches = {name: report["instance"] for name, report in reports.items() if report is not None}
+    if len(set(launches.values())) == 1:
+        lines.append(f"stack launch {next(iter(launches.values()))}")
+    elif launches:
+        lines.append("services of SEVERAL stack launches: " + ", ".join(f"{name} {launch}"
+                                                                        for name, launch in launches.items()))
     return "\n".join(lines)
 
 

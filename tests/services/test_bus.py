@@ -6,12 +6,14 @@ import logging
 import math
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import msgspec
 import numpy as np
 import pytest
 import zmq
+import zmq.asyncio
 import zmq.auth
 
 from hydrosoft.services import bus as b
@@ -399,5 +401,212 @@ def test_an_oversized_frame_is_counted_the_link_stays_up_and_older_stamps_are_dr
                 await subscriber.wait(0.02)
             assert subscriber.errors.counts[m.OversizedFrame.kind] == 1
             assert subscriber.latest("wrench", 1.0).value.seq == 2
+
+    run(scenario())
+
+
+# --- the request path cannot be killed or starved ----------------------------------------------------------------
+
+
+async def raw_request(raw: zmq.asyncio.Socket, request_id: bytes, frames) -> m.Message:
+    """Send one request's ``frames`` on the DEALER ``raw`` and decode the reply with that id."""
+    await raw.send_multipart([request_id, *frames])
+    while True:
+        answer = await raw.recv_multipart()
+        if answer[0] == request_id:
+            return m.decode(answer[1:])[1]
+
+
+async def huge_handler(request: m.Request) -> m.Reply:
+    """A handler whose replies quote the user's text in full (too large to encode), or raise quoting it."""
+    if isinstance(request, m.GetStatus):
+        return m.StatusReply(ok=True, status=m.ServiceStatus(state="ready", pid=1, uptime_s=1.0,
+                                                             last_error="x" * 70_000))
+    if isinstance(request, m.Stop) and request.reason == "raise":
+        raise RuntimeError("y" * 70_000)
+    if isinstance(request, m.Stop):
+        return m.CommandReply(ok=False, error=f"refused {request.reason!r}")
+    return m.CommandReply(ok=True)
+
+
+def test_a_reply_too_large_to_encode_is_refused_in_short_and_the_server_answers_on(ipc_dir):
+    endpoint = f"ipc://{ipc_dir}/api"
+
+    async def scenario():
+        with b.Bus() as bus:
+            server = b.RequestServer(bus, endpoint, huge_handler, source="planner")
+            serving = asyncio.create_task(server.serve())
+            client = b.RequestClient(bus, endpoint, source="client", timeout_s=2.0)
+            status = await client.request(m.GetStatus())  # its encoded header would exceed MAX_HEADER_BYTES
+            assert isinstance(status, m.StatusReply) and not status.ok and "could not be sent" in status.error
+            refused = await client.request(m.Stop(reason="z" * 60_000))  # the refusal quotes 60,000 characters
+            assert not refused.ok and len(refused.error) <= b.MAX_ERROR_CHARS
+            raised = await client.request(m.Stop(reason="raise"))
+            assert not raised.ok and len(raised.error) <= b.MAX_ERROR_CHARS
+            assert (await client.request(m.Start())).ok  # still serving
+            assert not serving.done()
+            assert server.errors.counts["reply_too_large"] == 1 and server.errors.counts["handler"] == 1
+            serving.cancel()
+
+    run(scenario())
+
+
+def test_a_request_that_fails_outside_the_handler_is_counted_and_the_server_answers_on(ipc_dir):
+    endpoint = f"ipc://{ipc_dir}/api"
+
+    async def scenario():
+        with b.Bus() as bus:
+            server = b.RequestServer(bus, endpoint, handler, source="planner")
+            encode_calls = 0
+            real_encode = server._encode
+
+            def failing_once(kind, reply):
+                nonlocal encode_calls
+                encode_calls += 1
+                if encode_calls == 1:
+                    raise TypeError("cannot encode this")
+                return real_encode(kind, reply)
+
+            server._encode = failing_once
+            serving = asyncio.create_task(server.serve())
+            client = b.RequestClient(bus, endpoint, source="client", timeout_s=0.5)
+            with pytest.raises(TimeoutError):
+                await client.request(m.Start())
+            assert (await client.request(m.Start())).ok
+            assert server.errors.counts["request_failed"] == 1 and not serving.done()
+            serving.cancel()
+
+    run(scenario())
+
+
+def test_a_goal_with_a_65300_character_task_is_refused_with_a_bounded_reply(ipc_dir):
+    endpoint = f"ipc://{ipc_dir}/api"
+
+    async def scenario():
+        with b.Bus() as bus:
+            server = b.RequestServer(bus, endpoint, handler, source="planner")
+            serving = asyncio.create_task(server.serve())
+            raw = bus.socket(zmq.DEALER, endpoint, bind=False)
+            goal = m.Goal(task="t" * 65_300, tolerance_mm=5.0, timeout_s=10.0)
+            header = msgspec.msgpack.encode(m.SetGoal(goal=goal))
+            assert len(header) < m.MAX_HEADER_BYTES
+            reply = await raw_request(raw, b"1", [b"cmd/set_goal", header])
+            assert not reply.ok and len(reply.error) <= b.MAX_ERROR_CHARS and "t" * 200 not in reply.error
+            assert (await raw_request(raw, b"2", m.encode(m.Start()))).ok
+            serving.cancel()
+
+    run(scenario())
+
+
+def test_the_rate_limit_grants_its_burst_then_its_rate():
+    now = [0.0]
+    limit = b.RateLimit(10.0, 3, clock_s=lambda: now[0])
+    assert [limit.take() for _ in range(4)] == [True, True, True, False]
+    now[0] += 0.1
+    assert [limit.take() for _ in range(2)] == [True, False]
+    now[0] += 100.0
+    assert sum(limit.take() for _ in range(10)) == 3  # the bucket holds at most the burst
+
+
+def test_a_flooding_client_is_refused_beyond_its_budget_while_another_client_is_served():
+    now = [0.0]
+    budget = b.RequestBudget(clock_s=lambda: now[0])
+    flood = [budget.admit(b"flood") for _ in range(1000)]
+    assert flood.count(None) == b.CLIENT_REQUEST_BURST and set(flood) == {None, "rate_limited"}
+    assert budget.admit(b"operator") is None
+    for index in range(b.MAX_CLIENTS * 2):  # many clients: the server's budget holds, memory stays bounded
+        budget.admit(index.to_bytes(4, "big"))
+    assert len(budget._clients) == b.MAX_CLIENTS
+    assert budget.admit(b"operator") == "busy"
+    now[0] += 1.0
+    assert budget.admit(b"operator") is None
+
+
+def test_a_request_flood_leaves_the_event_loop_its_period_and_other_clients_their_answers(ipc_dir):
+    """2,000 GetStatus queued at once: a 10 ms ticker on the same loop keeps its period, the flood is answered (in
+    part refused as rate_limited), and another client's request is answered promptly."""
+    endpoint = f"ipc://{ipc_dir}/api"
+
+    async def scenario():
+        with b.Bus() as bus:
+            server = b.RequestServer(bus, endpoint, handler, source="planner")
+            raw = bus.socket(zmq.DEALER, endpoint, bind=False)
+            operator = b.RequestClient(bus, endpoint, source="client", timeout_s=2.0)
+            serving = asyncio.create_task(server.serve())
+            assert (await operator.request(m.Start())).ok  # connected before the flood
+            serving.cancel()
+            await asyncio.gather(serving, return_exceptions=True)
+            flood = 2000
+            request = m.encode(m.GetStatus())
+            for index in range(flood):
+                await raw.send_multipart([index.to_bytes(4, "big"), *request])
+            await asyncio.sleep(0.3)  # everything queued at the server
+            gaps, stop = [], asyncio.Event()
+
+            async def ticker():
+                then = time.monotonic()
+                while not stop.is_set():
+                    await asyncio.sleep(0.01)
+                    now = time.monotonic()
+                    gaps.append(now - then)
+                    then = now
+
+            ticking = asyncio.create_task(ticker())
+            serving = asyncio.create_task(server.serve())
+            answered = Counter()
+            start_s = time.monotonic()
+            operator_reply = await operator.request(m.Start())
+            operator_s = time.monotonic() - start_s
+            while sum(answered.values()) < flood:
+                answer = await raw.recv_multipart()
+                reply = m.decode(answer[1:])[1]
+                answered["ok" if reply.ok else reply.error.partition(":")[0]] += 1
+            stop.set()
+            await ticking
+            serving.cancel()
+            assert operator_reply.ok and operator_s < 1.0, operator_s
+            assert max(gaps) < 0.25, max(gaps)
+            assert answered["rate_limited"] > 0 and answered["ok"] >= b.CLIENT_REQUEST_BURST, answered
+
+    run(scenario())
+
+
+def test_a_frame_over_the_receive_limit_drops_the_link_and_the_drop_is_counted(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            endpoint = f"ipc://{ipc_dir}/huge"
+            raw = bus.socket(zmq.PUB, endpoint, bind=True)
+            subscriber = b.LatestSubscriber(bus, endpoint, ["wrench"])
+            frames = m.encode(msgspec.structs.replace(WRENCH, seq=1, stamp_ns=time.monotonic_ns()))
+            while "wrench" not in await subscriber.wait(0.02):  # slow joiner
+                await raw.send_multipart(frames)
+            assert subscriber.errors.counts["link_dropped"] == 0
+            await raw.send_multipart([b"wrench", b"\x80", bytes(b.MAX_RECEIVE_BYTES + 1)])
+            deadline_s = time.monotonic() + CONNECT_TIMEOUT_S
+            while subscriber.errors.counts["link_dropped"] == 0:
+                assert time.monotonic() < deadline_s, "the dropped link was not counted"
+                await subscriber.wait(0.05)
+            assert "dropped" in subscriber.errors.last_error and endpoint in subscriber.errors.last_error
+
+    run(scenario())
+
+
+def test_a_background_reader_counts_a_dropped_link_without_new_messages(ipc_dir):
+    async def scenario():
+        with b.Bus() as bus:
+            endpoint = f"ipc://{ipc_dir}/gone"
+            raw = bus.socket(zmq.PUB, endpoint, bind=True)
+            subscriber = b.LatestSubscriber(bus, endpoint, ["wrench"])
+            reading = asyncio.create_task(subscriber.run())
+            frames = m.encode(msgspec.structs.replace(WRENCH, seq=1, stamp_ns=time.monotonic_ns()))
+            while not subscriber.received["wrench"]:
+                await raw.send_multipart(frames)
+                await asyncio.sleep(0.02)
+            raw.close(linger=0)  # the publisher goes away
+            deadline_s = time.monotonic() + b.LINK_CHECK_MS * 1e-3 + CONNECT_TIMEOUT_S
+            while subscriber.errors.counts["link_dropped"] == 0:
+                assert time.monotonic() < deadline_s, "the dropped link was not counted"
+                await asyncio.sleep(0.05)
+            reading.cancel()
 
     run(scenario())

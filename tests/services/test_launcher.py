@@ -8,6 +8,7 @@ Every process is stopped by pid in teardown (``LauncherRun.cleanup``); waits are
 from __future__ import annotations
 
 import asyncio
+import re
 import signal
 import socket
 import subprocess
@@ -280,6 +281,12 @@ def test_a_killed_launcher_takes_its_services_with_it(root, runs):
     run.process.kill()
     run.wait_exit()
     assert wait_until(lambda: not any(alive(pid) for pid in pids), 5.0), [pid for pid in pids if alive(pid)]
+    # each service wrote its own log, shutdown included, though its output pipe to the launcher was gone
+    (instance,) = re.findall(r"\[launcher\] launch instance ([0-9a-f]{32})", run.text())
+    for name in ("sim_world", "planner"):
+        text = (root / "run" / "logs" / f"{name}.log").read_text()
+        assert f"stack launch {instance}" in text, text  # the launch's id, passed to every service
+        assert "SIGTERM received, stopping" in text and "stopped (exit 0)" in text, text
 
 
 

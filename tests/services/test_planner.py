@@ -3,6 +3,7 @@ from the stack config, the client API's refusals."""
 
 from __future__ import annotations
 
+import asyncio
 import math
 import os
 from pathlib import Path
@@ -16,7 +17,9 @@ from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
 from hydrosoft.services import messages as msg
 from hydrosoft.services.config import load_config
+from hydrosoft.services.bus import ErrorCounter
 from hydrosoft.services.planner import (
+    Planner,
     PlannerCore,
     arm_end_positions,
     planner_scene,
@@ -169,3 +172,26 @@ def test_worker_processes_plan_what_threads_plan_and_stop_with_the_core(tmp_path
     for pid in pids:
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
+
+
+class ServiceOfLaunch:
+    """The part of a ``runtime.Service`` that the planner's SetGoal uses: its launch id and error counts."""
+
+    def __init__(self, instance: str) -> None:
+        self.instance, self.errors = instance, ErrorCounter()
+
+    def count_error(self, kind: str, text: str) -> None:
+        self.errors.count(kind, text)
+
+
+def test_a_goal_set_for_another_launch_is_refused_and_counted():
+    planner = Planner.__new__(Planner)  # the client API's SetGoal needs no model, inputs or sockets
+    planner.service, planner.config, planner.goal = ServiceOfLaunch("a" * 32), load_config(SIM_TOML), None
+    other = msg.Goal(task="pushing", dx_m=0.03, tolerance_mm=5.0, timeout_s=60.0, instance="b" * 32)
+    reply = asyncio.run(planner.handle(msg.SetGoal(goal=other)))
+    assert not reply.ok and "another launch" in reply.error and planner.goal is None
+    assert planner.service.errors.counts == {"other_instance": 1}
+    for instance in ("a" * 32, ""):  # its own launch, or a goal for whatever stack runs
+        goal = msgspec.structs.replace(other, instance=instance)
+        assert asyncio.run(planner.handle(msg.SetGoal(goal=goal))).ok and planner.goal == goal
+

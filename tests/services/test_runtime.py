@@ -18,7 +18,7 @@ import pytest
 
 from hydrosoft.services import messages as m
 from hydrosoft.services.bus import Bus, LatestSubscriber
-from hydrosoft.services.runtime import RuntimeConfig, Service, run_service
+from hydrosoft.services.runtime import INSTANCE_ENV, RuntimeConfig, Service, run_service
 
 TEST_TIMEOUT_S = 30.0
 #: Longest wait for the subprocess to print READY (imports on two busy cores), s.
@@ -84,6 +84,40 @@ def test_status_reports_state_errors_and_rates(ipc_dir):
             assert status.last_error == "driver_timeout: no frame for 0.6 s"
             assert status.published_hz["wrench/ft"] > 0 and status.received_hz["wrench/ft"] > 0
             assert status.uptime_s > 0
+
+    run(scenario())
+
+
+def test_a_service_takes_its_launch_id_from_the_launcher_or_makes_its_own(ipc_dir, monkeypatch):
+    async def instance(name: str) -> str:
+        with Bus() as bus:
+            return Service(name, config(f"ipc://{ipc_dir}/{name}"), bus).status().instance
+
+    monkeypatch.setenv(INSTANCE_ENV, "f" * 32)
+    assert run(instance("launched")) == "f" * 32
+    monkeypatch.delenv(INSTANCE_ENV)
+    alone, other = run(instance("alone")), run(instance("other"))
+    assert len(alone) == 32 and alone != other
+
+
+def test_a_supervised_task_that_ends_leaves_the_service_degraded_and_counted(ipc_dir):
+    async def scenario():
+        with Bus() as bus:
+            service = Service("tester", config(f"ipc://{ipc_dir}/status"), bus)
+            await service.ready()
+
+            async def server():
+                raise RuntimeError("socket gone")
+
+            service.supervise(asyncio.create_task(server(), name="tester.serve"))
+            await asyncio.sleep(0.05)
+            assert service.state == "degraded" and service.errors.counts == {"task_ended": 1}
+            await service.set_state("ready")  # a degraded service does not claim to be ready again
+            assert service.state == "degraded"
+            cancelled = service.supervise(asyncio.create_task(asyncio.sleep(10), name="tester.other"))
+            cancelled.cancel()
+            await asyncio.sleep(0.05)
+            assert service.errors.counts == {"task_ended": 1}  # a cancelled task is a stop, not a failure
 
     run(scenario())
 

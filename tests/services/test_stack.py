@@ -101,7 +101,7 @@ def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_p
 
         async def resumed():  # the restarted planner has no goal: wait sends it the one it lost, which it reaches
             target = client.pursuit.goal.target_pose
-            reply = await client.wait(GOAL_TIMEOUT_S)
+            reply = await client.wait(GOAL_TIMEOUT_S, resume=True)  # asked for: a goal is not resumed by default
             return reply, target, await true_error_mm(client, target, "pushing")
 
         reply, target, true = asyncio.run(resumed())

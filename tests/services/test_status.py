@@ -34,11 +34,11 @@ def run_status(config, *args: str) -> subprocess.CompletedProcess[str]:
 def test_report_carries_every_field_and_none_means_no_status():
     message = ServiceStatus(state="degraded", pid=42, uptime_s=12.3456, published_hz={"wrench/a": 99.987},
                             received_hz={"arm_state/a": 10.0}, errors={"schema": 2}, last_error="schema: bad",
-                            restarts=3)
+                            restarts=3, instance="a" * 32)
     report = status.report_for(message, 0.0512)
     assert report == {"state": "degraded", "pid": 42, "uptime_s": 12.346, "published_hz": {"wrench/a": 99.99},
                       "received_hz": {"arm_state/a": 10.0}, "restarts": 3, "errors": {"schema": 2},
-                      "last_error": "schema: bad", "heartbeat_age_s": 0.051}
+                      "last_error": "schema: bad", "heartbeat_age_s": 0.051, "instance": "a" * 32}
     assert status.report_for(None, 0.1) is None
     table = status.format_table({"ft_reader-a": report, "planner": None})
     row = next(line for line in table.splitlines() if line.startswith("ft_reader-a"))
@@ -46,6 +46,14 @@ def test_report_carries_every_field_and_none_means_no_status():
     assert "errors: schema 2; last: schema: bad" in table
     assert "wrench/a 100.0" in table
     assert any(line.split() == ["planner", "no", "status"] for line in table.splitlines())
+    assert table.splitlines()[-1] == f"stack launch {'a' * 32}"
+
+
+def test_services_of_several_launches_are_flagged():
+    reports = {name: status.report_for(ServiceStatus(state="ready", pid=pid, uptime_s=1.0, instance=launch), 0.1)
+               for name, pid, launch in (("planner", 1, "a" * 32), ("arm_commander-a", 2, "b" * 32))}
+    assert status.format_table(reports).splitlines()[-1] == (
+        f"services of SEVERAL stack launches: planner {'a' * 32}, arm_commander-a {'b' * 32}")
 
 
 def test_nothing_running_lists_every_service_as_null_and_exits_0(root):
