@@ -516,7 +516,7 @@ async def serve(service: Service, config: StackConfig, arm: str, result: Shutdow
                 result.stop_confirmed = commander.stop_confirmed
 
     service.on_shutdown(shut_down)
-    serving = asyncio.create_task(commander.requests.serve(), name=f"{service.name}.requests")
+    serving = service.supervise(asyncio.create_task(commander.requests.serve(), name=f"{service.name}.requests"))
     await service.ready()
     loop = asyncio.get_running_loop()
     period_s, idle_period_s = commander.logic.period_s, 1.0 / config.limits.idle_rate_hz

@@ -270,7 +270,7 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
     requests = service.request_server(config.endpoint(service.name, "cmd"), tares.handle)
     await service.ready()
     health_task = asyncio.create_task(_health_forever(service, sensor, current))
-    request_task = asyncio.create_task(requests.serve())
+    request_task = service.supervise(asyncio.create_task(requests.serve(), name=f"{service.name}.requests"))
     try:
         last_ns = 0
         while True:
