@@ -51,6 +51,7 @@ COMMANDS = {
     "check": ("hydrosoft.services.check", "probe every device a stack config names and say what answers, without moving the arm"),
     "replay": ("hydrosoft.services.replay", "publish an MCAP recording back onto the bus with its original timing (stands in for the services that sent it)"),
     "view": ("hydrosoft.services.view", "serve a running stack's scene and topics live to Foxglove over WebSocket on 127.0.0.1"),
+    "fit": ("hydrosoft.bench.fit", "the Soft Bubble's material (E, K, mu) fitted to collect-wrench recordings, with its uncertainty and held-out RMSE, as TOML for a scene"),
     "plot": ("hydrosoft.services.plot", "PNG plots of a recorded run: object error, contact forces, planner solve time and rate, watchdog events"),
 }
 
