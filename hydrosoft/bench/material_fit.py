@@ -288,10 +288,11 @@ def _estimates(theta: torch.Tensor, start: dict[str, float], mask: torch.Tensor,
     fitted_index = {i: j for j, i in enumerate(mask.nonzero().flatten().tolist())}
     out = []
     for i, name in enumerate(PARAMETERS):
-        value = values[name]
         if i not in fitted_index:
-            out.append(ParameterEstimate(name, start[name], value, 0.0, (value, value), False, False))
+            value = start[name]
+            out.append(ParameterEstimate(name, value, value, 0.0, (value, value), False, False))
             continue
+        value = values[name]
         sigma_theta = math.sqrt(covariance[fitted_index[i], fitted_index[i]])
         t = float(theta[i])
         if name == "mu":
