@@ -23,7 +23,6 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-
 from hydrosoft.bench.material_fit import FIT_MODELS, PARAMETERS, START, UNITS
 from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, mean_and_std
 
