@@ -23,7 +23,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from hydrosoft.bench.material_fit import FIT_MODELS, PARAMETERS, START, UNITS
+from hydrosoft.bench.material_parameters import FIT_MODELS, PARAMETERS, UNITS
 from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, mean_and_std
 
 SETS = ("fit", "held_out")
@@ -82,6 +82,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
     a recording the fit cannot use (naming it).
     """
     from hydrosoft.bench import material_fit
+    from hydrosoft.bench.material_fit import START
     from hydrosoft.bench.wrench_replay import load_recordings, recording_files
 
     if model not in FIT_MODELS:
@@ -153,7 +154,8 @@ def _value_text(p: dict) -> str:
     high_text = "inf" if high is None else f"{high:.4g}"
     sigma = "inf" if p["sigma"] is None else f"{p['sigma']:.3g}"
     verdict = "" if p["identified"] else "  NOT IDENTIFIED by these recordings"
-    return f"{p['value']:.4g}{unit} +- {sigma} (1 sigma), 95 % [{low:.4g}, {high_text}], start {p['start']:.4g}{verdict}"
+    return (f"{p['value']:.4g}{unit} +- {sigma} (1 sigma), 95 % [{low:.4g}, {high_text}], "
+            f"start {p['start']:.4g}{verdict}")
 
 
 def format_tables(document: dict) -> str:
@@ -194,9 +196,9 @@ def params_toml(document: dict, today: datetime.date | None = None) -> str:
              f"{document['model']}, objects {', '.join(settings['objects'])}, "
              f"{len(document['split']['fit'])} trajectories fitted, {held['trajectories']} held out"
              + (f" (held-out force RMSE {held['force_n_mean']:.3g} N)" if held["trajectories"] else "") + ".",
-             "# Use: put these lines in place of E, K and mu in the [[bodies]] table of the bubble of the scene the",
-             "# task runs (hydrosoft/tasks/TASK.toml) and in any scene you replay with this model. Values are the fit's;",
-             "# the comments give 1 sigma and the 95 % interval (Gauss-Newton at the optimum)."]
+             "# Use: put these lines in place of E, K and mu in the [[bodies]] table of the bubble of the scene",
+             "# the task runs (hydrosoft/tasks/TASK.toml) and of any scene you replay with this model. The",
+             "# comments give 1 sigma and the 95 % interval (Gauss-Newton at the optimum)."]
     for p in estimates_of(document):
         if not p["fitted"]:
             continue

@@ -35,16 +35,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from hydrosoft.bench.material_parameters import FIT_MODELS, MU_MAX, PARAMETERS
 from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, replay_tcp_wrenches, trajectory_errors
 from hydrosoft.bench.wrench_scenes import BUBBLE_E, BUBBLE_K, BUBBLE_MU
 from hydrosoft.contact import Material
 
-PARAMETERS = ("E", "K", "mu")
-UNITS = {"E": "Pa/m", "K": "Pa/m", "mu": ""}
 START = {"E": BUBBLE_E, "K": BUBBLE_K, "mu": BUBBLE_MU}  # the scenes' Soft Bubble (hydrosoft/tasks/pushing.toml)
-MU_MAX = 3.0
-#: Contact models the fit replays through; one entry per model (``hydrosoft.contact.MODELS`` names).
-FIT_MODELS = ("nh", "pf")
 #: The FT 300's signal noise per frame, standard deviation of Fx, Fy, Fz (N), Mx, My (N m), Mz (N m): Robotiq's
 #: datasheet figures. The fit weighs each wrench component by it; its absolute level cancels (see ``s2``).
 FT300_NOISE = np.array([0.1, 0.1, 0.1, 0.005, 0.005, 0.003])
@@ -169,9 +165,9 @@ def trajectory_rmses(values: dict[str, float], batches: Sequence[ReplayBatch], c
 
 @dataclass(frozen=True)
 class ParameterEstimate:
-    """One parameter's result: ``value`` and ``start`` (its unit: ``UNITS``), ``sigma`` (1 standard deviation,
-    delta method; inf when the data do not determine it), ``interval95`` ``(low, high)``, ``fitted`` (asked for),
-    ``identified`` (fitted and ``sigma / value <= UNIDENTIFIED_RELATIVE_SIGMA``)."""
+    """One parameter's result: ``value`` and ``start`` (unit: ``material_parameters.UNITS``), ``sigma`` (1 standard
+    deviation, delta method; inf when the data do not determine it), ``interval95`` ``(low, high)``, ``fitted``
+    (asked for), ``identified`` (fitted and ``sigma / value <= UNIDENTIFIED_RELATIVE_SIGMA``)."""
 
     name: str
     start: float
