@@ -30,13 +30,23 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import statistics
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
+# quat_to_matrix, sensor_to_tcp and predict_tcp_wrenches stay importable from here, where they were first defined
+from hydrosoft.bench.wrench_replay import (  # noqa: F401
+    DEFAULT_SUBSTEPS,
+    load_recordings,
+    mean_and_std,
+    predict_grouped,
+    predict_tcp_wrenches,
+    quat_to_matrix,
+    recording_files,
+    sensor_to_tcp,
+    trajectory_errors,
+)
 
 #: Paper Table II, wrench RMSE [N], (mean, std) per object and model.
 PAPER_TABLE_II = {
@@ -49,7 +59,6 @@ PAPER_TABLE_II = {
 }
 MODEL_TITLES = {"nh": "NH", "snh": "SNH", "pf": "PF", "pff": "PFF"}
 DEFAULT_MODELS = ("nh", "pf", "pff")
-DEFAULT_SUBSTEPS = 1  # on sim recordings 1, 4 and 8 agree within 1e-4 N: the arm's path between samples is straight
 
 
 def _csv(text: str) -> list[str]:
@@ -71,105 +80,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the tables")
 
 
-# --- frames and errors (numpy) --------------------------------------------------------------------------------------
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix ``(3, 3)`` of a unit quaternion ``(4,)`` wxyz."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
-def sensor_to_tcp(wrenches: np.ndarray, tcp_in_sensor: Sequence[float]) -> np.ndarray:
-    """Wrenches ``(..., 6)`` [N, N m] about the sensor's origin in its frame, moved to about the TCP's origin in the TCP
-    frame; ``tcp_in_sensor (7,)`` is the TCP frame's pose in the sensor frame (m, wxyz)."""
-    pose = np.asarray(tcp_in_sensor, dtype=np.float64)
-    R, p = quat_to_matrix(pose[3:]), pose[:3]
-    force, torque = wrenches[..., :3], wrenches[..., 3:]
-    return np.concatenate([force @ R, (torque - np.cross(p, force)) @ R], axis=-1)
-
-
-def rmse(errors: np.ndarray) -> float:
-    """Root mean square over rows of the row norms of ``errors (K, d)``."""
-    return float(np.sqrt(np.mean(np.sum(np.square(errors), axis=-1))))
-
-
-def trajectory_errors(predicted: np.ndarray, measured: np.ndarray) -> dict[str, float]:
-    """RMSEs of one trajectory over its rows 1..K (row 0 is the tare), wrenches ``(K + 1, 6)`` in the TCP frame:
-    ``force_n`` (3-vector), ``torque_nm`` (3-vector), ``shear_n`` (the TCP-frame x, y force)."""
-    error = predicted[1:] - measured[1:]
-    return {"force_n": rmse(error[:, :3]), "torque_nm": rmse(error[:, 3:]), "shear_n": rmse(error[:, :2])}
-
-
-def mean_and_std(values: Sequence[float]) -> tuple[float, float]:
-    """Mean and sample standard deviation (0 for one value)."""
-    return statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else 0.0
-
-
-# --- the replay (torch) -------------------------------------------------------------------------------------------
-
-
-def predict_tcp_wrenches(object_name: str, object_poses: np.ndarray, bubble_poses: np.ndarray, contact: str,
-                         spacing: float, substeps: int = DEFAULT_SUBSTEPS) -> np.ndarray:
-    """Replay a batch of trajectories of one object through contact model ``contact``.
-
-    Args:
-        object_name: a ``wrench_scenes.BENCH_OBJECTS`` key.
-        object_poses, bubble_poses: ``(B, K + 1, 7)`` world poses per trajectory and step (m, wxyz); row 0 must be
-            out of contact (the replay starts there without force).
-        contact: ``nh``, ``snh``, ``pf`` or ``pff``.
-        spacing: the object's surface spacing (m).
-        substeps: ``dynamics.advance_forces`` calls per recorded step, at equally spaced poses between the two
-            recorded ones (straight line, shortest rotation).
-
-    Returns:
-        ``(B, K + 1, 6)`` float64: the predicted wrench on the bubble [N, N m] about its frame's origin, in its frame.
-    """
-    import torch
-
-    from hydrosoft.bench.wrench_scenes import wrench_scene
-    from hydrosoft.dynamics import advance_forces, body_wrenches, press_in
-    from hydrosoft.geometry import se3
-    from hydrosoft.scene import compile_scene
-
-    if substeps < 1:
-        raise ValueError(f"substeps must be at least 1, got {substeps}")
-    objects = torch.as_tensor(np.asarray(object_poses), dtype=torch.float64)
-    bubbles = torch.as_tensor(np.asarray(bubble_poses), dtype=torch.float64)
-    scene = wrench_scene(object_name, contact, spacing, object_pose=objects[0, 0].tolist(),
-                         bubble_pose=bubbles[0, 0].tolist())
-    model, _, _ = compile_scene(scene)
-    state = press_in(model, objects[:, 0], bubbles[:, 0:1])
-
-    def tcp_wrench(state) -> torch.Tensor:
-        w = body_wrenches(model, state)[:, 0]
-        R = se3.quat_to_matrix(state.body_poses[:, 0, 3:])
-        return torch.cat([(R.mT @ w[:, :3, None])[..., 0], (R.mT @ w[:, 3:, None])[..., 0]], dim=-1)
-
-    def delta(start: torch.Tensor, end: torch.Tensor) -> torch.Tensor:
-        turn = se3.quat_multiply(end[..., 3:], se3.quat_conjugate(start[..., 3:]))
-        return torch.cat([end[..., :3] - start[..., :3], se3.so3_log(turn)], dim=-1)
-
-    out = [tcp_wrench(state)]
-    with torch.no_grad():
-        for k in range(1, bubbles.shape[1]):
-            d_object, d_bubble = delta(objects[:, k - 1], objects[:, k]), delta(bubbles[:, k - 1], bubbles[:, k])
-            for j in range(1, substeps + 1):
-                fraction = j / substeps
-                object_pose = se3.retract(objects[:, k - 1], fraction * d_object)
-                bubble_pose = se3.retract(bubbles[:, k - 1], fraction * d_bubble)
-                state = advance_forces(model, state, object_pose, bubble_pose.unsqueeze(1))
-            out.append(tcp_wrench(state))
-    return torch.stack(out, dim=1).numpy()
-
-
-def measured_tcp_wrenches(wrenches: np.ndarray, tcp_in_sensor: Sequence[float]) -> np.ndarray:
-    """Measured wrenches ``(K + 1, 6)`` (sensor frame) minus the tare row 0, in the TCP frame about its origin."""
-    return sensor_to_tcp(wrenches - wrenches[0], tcp_in_sensor)
-
-
 def evaluate(recordings: Sequence[Path], models: Sequence[str], spacing: float | None = None,
              substeps: int = DEFAULT_SUBSTEPS, progress=None) -> dict:
     """The benchmark's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``).
@@ -180,31 +90,15 @@ def evaluate(recordings: Sequence[Path], models: Sequence[str], spacing: float |
     trajectory and model with its three RMSEs, and per object the models ranked by mean force RMSE, ours and the
     paper's.
     """
-    from hydrosoft.bench.wrench_recording import read_wrench_recording
-    from hydrosoft.bench.wrench_scenes import BENCH_OBJECTS, SPACING_M
-
-    files = _recording_files(recordings)
-    by_object: dict[str, list] = {}
-    infos = {}
-    for path in files:
-        info, trajectories = read_wrench_recording(path)
-        by_object.setdefault(info.object, []).extend(trajectories)
-        infos[str(path)] = info
+    files = recording_files(recordings)
+    groups = load_recordings(files, spacing)
     rows, per_trajectory, ordering = [], [], []
-    spacings = {}
-    names = [n for n in BENCH_OBJECTS if by_object.get(n)]
-    if not names:
-        raise ValueError(f"no complete trajectory in {', '.join(str(p) for p in files)}")
-    for name in names:
-        trajectories = by_object[name]
-        info = next(i for i in infos.values() if i.object == name)
-        spacing_m = spacing if spacing is not None else (info.plant_spacing_m or SPACING_M)
-        spacings[name] = spacing_m
-        measured = [measured_tcp_wrenches(t.wrenches, info.tcp_in_sensor) for t in trajectories]
+    for group in groups:
+        name, trajectories = group.object, group.trajectories
         for model in models:
             tic = time.perf_counter()
-            predicted = _predict_grouped(name, trajectories, model, spacing_m, substeps)
-            errors = [trajectory_errors(p, m) for p, m in zip(predicted, measured)]
+            predicted = predict_grouped(name, trajectories, model, group.spacing_m, substeps)
+            errors = [trajectory_errors(p, m) for p, m in zip(predicted, group.measured)]
             if progress:
                 progress(f"{name} {model}: {len(trajectories)} trajectories in {time.perf_counter() - tic:.2f} s")
             row = {"object": name, "model": model, "trajectories": len(errors)}
@@ -216,39 +110,11 @@ def evaluate(recordings: Sequence[Path], models: Sequence[str], spacing: float |
             per_trajectory += [{"object": name, "model": model, "trajectory": t.index, **e}
                                for t, e in zip(trajectories, errors)]
         ordering.append(_ordering(name, [r for r in rows if r["object"] == name]))
-    modes = sorted({i.mode for i in infos.values()})
+    spacings = {group.object: group.spacing_m for group in groups}
+    modes = sorted({mode for group in groups for mode in group.modes})
     return {"rows": rows, "trajectories": per_trajectory, "ordering": ordering,
             "settings": {"recordings": [str(p) for p in files], "models": list(models), "spacing_m": spacings,
                          "substeps": substeps, "modes": modes}}
-
-
-def _recording_files(paths: Sequence[Path]) -> list[Path]:
-    files = []
-    for path in paths:
-        if path.is_dir():
-            found = sorted(path.glob("wrench-*.mcap"))
-            if not found:
-                raise ValueError(f"{path}: no wrench-*.mcap recording in this folder")
-            files += found
-        elif path.is_file():
-            files.append(path)
-        else:
-            raise ValueError(f"{path}: no such recording")
-    return files
-
-
-def _predict_grouped(name: str, trajectories: list, model: str, spacing: float, substeps: int) -> list[np.ndarray]:
-    """Predictions per trajectory, replayed in batches of trajectories of equal length."""
-    predicted: list[np.ndarray | None] = [None] * len(trajectories)
-    lengths = sorted({len(t.phases) for t in trajectories})
-    for length in lengths:
-        members = [i for i, t in enumerate(trajectories) if len(t.phases) == length]
-        batch = predict_tcp_wrenches(name, np.stack([trajectories[i].object_poses for i in members]),
-                                     np.stack([trajectories[i].bubble_poses for i in members]), model, spacing,
-                                     substeps)
-        for row, i in enumerate(members):
-            predicted[i] = batch[row]
-    return predicted
 
 
 def _ordering(name: str, rows: list[dict]) -> dict:
@@ -263,6 +129,24 @@ def _ordering(name: str, rows: list[dict]) -> dict:
 # --- output -------------------------------------------------------------------------------------------------------
 
 
+def rmse_table(title: str, label: str, columns: Sequence[str],
+               rows: Sequence[tuple[str, Sequence[tuple[float, float] | None]]], digits: int = 3) -> list[str]:
+    """Lines of one RMSE table in Table II's layout: ``title``, a header of ``columns`` (each a mean and a standard
+    deviation), then per row its title and its ``(mean, std)`` cells (None prints a dash)."""
+    head = f"{label:<14}" + "".join(f"| {c:^13} " for c in columns)
+    sub = f"{'':<14}" + "".join(f"| {'Mean':>6}{'Std':>7} " for _ in columns)
+    lines = [title, head, sub, "-" * len(sub)]
+    for name, cells in rows:
+        lines.append(f"{name:<14}" + "".join(f"| {c[0]:>6.{digits}f}{c[1]:>7.{digits}f} " if c else f"| {'-':>13} "
+                                             for c in cells))
+    return lines
+
+
+def _mean_std(row: dict | None, key: str) -> tuple[float, float] | None:
+    return (row[key + "_mean"], row[key + "_std"]) if row else None
+
+
+
 def format_tables(document: dict) -> str:
     """Table II's layout: per object the force RMSE (N) mean and std per model, the paper's beside it; then the
     torque and shear RMSEs; then the ranking per object."""
@@ -273,23 +157,18 @@ def format_tables(document: dict) -> str:
     objects = list(dict.fromkeys(r["object"] for r in rows))
 
     def table(title: str, key: str, with_paper: bool, digits: int = 3) -> list[str]:
-        head = f"{'Object':<14}" + "".join(f"| {MODEL_TITLES.get(m, m):^13} " for m in models)
-        sub = f"{'':<14}" + "".join(f"| {'Mean':>6}{'Std':>7} " for _ in models)
+        cells = [(BENCH_OBJECTS[name].title, [_mean_std(index.get((name, m)), key) for m in models])
+                 for name in objects]
+        lines = rmse_table(title, "Object", [MODEL_TITLES.get(m, m) for m in models], cells, digits)
         if with_paper:
-            head += "|| paper " + "".join(f"| {MODEL_TITLES.get(m, m):^11} " for m in models)
-            sub += "||       " + "".join(f"| {'Mean':>5}{'Std':>6} " for _ in models)
-        lines = [title, head, sub, "-" * len(sub)]
-        for name in objects:
-            line = f"{BENCH_OBJECTS[name].title:<14}"
-            for m in models:
-                r = index.get((name, m))
-                line += f"| {r[key + '_mean']:>6.{digits}f}{r[key + '_std']:>7.{digits}f} " if r else f"| {'-':>13} "
-            if with_paper:
-                line += "||       "
+            lines[1] += "|| paper " + "".join(f"| {MODEL_TITLES.get(m, m):^11} " for m in models)
+            lines[2] += "||       " + "".join(f"| {'Mean':>5}{'Std':>6} " for _ in models)
+            lines[3] = "-" * len(lines[2])
+            for row, name in enumerate(objects, start=4):
+                lines[row] += "||       "
                 for m in models:
                     paper = PAPER_TABLE_II.get(name, {}).get(m)
-                    line += f"| {paper[0]:>5.2f}{paper[1]:>6.2f} " if paper else f"| {'-':>11} "
-            lines.append(line)
+                    lines[row] += f"| {paper[0]:>5.2f}{paper[1]:>6.2f} " if paper else f"| {'-':>11} "
         return lines
 
     count = max((r["trajectories"] for r in rows), default=0)

@@ -1,0 +1,241 @@
+"""``hydrosoft-stack fit RECORDINGS... --model nh|pf --params E,K,mu``: the Soft Bubble's material identified from
+``collect wrench`` recordings.
+
+The recordings' trajectories are split into a fit set and a held-out set (``--holdout``, ``--seed``); the material
+is fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from
+the Gauss-Newton covariance at the optimum); then the force, torque and tangential RMSE of both sets are printed
+before (start material) and after, in ``bench wrench``'s layout, with the fitted values, their uncertainty and
+which are not identified. ``--out PARAMS.toml`` writes the fitted material as TOML lines a scene's bubble
+``[[bodies]]`` table takes. The recordings are only read.
+
+Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
+forward and backward; L-BFGS needs 20 to 70 of them); progress goes to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from hydrosoft.bench.material_parameters import FIT_MODELS, PARAMETERS, UNITS
+from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, mean_and_std
+
+SETS = ("fit", "held_out")
+SET_TITLES = {"fit": "fit", "held_out": "held-out"}
+
+
+def _csv(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``hydrosoft-stack fit``."""
+    parser.add_argument("recordings", nargs="+", type=Path,
+                        help="wrench-<object>.mcap files of `hydrosoft-stack collect wrench`, or folders of them "
+                             "(only read)")
+    parser.add_argument("--model", default="nh", help=f"contact model to fit: {'|'.join(FIT_MODELS)} (default nh)")
+    parser.add_argument("--params", type=_csv, default=list(PARAMETERS), metavar="E,K,mu",
+                        help="parameters to fit, the others held at the scenes' Soft Bubble values "
+                             "(default E,K,mu)")
+    parser.add_argument("--holdout", type=float, default=0.2,
+                        help="fraction of the trajectories held out of the fit and scored after it (default 0.2)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the fit/held-out split (default 0)")
+    parser.add_argument("--spacing", type=float, default=None,
+                        help="object surface spacing of the model, m (default: the sim plant's, recorded in the "
+                             "file; 0.005 for lab recordings)")
+    parser.add_argument("--substeps", type=int, default=DEFAULT_SUBSTEPS,
+                        help=f"replay steps per recorded step (default {DEFAULT_SUBSTEPS})")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    parser.add_argument("--out", type=Path, default=None, metavar="PARAMS.toml",
+                        help="write the fitted material as TOML lines for the bubble's [[bodies]] table of a scene")
+    parser.add_argument("--json", action="store_true", help="print one JSON document instead of the tables")
+
+
+def check_recording(path: Path) -> None:
+    """ValueError naming ``path`` (and the trajectory) when it lacks what the fit needs: a readable wrench
+    recording (its samples decode, so their numbers are finite: JSON has no NaN) whose every trajectory has its
+    tare and at least one step after it."""
+    from hydrosoft.bench.wrench_recording import read_wrench_recording
+
+    _, trajectories = read_wrench_recording(path)
+    if not trajectories:
+        raise ValueError(f"{path}: no trajectory in this recording")
+    for t in trajectories:
+        if len(t.phases) < 2:
+            raise ValueError(f"{path}: trajectory {t.index} has only its tare sample, no step to fit")
+
+
+def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdout: float = 0.2, seed: int = 0,
+            spacing: float | None = None, substeps: int = DEFAULT_SUBSTEPS, progress=None) -> dict:
+    """The fit's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``).
+
+    Returns ``{"model", "parameters": {name: {start, value, sigma, interval95, unit, fitted, identified}},
+    "uncertainty", "rows": [...], "trajectories": [...], "split", "fit": {...}, "settings"}``: ``rows`` per set
+    (``fit``, ``held_out``) and material (``before``, ``after``) the mean and sample standard deviation over
+    trajectories of the force, torque and shear RMSEs, as ``bench wrench``'s rows. ValueError for a bad option or
+    a recording the fit cannot use (naming it).
+    """
+    from hydrosoft.bench import material_fit
+    from hydrosoft.bench.material_fit import START
+    from hydrosoft.bench.wrench_replay import load_recordings, recording_files
+
+    if model not in FIT_MODELS:
+        raise ValueError(f"unknown contact model {model!r}; the fit knows {', '.join(FIT_MODELS)}")
+    bad = [p for p in params if p not in PARAMETERS]
+    if bad or not params:
+        raise ValueError(f"unknown parameter(s) {bad}; --params takes some of {','.join(PARAMETERS)}")
+    files = recording_files(recordings)
+    for path in files:
+        check_recording(path)
+    groups = load_recordings(files, spacing)
+    labels = [(g.object, t.index) for g in groups for t in g.trajectories]
+    fit_labels, held_labels = material_fit.split_trajectories(labels, holdout, seed)
+    batches = {"fit": material_fit.replay_batches(groups, set(fit_labels)),
+               "held_out": material_fit.replay_batches(groups, set(held_labels))}
+    tic = time.perf_counter()
+
+    def report(evaluation: int, cost: float, values: dict[str, float]) -> None:
+        if progress:
+            shown = ", ".join(f"{n} {values[n]:.4g}" for n in params)
+            progress(f"evaluation {evaluation}: cost {cost:.5g} ({shown}) at {time.perf_counter() - tic:.1f} s")
+
+    result = material_fit.fit_material(batches["fit"], model, params, START, substeps, progress=report)
+    rows, per_trajectory = [], []
+    for name in SETS:
+        for when, values in (("before", START), ("after", result.values)):
+            errors = material_fit.trajectory_rmses(values, batches[name], model, START, substeps)
+            per_trajectory += [{"set": name, "when": when, **e} for e in errors]
+            row = {"set": name, "when": when, "trajectories": len(errors)}
+            for key in ("force_n", "torque_nm", "shear_n"):
+                row[f"{key}_mean"], row[f"{key}_std"] = mean_and_std([e[key] for e in errors]) if errors \
+                    else (None, None)
+            rows.append(row)
+    return {
+        "model": model,
+        "parameters": {e.name: {"start": e.start, "value": e.value, "sigma": _finite_or_none(e.sigma),
+                                "interval95": [_finite_or_none(v) for v in e.interval95], "unit": UNITS[e.name],
+                                "fitted": e.fitted, "identified": e.identified} for e in result.estimates},
+        "uncertainty": "gauss-newton: covariance s2 (J^T J)^-1 of the residuals' Jacobian at the optimum, scaled by "
+                       "the reduced chi-square; sigma by the delta method, interval95 in the log (E, K) or logit "
+                       "(mu) coordinates",
+        "rows": rows,
+        "trajectories": per_trajectory,
+        "split": {"fit": [list(x) for x in fit_labels], "held_out": [list(x) for x in held_labels]},
+        "fit": {"cost_start": result.cost_start, "cost": result.cost, "reduced_chi2": result.reduced_chi2,
+                "residuals": result.residual_count, "evaluations": result.iterations,
+                "seconds": time.perf_counter() - tic},
+        "settings": {"recordings": [str(p) for p in files], "objects": [g.object for g in groups],
+                     "params": list(params), "holdout": holdout, "seed": seed, "substeps": substeps,
+                     "spacing_m": {g.object: g.spacing_m for g in groups},
+                     "modes": sorted({m for g in groups for m in g.modes})},
+    }
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+def estimates_of(document: dict) -> list[dict]:
+    """The document's parameters as a list of dicts with their ``name``, in ``PARAMETERS`` order."""
+    return [{"name": name, **document["parameters"][name]} for name in PARAMETERS]
+
+
+def _value_text(p: dict) -> str:
+    unit = f" {p['unit']}" if p["unit"] else ""
+    if not p["fitted"]:
+        return f"{p['value']:.4g}{unit} (held, not fitted)"
+    low, high = p["interval95"]
+    high_text = "inf" if high is None else f"{high:.4g}"
+    sigma = "inf" if p["sigma"] is None else f"{p['sigma']:.3g}"
+    verdict = "" if p["identified"] else "  NOT IDENTIFIED by these recordings"
+    return (f"{p['value']:.4g}{unit} +- {sigma} (1 sigma), 95 % [{low:.4g}, {high_text}], "
+            f"start {p['start']:.4g}{verdict}")
+
+
+def format_tables(document: dict) -> str:
+    """The fitted values with their uncertainty, then the RMSE tables in ``bench wrench``'s layout: rows the fit
+    and held-out sets, columns the start material (before) and the fitted one (after)."""
+    from hydrosoft.bench.wrench import rmse_table
+
+    lines = [f"Fitted material, model {document['model'].upper()} (uncertainty: Gauss-Newton at the optimum, "
+             f"reduced chi-square {document['fit']['reduced_chi2']:.3g}):"]
+    lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
+    index = {(r["set"], r["when"]): r for r in document["rows"]}
+
+    def table(title: str, key: str, digits: int = 3) -> list[str]:
+        cells = []
+        for name in SETS:
+            row_cells = []
+            for when in ("before", "after"):
+                r = index[(name, when)]
+                row_cells.append((r[key + "_mean"], r[key + "_std"]) if r["trajectories"] else None)
+            cells.append((f"{SET_TITLES[name]} ({index[(name, 'before')]['trajectories']})", row_cells))
+        return rmse_table(title, "Trajectories", ["before", "after"], cells, digits)
+
+    lines += [""] + table("Wrench RMSE, force [N] (lower is better), start material (before) and fitted (after)",
+                          "force_n")
+    lines += [""] + table("Wrench RMSE, torque [N m]", "torque_nm", digits=4)
+    lines += [""] + table("Wrench RMSE, tangential force (TCP x, y) [N]", "shear_n")
+    return "\n".join(lines)
+
+
+def params_toml(document: dict, today: datetime.date | None = None) -> str:
+    """TOML lines of the fitted, identified parameters, as a scene's ``[[bodies]]`` table takes them (``E``, ``K``
+    in Pa/m, ``mu``), with comments saying where they came from and how to use them; a parameter not identified
+    is left as a comment."""
+    today = today or datetime.date.today()
+    settings = document["settings"]
+    held = next(r for r in document["rows"] if r["set"] == "held_out" and r["when"] == "after")
+    lines = [f"# Soft Bubble material fitted by `hydrosoft-stack fit` on {today.isoformat()}: model "
+             f"{document['model']}, objects {', '.join(settings['objects'])}, "
+             f"{len(document['split']['fit'])} trajectories fitted, {held['trajectories']} held out"
+             + (f" (held-out force RMSE {held['force_n_mean']:.3g} N)" if held["trajectories"] else "") + ".",
+             "# Use: put these lines in place of E, K and mu in the [[bodies]] table of the bubble of the scene",
+             "# the task runs (hydrosoft/tasks/TASK.toml) and of any scene you replay with this model. The",
+             "# comments give 1 sigma and the 95 % interval (Gauss-Newton at the optimum)."]
+    for p in estimates_of(document):
+        if not p["fitted"]:
+            continue
+        if not p["identified"]:
+            lines.append(f"# {p['name']}: NOT identified by these recordings (95 % interval {p['interval95']}); "
+                         "keep the scene's value and record trajectories that exercise it")
+            continue
+        low, high = p["interval95"]
+        lines.append(f"{p['name']} = {p['value']:.6g}  # {p['unit'] or 'friction coefficient'}, 1 sigma "
+                     f"{p['sigma']:.3g}, 95 % [{low:.6g}, {high:.6g}]")
+    return "\n".join(lines) + "\n"
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the fit; 0, or 2 for a bad option or a recording the fit cannot use."""
+    import torch
+
+    if args.spacing is not None and not (math.isfinite(args.spacing) and args.spacing > 0):
+        print(f"fit: --spacing must be a positive number of metres, got {args.spacing}", file=sys.stderr)
+        return 2
+    if args.substeps < 1:
+        print(f"fit: --substeps must be at least 1, got {args.substeps}", file=sys.stderr)
+        return 2
+    if args.out is not None and args.out.suffix != ".toml":
+        print(f"fit: --out must name a .toml file (the recordings are never written), got {args.out}",
+              file=sys.stderr)
+        return 2
+    torch.set_num_threads(args.threads)
+    try:
+        document = run_fit(args.recordings, args.model, args.params, args.holdout, args.seed, args.spacing,
+                           args.substeps, progress=lambda text: print(f"[fit] {text}", file=sys.stderr, flush=True))
+    except ValueError as error:
+        print(f"fit: {error}", file=sys.stderr)
+        return 2
+    print(json.dumps(document) if args.json else format_tables(document))
+    if args.out is not None:
+        args.out.write_text(params_toml(document))
+        print(f"[fit] wrote {args.out}: put its lines in place of E, K and mu in the bubble's [[bodies]] table "
+              "of a scene TOML", file=sys.stderr)
+    return 0

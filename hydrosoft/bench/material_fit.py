@@ -1,0 +1,307 @@
+"""The Soft Bubble's material (E, K, mu) identified from ``collect wrench`` recordings: pure functions behind
+``hydrosoft-stack fit``.
+
+Each trajectory is replayed through the contact model at its recorded poses (``wrench_replay.replay_tcp_wrenches``,
+as ``bench wrench`` does), and the material that minimises the wrench error is found by L-BFGS (``torch.optim``)
+over unconstrained coordinates ``theta = (log(E / E_start), log(K / K_start), logit(mu / MU_MAX))``: E and K stay
+positive and mu stays in ``(0, MU_MAX)``. Parameters not asked for are held at their start values.
+
+Residuals. Per trajectory, step ``k = 1..K`` and wrench component ``c``: ``(predicted - measured) / FT300_NOISE[c]``
+(force in N, torque in N m), so forces and torques weigh by the sensor's noise. Every measured row is the recorded
+wrench minus the one tare sample, so the tare's noise is shared by all rows of a trajectory: their noise covariance
+per component is ``s^2 (I + 1 1^T)``. The residuals are whitened for it (``_whiten``), so the sum of their squares
+is the likelihood's and the Gauss-Newton covariance below is the right one for that noise.
+
+Uncertainty: Gauss-Newton at the optimum. ``J`` (residuals x fitted parameters) comes from forward-mode autograd
+(one ``jvp`` per parameter); the covariance of theta is ``s2 (J^T J)^-1``, scaled by the reduced chi-square
+``s2 = sum(r^2) / (n - p)`` (the noise level the residuals show, as ``scipy.optimize.curve_fit`` does by
+default): model error on lab data then widens the intervals. A direction in which ``J^T J`` is singular (the data
+do not change with it) has infinite variance. Reported per parameter: its standard deviation by the delta method
+and a 95 % interval (``Z95`` standard deviations in theta, mapped back, so E and K's are multiplicative and mu's
+stays inside its bounds). A parameter whose relative standard deviation exceeds ``UNIDENTIFIED_RELATIVE_SIGMA`` is
+reported as unidentified: the recordings do not determine it (K from pure pressing on a flat face, for example,
+where no point moves tangentially).
+
+Not covered by the covariance: correlated model error (on lab data the residuals are not independent noise; a
+bootstrap over trajectories would show it, at one fit per draw), the recorded poses' own errors, and mu's
+non-Gaussian tails (the stick/slip switches make the residuals piecewise smooth in mu). Under the FT 300's noise the
+95 % intervals held the truth in 91 % of parameters and seeds (``hydrosoft-stack bench fit``, docs/fit.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from hydrosoft.bench.material_parameters import FIT_MODELS, MU_MAX, PARAMETERS
+from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, replay_tcp_wrenches, trajectory_errors
+from hydrosoft.bench.wrench_scenes import BUBBLE_E, BUBBLE_K, BUBBLE_MU
+from hydrosoft.contact import Material
+
+START = {"E": BUBBLE_E, "K": BUBBLE_K, "mu": BUBBLE_MU}  # the scenes' Soft Bubble (hydrosoft/tasks/pushing.toml)
+#: The FT 300's signal noise per frame, standard deviation of Fx, Fy, Fz (N), Mx, My (N m), Mz (N m): Robotiq's
+#: datasheet figures. The fit weighs each wrench component by it; its absolute level cancels (see ``s2``).
+FT300_NOISE = np.array([0.1, 0.1, 0.1, 0.005, 0.005, 0.003])
+Z95 = 1.959964  # two-sided 95 % quantile of the standard normal
+UNIDENTIFIED_RELATIVE_SIGMA = 0.25  # a parameter known only to +-25 % (1 sigma) or worse is not identified
+SINGULAR_RCOND = 1e-10  # eigenvalues of J^T J below this fraction of the largest count as zero (no information)
+DEFAULT_MAX_ITERATIONS = 60
+
+
+@dataclass(frozen=True)
+class ReplayBatch:
+    """Trajectories of one object and length, replayed together. ``object_poses``, ``bubble_poses``: ``(B, K + 1,
+    7)`` (m, wxyz); ``measured``: ``(B, K + 1, 6)`` TCP-frame wrenches less the tare (N, N m); ``labels``: each
+    trajectory's ``(object, trajectory index)``; ``spacing_m``: the replay's surface spacing (m)."""
+
+    object: str
+    spacing_m: float
+    object_poses: np.ndarray
+    bubble_poses: np.ndarray
+    measured: np.ndarray
+    labels: tuple[tuple[str, int], ...]
+
+
+def replay_batches(groups: Sequence, chosen: set[tuple[str, int]]) -> list[ReplayBatch]:
+    """The ``chosen`` trajectories (``(object, index)``) of ``groups`` (``wrench_replay.ObjectRecordings``), batched
+    by object and length."""
+    from hydrosoft.bench.wrench_replay import length_batches
+
+    batches = []
+    for group in groups:
+        members = [i for i, t in enumerate(group.trajectories) if (group.object, t.index) in chosen]
+        picked = [group.trajectories[i] for i in members]
+        for rows in length_batches(picked):
+            trajectories = [picked[r] for r in rows]
+            batches.append(ReplayBatch(
+                object=group.object, spacing_m=group.spacing_m,
+                object_poses=np.stack([t.object_poses for t in trajectories]),
+                bubble_poses=np.stack([t.bubble_poses for t in trajectories]),
+                measured=np.stack([group.measured[members[r]] for r in rows]),
+                labels=tuple((group.object, t.index) for t in trajectories)))
+    return batches
+
+
+def split_trajectories(labels: Sequence[tuple[str, int]], holdout: float, seed: int = 0
+                       ) -> tuple[list[tuple[str, int]], list[tuple[str, int]]]:
+    """``(fit, held_out)``: a random ``holdout`` fraction (rounded, at least one when ``holdout > 0``) of ``labels``
+    held out, at least one kept for the fit; ValueError when that is impossible."""
+    if not 0 <= holdout < 1:
+        raise ValueError(f"holdout must be a fraction in [0, 1), got {holdout}")
+    count = 0 if holdout == 0 else max(1, round(holdout * len(labels)))
+    if count >= len(labels):
+        raise ValueError(f"holdout {holdout} of {len(labels)} trajectories leaves none to fit: record more")
+    order = np.random.default_rng(seed).permutation(len(labels))
+    held = {labels[i] for i in order[:count]}
+    return [x for x in labels if x not in held], [x for x in labels if x in held]
+
+
+# --- parameters ---------------------------------------------------------------------------------------------------
+
+
+def to_theta(values: dict[str, float], start: dict[str, float]) -> torch.Tensor:
+    """Unconstrained coordinates ``(3,)`` of a material ``values`` (E, K in Pa/m; mu in ``(0, MU_MAX)``)."""
+    mu = values["mu"] / MU_MAX
+    return torch.tensor([math.log(values["E"] / start["E"]), math.log(values["K"] / start["K"]),
+                         math.log(mu / (1 - mu))], dtype=torch.float64)
+
+
+def to_material(theta: torch.Tensor, start: dict[str, float]) -> Material:
+    """The bubble's ``Material`` (each ``(1,)``) at unconstrained coordinates ``theta (3,)``, differentiably."""
+    return Material(E=(start["E"] * torch.exp(theta[0])).view(1), K=(start["K"] * torch.exp(theta[1])).view(1),
+                    mu=(MU_MAX * torch.sigmoid(theta[2])).view(1))
+
+
+def to_values(theta: torch.Tensor, start: dict[str, float]) -> dict[str, float]:
+    """``to_material`` as plain numbers."""
+    material = to_material(theta.detach(), start)
+    return {name: float(getattr(material, name)) for name in PARAMETERS}
+
+
+# --- residuals ----------------------------------------------------------------------------------------------------
+
+
+def _whiten(errors: torch.Tensor) -> torch.Tensor:
+    """Whitened residuals of ``errors (B, K, 6)``, noise-weighted prediction errors of rows 1..K that share the
+    tare's noise: with ``L = I - b 1 1^T``, ``b = (1 - 1/sqrt(K + 1)) / K``, ``L^T L = (I + 1 1^T)^-1``."""
+    steps = errors.shape[1]
+    b = (1 - 1 / math.sqrt(steps + 1)) / steps
+    return errors - b * errors.sum(1, keepdim=True)
+
+
+def residuals(theta: torch.Tensor, batches: Sequence[ReplayBatch], contact: str, start: dict[str, float],
+              substeps: int = DEFAULT_SUBSTEPS) -> torch.Tensor:
+    """Whitened, noise-weighted residuals ``(n,)`` of every batch at ``theta (3,)`` (differentiable in theta)."""
+    material = to_material(theta, start)
+    weight = torch.as_tensor(1 / FT300_NOISE, dtype=torch.float64)
+    out = []
+    for batch in batches:
+        predicted = replay_tcp_wrenches(batch.object, batch.object_poses, batch.bubble_poses, contact,
+                                        batch.spacing_m, substeps, material)
+        error = (predicted[:, 1:] - torch.as_tensor(batch.measured[:, 1:])) * weight
+        out.append(_whiten(error).flatten())
+    return torch.cat(out)
+
+
+def trajectory_rmses(values: dict[str, float], batches: Sequence[ReplayBatch], contact: str,
+                     start: dict[str, float], substeps: int = DEFAULT_SUBSTEPS) -> list[dict]:
+    """Per trajectory of ``batches`` its ``object``, ``trajectory`` and its force, torque and shear RMSEs
+    (``wrench_replay.trajectory_errors``) with the material ``values``."""
+    theta = to_theta(values, start)
+    rows = []
+    with torch.no_grad():
+        for batch in batches:
+            predicted = replay_tcp_wrenches(batch.object, batch.object_poses, batch.bubble_poses, contact,
+                                            batch.spacing_m, substeps, to_material(theta, start)).numpy()
+            for (name, index), p, m in zip(batch.labels, predicted, batch.measured):
+                rows.append({"object": name, "trajectory": index, **trajectory_errors(p, m)})
+    return rows
+
+
+# --- the fit ------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    """One parameter's result: ``value`` and ``start`` (unit: ``material_parameters.UNITS``), ``sigma`` (1 standard
+    deviation, delta method; inf when the data do not determine it), ``interval95`` ``(low, high)``, ``fitted``
+    (asked for), ``identified`` (fitted and ``sigma / value <= UNIDENTIFIED_RELATIVE_SIGMA``)."""
+
+    name: str
+    start: float
+    value: float
+    sigma: float
+    interval95: tuple[float, float]
+    fitted: bool
+    identified: bool
+
+
+@dataclass(frozen=True)
+class MaterialFit:
+    """The fit's outcome: ``estimates`` per parameter (``PARAMETERS`` order), the cost (mean squared whitened
+    residual) at the start and at the optimum, ``reduced_chi2`` (``s2``), ``residual_count``, ``iterations`` (L-BFGS
+    cost evaluations), ``covariance`` ``(p, p)`` of the fitted theta coordinates (inf where undetermined)."""
+
+    estimates: tuple[ParameterEstimate, ...]
+    cost_start: float
+    cost: float
+    reduced_chi2: float
+    residual_count: int
+    iterations: int
+    covariance: np.ndarray
+
+    @property
+    def values(self) -> dict[str, float]:
+        return {e.name: e.value for e in self.estimates}
+
+
+def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[str],
+                 start: dict[str, float] | None = None, substeps: int = DEFAULT_SUBSTEPS,
+                 max_iterations: int = DEFAULT_MAX_ITERATIONS,
+                 progress: Callable[[int, float, dict[str, float]], None] | None = None) -> MaterialFit:
+    """Fit ``params`` (a subset of ``PARAMETERS``) of the bubble's material to ``batches`` by L-BFGS.
+
+    ``start``: the material to start from and to hold the other parameters at (default ``START``);
+    ``progress(evaluation, cost, values)`` is called after each cost evaluation. ValueError for an unknown
+    parameter or model, or no batch.
+    """
+    start = dict(START if start is None else start)
+    unknown = [p for p in params if p not in PARAMETERS]
+    if unknown or not params:
+        raise ValueError(f"unknown parameter(s) {unknown}; fit some of {', '.join(PARAMETERS)}")
+    if contact not in FIT_MODELS:
+        raise ValueError(f"unknown contact model {contact!r} for the fit; known: {', '.join(FIT_MODELS)}")
+    if not batches:
+        raise ValueError("no trajectory to fit")
+    mask = torch.tensor([name in params for name in PARAMETERS])
+    theta_start = to_theta(start, start)
+    free = theta_start[mask].clone().requires_grad_(True)
+
+    def full(free_part: torch.Tensor) -> torch.Tensor:
+        return theta_start.masked_scatter(mask, free_part)
+
+    optimizer = torch.optim.LBFGS([free], lr=1.0, max_iter=max_iterations, tolerance_grad=1e-9,
+                                  tolerance_change=1e-12, history_size=10, line_search_fn="strong_wolfe")
+    evaluations = []
+
+    def closure() -> torch.Tensor:
+        optimizer.zero_grad()
+        cost = residuals(full(free), batches, contact, start, substeps).square().mean()
+        cost.backward()
+        evaluations.append(float(cost.detach()))
+        if progress:
+            progress(len(evaluations), evaluations[-1], to_values(full(free.detach()), start))
+        return cost
+
+    optimizer.step(closure)
+    theta = full(free.detach())
+    r, J = _residuals_and_jacobian(theta, mask, batches, contact, start, substeps)
+    n, p = r.shape[0], int(mask.sum())
+    s2 = float(np.square(r).sum()) / max(n - p, 1)
+    covariance = s2 * _pseudo_inverse_with_infinity(J.T @ J)
+    estimates = _estimates(theta, start, mask, covariance)
+    return MaterialFit(estimates=estimates, cost_start=evaluations[0], cost=float(np.square(r).mean()),
+                       reduced_chi2=s2, residual_count=n, iterations=len(evaluations), covariance=covariance)
+
+
+def _residuals_and_jacobian(theta: torch.Tensor, mask: torch.Tensor, batches, contact, start, substeps
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals ``(n,)`` and their Jacobian ``(n, p)`` in the fitted coordinates, by forward-mode autograd."""
+    import torch.autograd.forward_ad as forward_ad
+
+    columns = []
+    with torch.no_grad():
+        r = residuals(theta, batches, contact, start, substeps).numpy()
+    for i in mask.nonzero().flatten().tolist():
+        with forward_ad.dual_level():
+            direction = torch.zeros_like(theta)
+            direction[i] = 1.0
+            dual = residuals(forward_ad.make_dual(theta, direction), batches, contact, start, substeps)
+            columns.append(forward_ad.unpack_dual(dual).tangent.detach().numpy())
+    return r, np.stack(columns, axis=-1)
+
+
+def _pseudo_inverse_with_infinity(information: np.ndarray) -> np.ndarray:
+    """``information^-1`` for a symmetric positive semi-definite ``(p, p)`` matrix; along its null directions
+    (eigenvalues under ``SINGULAR_RCOND`` of the largest) the variance is infinite: every entry that involves
+    such a direction is inf (the diagonal) or nan (off it)."""
+    eigenvalues, vectors = np.linalg.eigh(information)
+    largest = max(float(eigenvalues.max()), 0.0)
+    null = eigenvalues <= SINGULAR_RCOND * largest if largest > 0 else np.ones_like(eigenvalues, dtype=bool)
+    inverse = np.where(null, 0.0, 1 / np.where(null, 1.0, eigenvalues))
+    covariance = (vectors * inverse) @ vectors.T
+    touched = (np.abs(vectors[:, null]) > 1e-6).any(axis=1)
+    covariance[np.ix_(touched, touched)] = np.nan
+    covariance[touched, touched] = np.inf
+    return covariance
+
+
+def _estimates(theta: torch.Tensor, start: dict[str, float], mask: torch.Tensor, covariance: np.ndarray
+               ) -> tuple[ParameterEstimate, ...]:
+    values = to_values(theta, start)
+    fitted_index = {i: j for j, i in enumerate(mask.nonzero().flatten().tolist())}
+    out = []
+    for i, name in enumerate(PARAMETERS):
+        if i not in fitted_index:
+            value = start[name]
+            out.append(ParameterEstimate(name, value, value, 0.0, (value, value), False, False))
+            continue
+        value = values[name]
+        sigma_theta = math.sqrt(covariance[fitted_index[i], fitted_index[i]])
+        t = float(theta[i])
+        if name == "mu":
+            slope = value * (1 - value / MU_MAX)  # d mu / d theta of MU_MAX * sigmoid(theta)
+            sigma = slope * sigma_theta if math.isfinite(sigma_theta) else math.inf
+            interval = tuple(MU_MAX / (1 + math.exp(-(t + s * Z95 * sigma_theta))) if math.isfinite(sigma_theta)
+                             else (0.0, MU_MAX)[s > 0] for s in (-1, 1))
+        else:
+            sigma = value * sigma_theta
+            interval = tuple(value * math.exp(s * Z95 * sigma_theta) if math.isfinite(sigma_theta)
+                             else (0.0, math.inf)[s > 0] for s in (-1, 1))
+        identified = math.isfinite(sigma) and sigma <= UNIDENTIFIED_RELATIVE_SIGMA * value
+        out.append(ParameterEstimate(name, start[name], value, sigma, interval, True, identified))
+    return tuple(out)

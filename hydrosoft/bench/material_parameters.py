@@ -1,0 +1,8 @@
+"""Names of the bubble material's parameters and of the contact models the material fit knows, without the model
+library's imports (``hydrosoft-stack fit --help`` reads them)."""
+
+PARAMETERS = ("E", "K", "mu")
+UNITS = {"E": "Pa/m", "K": "Pa/m", "mu": ""}
+MU_MAX = 3.0  # the fit keeps mu in (0, MU_MAX)
+#: Contact models the fit replays through; one entry per model (``hydrosoft.contact.MODELS`` names).
+FIT_MODELS = ("nh", "pf")

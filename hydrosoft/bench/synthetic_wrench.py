@@ -1,0 +1,71 @@
+"""Synthetic ``collect wrench`` recordings with a known bubble material: what the fit's tests and its noise
+benchmark fit to.
+
+The plant is the NH model itself at a chosen material (E, K, mu), replayed at ``PLANT_SUBSTEPS`` steps per recorded
+step (finer than the fit's replay) along press-and-shear trajectories (``wrench_scenes.press_and_shear``) on a clamped
+benchmark object. Each recorded wrench is what ``collect wrench`` stores: the mean of ``FRAMES_PER_SAMPLE`` FT 300
+frames, each the true wrench plus Gaussian noise of ``noise_scale * material_fit.FT300_NOISE`` rounded to the
+frame's resolution (``FT300_RESOLUTION``, as the FT 300 simulator quantises). The file is written by the recording
+writer (``wrench_recording.WrenchRecordingWriter``) with the TCP frame at the sensor's origin.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hydrosoft.bench.material_fit import FT300_NOISE
+from hydrosoft.bench.wrench_recording import RecordingInfo, WrenchRecordingWriter, WrenchSample
+from hydrosoft.bench.wrench_replay import predict_tcp_wrenches
+from hydrosoft.bench.wrench_scenes import bench_object, press_and_shear, sample_press_and_shear
+from hydrosoft.contact import Material
+
+FT300_RESOLUTION = np.array([0.01, 0.01, 0.01, 0.001, 0.001, 0.001])  # N, N m per count of a stream frame
+FRAMES_PER_SAMPLE = 5  # collect wrench averages a sample over 0.05 s of frames at 100 Hz
+PLANT_SUBSTEPS = 4
+PLANT_SPACING_M = 0.00625  # the sim plant's object surface spacing with deploy/sim.toml
+IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+def measured_wrenches(truth: np.ndarray, rng: np.random.Generator | None, noise_scale: float = 1.0) -> np.ndarray:
+    """What the recording stores for true wrenches ``truth (..., 6)`` (N, N m): the mean of ``FRAMES_PER_SAMPLE``
+    frames, each with Gaussian noise ``noise_scale * FT300_NOISE`` (none without ``rng``) and quantised."""
+    if rng is None:
+        return np.round(truth / FT300_RESOLUTION) * FT300_RESOLUTION
+    frames = truth[None] + rng.normal(size=(FRAMES_PER_SAMPLE, *truth.shape)) * noise_scale * FT300_NOISE
+    return np.mean(np.round(frames / FT300_RESOLUTION) * FT300_RESOLUTION, axis=0)
+
+
+def write_synthetic_recording(path: str | Path, object_name: str, material: dict[str, float],
+                              kinds: Sequence[str], steps: int, seed: int, noise_scale: float = 0.0,
+                              contact: str = "nh") -> None:
+    """Record ``len(kinds)`` press-and-shear trajectories of ``steps`` steps on ``object_name`` with the plant at
+    ``material`` (E, K in Pa/m, mu) to ``path``. ``kinds``: each trajectory's second phase (``wrench_scenes.KINDS``,
+    or ``"press"`` for pressing only); ``seed``: of the trajectories and the noise; ``noise_scale``: the FT 300's
+    noise level (0: resolution only)."""
+    obj = bench_object(object_name)
+    rng = np.random.default_rng(seed)
+    params = [sample_press_and_shear(rng, steps, "shear" if kind == "press" else kind) for kind in kinds]
+    params = [p if kind != "press" else replace(p, shear_m=0.0, twist_rad=0.0, press_steps=steps, shear_steps=0)
+              for p, kind in zip(params, kinds)]
+    bubbles = np.stack([press_and_shear(obj, p) for p in params])
+    objects = np.broadcast_to(obj.pose(), bubbles.shape).copy()
+    plant = Material(*(torch.tensor([float(material[name])], dtype=torch.float64) for name in ("E", "K", "mu")))
+    truth = predict_tcp_wrenches(object_name, objects, bubbles, contact, PLANT_SPACING_M, PLANT_SUBSTEPS, plant)
+    measured = measured_wrenches(truth, rng if noise_scale > 0 else None, noise_scale)
+    info = RecordingInfo(object=object_name, config="synthetic", mode="sim", tcp_in_sensor=IDENTITY,
+                         plant_spacing_m=PLANT_SPACING_M, seed=seed, epoch_offset_ns=0,
+                         trajectories=[{"kind": kind, "material": dict(material)} for kind in kinds])
+    with WrenchRecordingWriter(path, info) as writer:
+        for i, p in enumerate(params):
+            for k in range(steps + 1):
+                phase = "start" if k == 0 else "press" if k <= p.press_steps else "shear"
+                writer.add(WrenchSample(object=object_name, trajectory=i, step=k, phase=phase,
+                                        stamp_ns=50_000_000 * k, bubble_pose=tuple(bubbles[i, k].tolist()),
+                                        target_pose=tuple(bubbles[i, k].tolist()),
+                                        object_pose=tuple(objects[i, k].tolist()),
+                                        wrench=tuple(measured[i, k].tolist())))
