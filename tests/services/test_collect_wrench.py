@@ -24,10 +24,12 @@ from hydrosoft.bench import wrench
 from hydrosoft.bench.wrench_recording import TOPIC, read_wrench_recording
 from hydrosoft.bench.wrench_scenes import bench_object
 from hydrosoft.services import cli
+from hydrosoft.services.config import load_config
 from loopback import free_ur_host
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 COLLECT_TIMEOUT_S = 240.0  # two plant start-ups and 2 x 2 x 6 samples take ~25 s; a loaded machine is slower
+SIM_FT_BIAS = np.asarray(load_config(SIM_TOML).sim.ft_bias)  # the simulated FT 300's zero-load offset (N, N m)
 
 
 def free_loopback_host() -> str:
@@ -88,7 +90,8 @@ def test_a_tiny_sim_collection_records_every_step_through_the_real_drivers(tiny_
             assert t.phases[0] == "start" and len(t.phases) == 6 and t.phases[-1] == "shear"
             np.testing.assert_allclose(t.object_poses, np.broadcast_to(bench_object(name).pose(), (6, 7)))
             np.testing.assert_allclose(t.bubble_poses[:, :3], t.target_poses[:, :3], atol=2e-4)
-            assert np.all(np.abs(t.wrenches[0]) < 0.02)  # out of contact: nothing but the FT 300's resolution
+            # out of contact: the simulated FT 300's zero-load offset (sim.ft_bias), to its resolution
+            assert np.all(np.abs(t.wrenches[0] - SIM_FT_BIAS) < 0.02), t.wrenches[0]
             pressed = t.wrenches[[i for i, phase in enumerate(t.phases) if phase != "start"]]
             assert np.all(pressed[:, 2] > 0.1)  # pressing down on the object reads +Fz for an upright TCP
     with (out / "wrench-cube.mcap").open("rb") as stream:
@@ -116,7 +119,8 @@ def test_bench_wrench_on_the_sim_collection_finds_nh_exact_and_pff_missing_the_s
 
 
 def test_a_force_over_the_limit_stops_the_collection(tmp_path):
-    config = private_config(tmp_path, **{"max_force_n = 40.0": "max_force_n = 0.3"})
+    config = private_config(tmp_path, **{"max_force_n = 40.0": "max_force_n = 0.3",
+                                         "release_force_n = 30.0": "release_force_n = 0.2"})
     done = collect(config, tmp_path / "out", "--objects", "cube", "--trajectories", "1", "--steps", "4")
     assert done.returncode == 1
     assert "contact force" in done.stderr and "above the limit 0.3 N" in done.stderr
