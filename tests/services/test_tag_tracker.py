@@ -17,7 +17,8 @@ import torch
 import pytest
 
 from hydrosoft.drivers.errors import NotConnected, Stale
-from hydrosoft.drivers.poses import compose, rotation_angle_rad
+from hydrosoft.drivers.poses import rotation_angle_rad
+from hydrosoft.geometry import se3
 from hydrosoft.services import messages as msg
 from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale as NoStatus
 from hydrosoft.services.config import load_config, parse_config
@@ -71,11 +72,11 @@ def sim_config(task: str):
 
 
 def rolled(start: np.ndarray, distance_m: float, radius_m: float) -> np.ndarray:
-    """``start (7,)`` rolled without slipping by ``distance_m`` along base x: turned by ``distance_m / radius_m``
-    about base y."""
-    half = distance_m / radius_m / 2.0
-    turn = np.array([distance_m, 0.0, 0.0, math.cos(half), 0.0, math.sin(half), 0.0])
-    return np.concatenate([start[:3] + turn[:3], compose(turn * [0, 0, 0, 1, 1, 1, 1], start)[3:]])
+    """``start (7,)`` rolled without slipping by ``distance_m`` along base x: moved by it and turned by
+    ``distance_m / radius_m`` about base y through the object's centre, as ``rolling.sample_goal`` does."""
+    delta = torch.zeros(6, dtype=torch.float64)
+    delta[0], delta[4] = distance_m, distance_m / radius_m
+    return se3.retract(torch.as_tensor(start, dtype=torch.float64), delta).numpy()
 
 
 # --- layout and tracking, without sockets -------------------------------------------------------------------------
