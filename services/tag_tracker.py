@@ -15,7 +15,11 @@ stamped ``hw_stamp_ns`` = the image's exposure stamp:
 - ``object_pose/object`` (``ObjectPose``) only when the object's pose was accepted; a rejection is counted in the
   service's errors under ``rejection_kind(reason)`` with the reason as its text.
 
-The pure parts (``object_layout``, ``camera_calibration``, ``TagTracker``, ``full_frame_every``,
+The service is ``ready`` while it produces poses. When every image for ``BLIND_AFTER_S`` gave no pose (rejected or
+not an image), or the camera fails, it reports ``degraded``; the status note says why (``PoseWatch``), e.g. that
+every tag is seen at a grazing angle. The first accepted pose makes it ``ready`` again.
+
+The pure parts (``object_layout``, ``camera_calibration``, ``TagTracker``, ``PoseWatch``, ``full_frame_every``,
 ``detections_message``, ``pose_message``, ``pose_quality``, ``rejection_kind``) are tested without sockets; ``serve``
 is the thin loop.
 """
@@ -25,6 +29,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import math
+import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -75,6 +80,9 @@ CAMERA_RETRY_S = 0.1  # pause after a camera error, so a camera that fails at on
 # The whole image is searched for tags at least this often (s): a tag coming into view away from the object's last
 # tags is found within it. In between only a crop around them is (deploy/sim.toml: the detector's 1.7 ms -> 0.5 ms).
 FULL_FRAME_PERIOD_S = 1.0
+# Every image for this long (s) without a pose: the service reports degraded. Longer than a brief loss of the tags
+# (a hand or the arm passing in front of them), shorter than a user's wait for a goal to start.
+BLIND_AFTER_S = 2.0
 
 _REJECTION_KINDS = (  # prefix of a tag_tracking.Rejection reason -> short error kind
     ("no tag of the object seen", "no_object_tag"),
@@ -297,6 +305,31 @@ def rejection_kind(reason: str) -> str:
     return "rejected_other"
 
 
+@dataclass
+class PoseWatch:
+    """Whether the tracker still produces poses: a note saying why not once no image gave one for ``after_s``.
+
+    after_s: how long (s) images may give no pose before ``update`` returns a note. since_s: monotonic time (s) of
+    the first image without a pose since the last pose (``None`` after a pose, and before the first image).
+    """
+
+    after_s: float = BLIND_AFTER_S
+    since_s: float | None = None
+
+    def update(self, now_s: float, rejection: str | None) -> str:
+        """Record one image at monotonic ``now_s`` (s): ``rejection`` is why it gave no pose, ``None`` when it gave
+        one. Returns ``""`` while poses come, else (after ``after_s`` without one) a line naming the newest reason."""
+        if rejection is None:
+            self.since_s = None
+            return ""
+        if self.since_s is None:
+            self.since_s = now_s
+        blind_s = now_s - self.since_s
+        if blind_s < self.after_s:
+            return ""
+        return f"no object pose for {blind_s:.1f} s: every image rejected, the newest: {rejection}"
+
+
 # --- the service ------------------------------------------------------------------------------------------------
 
 
@@ -327,32 +360,45 @@ async def serve(service: Service, config: StackConfig) -> None:
     service.on_shutdown(camera.close)
     out = service.publisher(config.endpoint(service.name, "data"))
     tags_topic, pose_topic = msg.topic_for(msg.TagDetections, TAG_CAMERA), msg.topic_for(msg.ObjectPose, OBJECT)
+    watch = PoseWatch()
     await service.ready()
     while True:
         try:
             frame = await camera.read()
         except DriverError as error:
             service.count_error("camera", f"{camera}: {error}")
-            if service.state != "degraded":
-                await service.set_state("degraded")
+            await report_health(service, f"camera: {error}")
             await asyncio.sleep(CAMERA_RETRY_S)
             continue
-        if service.state == "degraded":
-            await service.set_state("ready")
         stamp_ns = frame.hw_stamp_ns if frame.hw_stamp_ns is not None else frame.stamp_ns
         try:
             tracked = await loop.run_in_executor(None, tracker.track, frame.image)
         except ValueError as error:
             service.count_error("bad_image", str(error))
+            await report_health(service, watch.update(time.monotonic(), f"not an image: {error}"))
             continue
+        result = tracked.result
         try:
             await out.send(detections_message(tracked, TAG_CAMERA, stamp_ns), tags_topic)
-            if isinstance(tracked.result, ObjectPose):
-                await out.send(pose_message(tracked.result, stamp_ns), pose_topic)
+            if isinstance(result, ObjectPose):
+                await out.send(pose_message(result, stamp_ns), pose_topic)
             else:
-                service.count_error(rejection_kind(tracked.result.reason), tracked.result.reason)
+                service.count_error(rejection_kind(result.reason), result.reason)
         except msg.MessageError as error:
             service.count_error(error.kind, f"cannot publish: {error}")
+        rejection = None if isinstance(result, ObjectPose) else result.reason
+        await report_health(service, watch.update(time.monotonic(), rejection))
+
+
+async def report_health(service: Service, note: str) -> None:
+    """``degraded`` with ``note`` as the status note when there is one (why no pose or image comes), else ``ready``
+    with no note; a change of state is logged and published at once."""
+    service.note = note
+    state = "degraded" if note else "ready"
+    if service.state != state:
+        if note:
+            service.log.warning("%s", note)
+        await service.set_state(state)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from pathlib import Path
 
 import msgspec
 import numpy as np
@@ -17,13 +18,16 @@ import pytest
 
 from hydrosoft.drivers.errors import NotConnected, Stale
 from hydrosoft.drivers.poses import rotation_angle_rad
+from hydrosoft.geometry import se3
 from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher
+from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale as NoStatus
 from hydrosoft.services.config import load_config, parse_config
 from hydrosoft.services.sim_devices import BusCamera, image_topic
 from hydrosoft.services.sim_world_render import tag_camera
-from hydrosoft.services.tag_tracking import Rejection
+from hydrosoft.services.tag_tracking import MAX_VIEW_ANGLE_DEG, Rejection, solve_tag
 from hydrosoft.services.tag_tracker import (
+    BLIND_AFTER_S,
+    PoseWatch,
     TagTracker,
     detections_message,
     full_frame_every,
@@ -39,10 +43,12 @@ READY_TIMEOUT_S = 60.0
 SCENARIO_TIMEOUT_S = 60.0
 CAMERA_PERIOD_S = 1.0 / 15.0
 POSES_PER_IMAGE = 3  # tracked poses awaited per shown object pose
-BLANK_S = 1.0  # how long blank images are shown
+DEGRADED_WITHIN_S = 2.0  # s after BLIND_AFTER_S of blank images (and after a pose) the state changes within
 CAMERA_POSE = np.array([0.35, -0.2, 0.35, 0.376141, -0.778837, -0.451977, 0.218283])  # the default, 45 deg down
 POSE_A = np.array([0.0, 0.0, 0.024215, 1.0, 0.0, 0.0, 0.0])
 POSE_B = np.array([0.03, -0.02, 0.024215, math.cos(0.25), 0.0, 0.0, math.sin(0.25)])  # moved and turned 29 deg
+SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+SIM_TASKS = ("pushing", "rotation", "rolling")  # the tasks deploy/sim.toml serves with its one tag camera
 
 
 def pushing_config():
@@ -57,6 +63,20 @@ def render(config, pose: np.ndarray) -> np.ndarray:
 def assert_near(pose: np.ndarray, truth: np.ndarray, mm: float, deg: float) -> None:
     assert np.linalg.norm(pose[:3] - truth[:3]) < mm * 1e-3, (pose, truth)
     assert math.degrees(rotation_angle_rad(pose[3:], truth[3:])) < deg, (pose, truth)
+
+
+def sim_config(task: str):
+    """deploy/sim.toml with ``scene.task`` = ``task``."""
+    config = load_config(SIM_TOML)
+    return msgspec.structs.replace(config, scene=msgspec.structs.replace(config.scene, task=task))
+
+
+def rolled(start: np.ndarray, distance_m: float, radius_m: float) -> np.ndarray:
+    """``start (7,)`` rolled without slipping by ``distance_m`` along base x: moved by it and turned by
+    ``distance_m / radius_m`` about base y through the object's centre, as ``rolling.sample_goal`` does."""
+    delta = torch.zeros(6, dtype=torch.float64)
+    delta[0], delta[4] = distance_m, distance_m / radius_m
+    return se3.retract(torch.as_tensor(start, dtype=torch.float64), delta).numpy()
 
 
 # --- layout and tracking, without sockets -------------------------------------------------------------------------
@@ -134,6 +154,52 @@ def test_searching_around_the_last_tags_tracks_as_the_whole_image_does():
     assert (region.full_frame_searches, region.region_searches) == (3, 4)
 
 
+@pytest.mark.parametrize("task", SIM_TASKS)
+def test_the_sim_camera_sees_every_tag_of_each_task_object_within_the_trackers_limits(task):
+    """deploy/sim.toml's one tag camera, rendering each task's scene at its start pose: every tag of the object's
+    layout is found and used, seen within ``MAX_VIEW_ANGLE_DEG`` of head-on, and the pose is within 1.5 mm."""
+    config = sim_config(task)
+    tracker = TagTracker.from_config(config)
+    start = np.asarray(make_task(task).scene.object.pose, dtype=np.float64)
+    image = render(config, start)
+    intrinsics = tracker.calibration.intrinsics
+    for detection in tracker.region.detect(image, tracker.detector, intrinsics):
+        seen = solve_tag(detection.corners, tracker.layout.tag(detection.id).size_m, intrinsics)
+        assert not isinstance(seen, Rejection), (detection.id, seen)
+        assert seen.view_angle_deg <= MAX_VIEW_ANGLE_DEG
+    result = tracker.track(image).result
+    assert not isinstance(result, Rejection), result.reason
+    assert result.tag_ids == tracker.layout.ids and not result.tag_rejections
+    assert_near(result.T_base_object, start, mm=1.5, deg=1.0)
+
+
+def test_the_sim_camera_tracks_the_rolling_cylinder_over_its_goal_range():
+    """The cylinder rolled by up to the rolling task's 4 cm either way stays in deploy/sim.toml's view, its cap's
+    tag within the tracker's limits: a pose within 3 mm and 1 deg in every image."""
+    config = sim_config("rolling")
+    tracker = TagTracker.from_config(config)
+    spec = make_task("rolling").scene.object
+    start = np.asarray(spec.pose, dtype=np.float64)
+    for distance_m in (-0.04, -0.02, 0.02, 0.04):
+        pose = rolled(start, distance_m, float(spec.params["radius"]))
+        result = tracker.track(render(config, pose)).result
+        assert not isinstance(result, Rejection), (distance_m, result.reason)
+        assert_near(result.T_base_object, pose, mm=3.0, deg=1.0)
+
+
+def test_the_pose_watch_names_the_reason_once_every_image_was_rejected_for_a_while():
+    watch = PoseWatch(after_s=2.0)
+    assert watch.update(10.0, "no usable tag: 0: grazing view") == ""  # the first rejection starts the clock
+    assert watch.update(11.9, "no usable tag: 0: grazing view") == ""
+    note = watch.update(12.0, "no usable tag: 0: grazing view: tag normal 72 deg")
+    assert note == "no object pose for 2.0 s: every image rejected, the newest: no usable tag: 0: grazing view: " \
+                   "tag normal 72 deg"
+    assert watch.update(12.1, None) == ""  # a pose clears it at once
+    assert watch.update(13.0, "no tag of the object seen") == ""  # and the clock starts again
+    assert watch.update(15.0, "no tag of the object seen").startswith("no object pose for 2.0 s")
+    assert PoseWatch().after_s == BLIND_AFTER_S
+
+
 def test_the_whole_image_is_searched_about_once_a_second():
     assert [full_frame_every(fps) for fps in (10.0, 30.0, 2.5, 0.5)] == [10, 30, 2, 1]
 
@@ -199,7 +265,9 @@ def test_bus_camera_returns_the_newest_new_image_once_then_goes_stale(tmp_path):
 # --- the service as a process -------------------------------------------------------------------------------------
 
 
-def test_the_tracker_process_follows_rendered_images_and_counts_rejections(tmp_path):
+def test_the_tracker_process_follows_rendered_images_counts_rejections_and_says_when_it_sees_nothing(tmp_path):
+    """Poses of the cube at two places; then blank images: each is a counted rejection, and after BLIND_AFTER_S
+    the status is degraded, its note naming the reason; the cube again: ready."""
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     config_path = tmp_path / "sim.toml"
@@ -225,17 +293,33 @@ def test_the_tracker_process_follows_rendered_images_and_counts_rejections(tmp_p
                     pose = tracked.latest("object_pose/object", 1.0, msg.ObjectPose).value
                     poses[stamps[pose.hw_stamp_ns]].append(pose)
 
+            def newest_status() -> msg.ServiceStatus | None:
+                try:
+                    return status.latest("status/tag_tracker", 3.0, msg.ServiceStatus).value
+                except NoStatus:
+                    return None
+
+            async def show_until(name: str, state: str, within_s: float) -> tuple[msg.ServiceStatus, float]:
+                """Show image ``name`` until the status reads ``state`` (published at each change); it and the s
+                that took."""
+                tic = time.monotonic()
+                while time.monotonic() - tic < within_s:
+                    await show(name)
+                    now = newest_status()
+                    if now is not None and now.state == state:
+                        return now, time.monotonic() - tic
+                raise AssertionError(f"{name} images for {within_s} s: the tracker's state is not {state}")
+
             for name in ("A", "B"):
                 while len(poses[name]) < POSES_PER_IMAGE:
                     await show(name)
-            blank_until_s = time.monotonic() + BLANK_S
-            while time.monotonic() < blank_until_s:
-                await show("blank")
-            while True:  # the status counts the blank images' rejections (published every second)
-                await status.wait(1.5)
-                errors = status.latest("status/tag_tracker", 3.0, msg.ServiceStatus).value.errors
-                if errors.get("rejected_no_object_tag", 0) > 0:
-                    return poses
+            await show_until("B", "ready", DEGRADED_WITHIN_S)  # the status comes every second
+            blank, blind_s = await show_until("blank", "degraded", BLIND_AFTER_S + DEGRADED_WITHIN_S)
+            assert blind_s >= BLIND_AFTER_S and blank.errors.get("rejected_no_object_tag", 0) > 0
+            assert blank.note.startswith("no object pose for") and "no tag of the object seen" in blank.note
+            seen, _ = await show_until("A", "ready", DEGRADED_WITHIN_S)
+            assert seen.note == ""
+            return poses
 
     process = ServiceProcess("tag_tracker", "tag_tracker", config_path, tmp_path / "tag_tracker.log")
     try:
