@@ -110,7 +110,7 @@ class CameraConfig(Strict):
     fy: float = 600.0
     cx: float = 319.5
     cy: float = 239.5
-    pose: Pose = (0.35, -0.2, 0.35, 0.376141, -0.778837, -0.451977, 0.218283)
+    pose: Pose = (0.25, -0.35, 0.33, 0.433949, -0.847676, -0.271651, 0.139066)  # deploy/sim.toml's: sees every sim task
     fps: float = 15.0
     calibration: str = ""
     device: str = ""
