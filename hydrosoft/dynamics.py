@@ -269,7 +269,10 @@ def substeps_for(model: Model, max_substeps: int, active: Tensor | None = None) 
     Raises ValueError naming the bound when more than ``max_substeps`` would be needed.
     """
     lam = stiffness_bound(model, active)
-    ratio = model.dt**2 * lam / model.epsilon
+    ratio = model.dt * model.dt * lam / model.epsilon
+    if not math.isfinite(ratio):
+        raise ValueError(f"quasi-dynamic step: h^2/epsilon * lambda_max(M^-1 K_c) = {ratio} is not finite (h = "
+                         f"{model.dt} s, epsilon = {model.epsilon} s, lambda <= {lam:.3g} 1/s^2)")
     n = max(1, math.ceil(ratio / STABLE_RATIO))
     if n > max_substeps:
         raise ValueError(

@@ -3,6 +3,8 @@
 All four share ``step(geometry: ContactStep, forces, material) -> forces`` (see ``base.ContactModel``).
 """
 
+import dataclasses
+
 from hydrosoft.contact.base import ContactModel, ContactStep, Material
 from hydrosoft.contact.nonholonomic import NonHolonomic, SmoothedNonHolonomic, inside_fraction
 from hydrosoft.contact.pressure_field import PressureField, PressureFieldFrictionless
@@ -17,11 +19,20 @@ MODELS = {
 
 
 def make(name: str, **params) -> ContactModel:
-    """Build a contact model by name (``nh``, ``snh``, ``pf``, ``pff``); raises ValueError for others."""
+    """Build a contact model by name (one of ``MODELS``) with its parameters.
+
+    Raises ValueError for an unknown name, an unknown parameter (naming the ones the model takes) or a bad value
+    (naming the parameter).
+    """
     try:
         cls = MODELS[name]
     except KeyError:
         raise ValueError(f"unknown contact model {name!r}; known models: {', '.join(MODELS)}") from None
+    known = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(params) - set(known))
+    if unknown:
+        takes = f"it takes {', '.join(known)}" if known else "it takes none"
+        raise ValueError(f"{', '.join(unknown)}: unknown parameter(s) of contact model {name!r}; {takes}")
     return cls(**params)
 
 

@@ -17,7 +17,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from hydrosoft.contact.base import ContactStep, Material
+from hydrosoft.contact.base import ContactStep, Material, check_positive_parameter
 from hydrosoft.contact.cone import project_to_cone
 
 
@@ -81,6 +81,9 @@ class SmoothedNonHolonomic:
 
     beta: float = 1e4
     name: ClassVar[str] = "snh"
+
+    def __post_init__(self) -> None:
+        check_positive_parameter("beta", self.beta, "1/m")
 
     def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
         """Next forces ``(B, M, N, 3)`` from the previous ``forces (B, M, N, 3)`` (``ContactModel`` on ``axis``)."""
