@@ -913,8 +913,11 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
 
 
 def _normal_wrench(model: Model, state: State) -> Tensor:
-    """Net wrench ``(B, 6)`` of the normal parts of the contact forces and gravity, about the centre of mass."""
-    normal = se3.rotate_vectors(state.object_pose, -model.normals).unsqueeze(1)
+    """Net wrench ``(B, 6)`` of the normal parts of the contact forces and gravity, about the centre of mass.
+
+    The normals turn by the rotation matrix of the object's quaternion, normalised on the fly as in the rest of the
+    step, so a quaternion of any scale gives the same wrench."""
+    normal = (se3.quat_to_matrix(state.object_pose[:, 3:]) @ -model.normals.mT).mT.unsqueeze(1)
     forces = (state.forces * normal).sum(-1, keepdim=True) * normal
     return object_wrench(model, state._replace(forces=forces))
 
@@ -1106,6 +1109,11 @@ def rollout(model: Model, state: State, controls: Tensor) -> list[State]:
     return states
 
 
+def _unit_quaternions(poses: Tensor) -> Tensor:
+    """Poses ``(..., 7)`` with their quaternions normalised."""
+    return torch.cat([poses[..., :3], se3.quat_normalize(poses[..., 3:])], dim=-1)
+
+
 def press_in(model: Model, object_pose: Tensor, body_poses: Tensor, steps: int = 4) -> State:
     """The state reached by pressing each body straight into its given pose from contact-free.
 
@@ -1114,7 +1122,9 @@ def press_in(model: Model, object_pose: Tensor, body_poses: Tensor, steps: int =
     ``steps`` kinematic steps with the model's contact model, the object held still. This is the consistent
     initial force state for a scene that starts in contact (an object resting on a table, held in a grasp):
     for NH, faces pressed along their normal carry ``E A depth`` and faces sliding in tangentially carry none.
+    The poses' quaternions are normalised first, so their scale does not matter.
     """
+    object_pose, body_poses = _unit_quaternions(object_pose), _unit_quaternions(body_poses)
     points = se3.transform_points(object_pose, model.points).unsqueeze(1)
     local = se3.transform_points(se3.inverse(body_poses), points)
     depth = torch.relu(-signed_distances(model, local)).amax(-1)
