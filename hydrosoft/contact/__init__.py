@@ -1,12 +1,15 @@
-"""Contact models: PF and PFF (baselines, eq. 3-5), NH (eq. 14-20) and smoothed NH (IV-C).
+"""Contact models: PF and PFF (baselines, eq. 3-5), NH (eq. 14-20), smoothed NH (IV-C) and NH with the pressure
+field's normal force (``nh_pressure_normal``: NH's shear and stick-slip, PF's normal force).
 
-All four share ``step(geometry: ContactStep, forces, material) -> forces`` (see ``base.ContactModel``).
+All of them share ``step(geometry: ContactStep, forces, material) -> forces`` (see ``base.ContactModel``).
 """
 
 import dataclasses
 
 from hydrosoft.contact.base import ContactModel, ContactStep, Material
-from hydrosoft.contact.nonholonomic import NonHolonomic, SmoothedNonHolonomic, inside_fraction
+from hydrosoft.contact.nonholonomic import (
+    NonHolonomic, NonHolonomicPressureNormal, SmoothedNonHolonomic, inside_fraction,
+)
 from hydrosoft.contact.pressure_field import PressureField, PressureFieldFrictionless
 from hydrosoft.contact.wrenches import wrench
 
@@ -15,6 +18,7 @@ MODELS = {
     "snh": SmoothedNonHolonomic,
     "pf": PressureField,
     "pff": PressureFieldFrictionless,
+    "nh_pressure_normal": NonHolonomicPressureNormal,
 }
 
 
@@ -37,6 +41,6 @@ def make(name: str, **params) -> ContactModel:
 
 
 __all__ = [
-    "ContactModel", "ContactStep", "Material", "NonHolonomic", "SmoothedNonHolonomic", "PressureField",
+    "ContactModel", "ContactStep", "Material", "NonHolonomic", "NonHolonomicPressureNormal", "SmoothedNonHolonomic", "PressureField",
     "PressureFieldFrictionless", "inside_fraction", "wrench", "make", "MODELS",
 ]
