@@ -990,9 +990,10 @@ def _checked_step(model: Model, state: State, u: Tensor, substep, start_substeps
 
     The sub-step count is ``substeps_needed`` at the start (or ``start_substeps`` when the caller already knows
     it for this very state), raised to ``substeps_for_turn`` of the controls' largest turn; if the end state's
-    contacts need more (the step pressed deeper), the step is run again from the same start with that many. A state past the bound never passes silently: beyond
-    ``model.max_substeps`` it raises ``UnstableStepError``. Returns the state and ``substeps_needed`` of that
-    state, which the next step from it would compute again (None after a re-run, whose end was not checked).
+    contacts need more (the step pressed deeper), the step is run again from the same start with that many. A state
+    past the bound never passes silently: beyond ``model.max_substeps`` it raises ``UnstableStepError``. Returns the
+    state and ``substeps_needed`` of that state, which the next step from it would compute again (None after a
+    re-run, whose end was not checked).
     """
     n = substeps_needed(model, state) if start_substeps is None else start_substeps
     turn = largest_turn(model, u)

@@ -158,7 +158,8 @@ class Scene(msgspec.Struct, forbid_unknown_fields=True):
             if not (value >= 0 and math.isfinite(value)):
                 raise SceneError(f"{field}: must be a non-negative number of metres, got {value}")
         if not math.isfinite(self.dt * self.dt / self.epsilon):
-            raise SceneError(f"dt: the step's gain dt^2/epsilon overflows (dt = {self.dt} s, epsilon = {self.epsilon} s)")
+            raise SceneError(
+                f"dt: the step's gain dt^2/epsilon overflows (dt = {self.dt} s, epsilon = {self.epsilon} s)")
         if len(self.gravity) != 3 or not all(math.isfinite(g) for g in self.gravity):
             raise SceneError(f"gravity: must be 3 finite numbers (m/s^2), got {self.gravity}")
         if math.hypot(*self.gravity) > MAX_GRAVITY:

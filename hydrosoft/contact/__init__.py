@@ -41,6 +41,7 @@ def make(name: str, **params) -> ContactModel:
 
 
 __all__ = [
-    "ContactModel", "ContactStep", "Material", "NonHolonomic", "NonHolonomicPressureNormal", "SmoothedNonHolonomic", "PressureField",
+    "ContactModel", "ContactStep", "Material", "NonHolonomic", "NonHolonomicPressureNormal", "SmoothedNonHolonomic",
+    "PressureField",
     "PressureFieldFrictionless", "inside_fraction", "wrench", "make", "MODELS",
 ]

@@ -20,7 +20,8 @@ class Material(NamedTuple):
 
 
 def check_positive_parameter(name: str, value: float, unit: str) -> None:
-    """ValueError naming the contact model parameter ``name`` unless ``value`` is a positive finite number (``unit``)."""
+    """ValueError naming the contact model parameter ``name`` unless ``value`` is a positive finite number of
+    ``unit``."""
     if not (isinstance(value, (int, float)) and 0 < value < math.inf):
         raise ValueError(f"{name}: must be a positive finite number of {unit}, got {value!r}")
 
