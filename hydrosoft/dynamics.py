@@ -101,8 +101,8 @@ class Model:
     object_update: how step 3 moves the object. ``"explicit"`` (the paper's update, sub-stepped for stability as
     above) or ``"linearly_implicit"`` (``_linearly_implicit_motion``: backward Euler on the linearised contact
     forces, stable at any step length, so one sub-step per step; the contact models of
-    ``LINEARLY_IMPLICIT_CONTACTS``). The two agree where the contacts are soft and the motion slow, and have the same rest states; in between, the implicit update relaxes
-    stiff contacts less per step (``hydrosoft-stack bench model --sections object-update`` measures the gap).
+    ``LINEARLY_IMPLICIT_CONTACTS``). The two agree where the contacts are soft and the motion slow, and have the
+    same rest states; in between, the implicit update relaxes stiff contacts less per step (``hydrosoft-stack bench model --sections object-update`` measures the gap).
     """
 
     points: Tensor
