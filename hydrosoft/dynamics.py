@@ -102,7 +102,8 @@ class Model:
     above) or ``"linearly_implicit"`` (``_linearly_implicit_motion``: backward Euler on the linearised contact
     forces, stable at any step length, so one sub-step per step; the contact models of
     ``LINEARLY_IMPLICIT_CONTACTS``). The two agree where the contacts are soft and the motion slow, and have the
-    same rest states; in between, the implicit update relaxes stiff contacts less per step (``hydrosoft-stack bench model --sections object-update`` measures the gap).
+    same rest states; in between, the implicit update relaxes stiff contacts less per step (``hydrosoft-stack bench
+    model --sections object-update`` measures the gap).
     """
 
     points: Tensor
