@@ -66,16 +66,14 @@ class State(NamedTuple):
 
 OBJECT_UPDATES = ("explicit", "linearly_implicit")
 """The object updates a ``Model`` can take (``Model.object_update``)."""
-LINEARLY_IMPLICIT_CONTACTS = ("nh", "snh")
+LINEARLY_IMPLICIT_CONTACTS = ("nh", "snh", "nh_pressure_normal")
 """Contact models whose force response the linearly implicit update predicts: the incremental ones, which load a
-point by ``E A`` along the normal and ``K A`` across it until it slides."""
+point by ``E A`` along the normal and ``K A`` across it until it slides, scaled by their ``stiffness_share`` of the
+point's signed distance."""
 STICKING_SHARE = 0.5
 """In the linearly implicit update, a point whose tangential force is at most this share of its friction limit
 ``mu f_n`` sticks (its full tangential stiffness ``K A``), one on the limit slides (none: the cone projection puts
 sliding points exactly on it), and one in between gets the linear blend, so that the update is continuous."""
-STIFFNESS_DEPTH = 5e-4
-"""m: in the linearly implicit update, a point's stiffness ramps in linearly over this depth inside a body (full
-from there on), so that a point crossing the surface does not switch the update discontinuously."""
 
 
 @dataclass(frozen=True)
@@ -102,9 +100,10 @@ class Model:
     ``UnstableStepError``.
     object_update: how step 3 moves the object. ``"explicit"`` (the paper's update, sub-stepped for stability as
     above) or ``"linearly_implicit"`` (``_linearly_implicit_motion``: backward Euler on the linearised contact
-    forces, stable at any step length, so one sub-step per step; NH and SNH only). The two agree where the
-    contacts are soft and the motion slow, and have the same rest states; in between, the implicit update relaxes
-    stiff contacts less per step (``hydrosoft-stack bench model --sections object-update`` measures the gap).
+    forces, stable at any step length, so one sub-step per step; the contact models of
+    ``LINEARLY_IMPLICIT_CONTACTS``). The two agree where the contacts are soft and the motion slow, and have the
+    same rest states; in between, the implicit update relaxes stiff contacts less per step (``hydrosoft-stack bench
+    model --sections object-update`` measures the gap).
     """
 
     points: Tensor
@@ -215,7 +214,28 @@ def with_gathered_points(model: Model) -> Model:
 
 
 class UnstableStepError(ValueError):
-    """A step whose contacts are too stiff for the explicit object update within ``max_substeps`` sub-steps."""
+    """A step that needs more than ``max_substeps`` sub-steps: its contacts are too stiff for the explicit object
+    update, or its bodies turn too far (``MAX_SUBSTEP_TURN``)."""
+
+
+MAX_SUBSTEP_TURN = 0.1
+"""rad: the most a body may turn in one sub-step. The contact update sees only a sub-step's end points, so the
+material of a turning body moves along the chord of its arc: ``2 sin(theta/2)`` instead of ``theta`` per unit
+lever, which vanishes at a full turn (a 2 pi twist per step turned a held cube by 0). At 0.1 rad the chord is
+within 0.05 % of the arc. The task scenes' step limits (at most 4 degrees) stay within one sub-step."""
+
+
+def largest_turn(model: Model, u: Tensor) -> float:
+    """The largest rotation (rad) of an actuated body under the controls ``u (B, M, 6)`` of one step (the norm of
+    their rotation vectors); 0 for no samples."""
+    turn = torch.where(model.actuated.view(1, -1) > 0, u.detach()[..., 3:].norm(dim=-1), 0.0)
+    return float(turn.max()) if turn.numel() else 0.0
+
+
+def substeps_for_turn(turn: float) -> int:
+    """Sub-steps that keep a body's rotation per sub-step at most ``MAX_SUBSTEP_TURN`` when it turns ``turn`` (rad)
+    in one step; at least 1 (a non-finite turn is left to the contact update, which makes the state non-finite)."""
+    return max(1, math.ceil(turn / MAX_SUBSTEP_TURN)) if math.isfinite(turn) else 1
 
 
 def _mass_matrix(model: Model) -> Tensor:
@@ -269,7 +289,10 @@ def substeps_for(model: Model, max_substeps: int, active: Tensor | None = None) 
     Raises ValueError naming the bound when more than ``max_substeps`` would be needed.
     """
     lam = stiffness_bound(model, active)
-    ratio = model.dt**2 * lam / model.epsilon
+    ratio = model.dt * model.dt * lam / model.epsilon
+    if not math.isfinite(ratio):
+        raise ValueError(f"quasi-dynamic step: h^2/epsilon * lambda_max(M^-1 K_c) = {ratio} is not finite (h = "
+                         f"{model.dt} s, epsilon = {model.epsilon} s, lambda <= {lam:.3g} 1/s^2)")
     n = max(1, math.ceil(ratio / STABLE_RATIO))
     if n > max_substeps:
         raise ValueError(
@@ -866,15 +889,18 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
     point ``i`` inside body ``m`` at the start loads by ``A_i S_mi (c_mi - J_i dq)``, with ``c_mi`` the motion of
     the body's material at the point over the sub-step (m), ``J_i`` the point's Jacobian at its lever about the
     centre of mass and ``S = E n n^T + K_eff (I - n n^T)`` (``K_eff = K`` for a sticking point, 0 for one that
-    slides: ``STICKING_SHARE``; both ramped in over ``STIFFNESS_DEPTH``), and its stored force ``f_mi`` turns with
-    the body (by its rotation ``T_m`` over the sub-step, as step 4 turns it). So ``(M / gain + K_c) dq = w +
+    slides: ``STICKING_SHARE``; both scaled by the contact model's ``stiffness_share`` of the point's distance: 1
+    inside the body and 0 outside for NH, the smoothed reset's weight for SNH), and its stored force ``f_mi`` turns
+    with the body (by its rotation ``T_m`` over the sub-step, as step 4 turns it). So ``(M / gain + K_c) dq = w +
     sum_mi J_i^T (A_i S_mi c_mi + (T_m - I) f_mi)`` with the contact stiffness ``K_c = sum_mi A_i J_i^T S_mi J_i``:
     ``d = 3`` (x, y, yaw) planar, else 6, mass matrix in the world frame. Where the forces are linear in the motion
     (sticking points fully inside) the force error then decays by ``1 / (1 + gain lambda)`` per sub-step instead of
     ``1 - gain lambda``: stable for any stiffness, where the explicit update needs ``gain lambda < 2``. Steady
     motion and rest states are the explicit update's: at a constant body velocity the predicted and the start forces
     agree. Points that enter a body during the sub-step are not predicted; the exact contact update (step 4) loads
-    them, and the next sub-step predicts them.
+    them, and the next sub-step predicts them. Every point inside counts fully, however shallow: a stiffness ramped
+    in over the first 0.5 mm of depth instead left most of a stiff, shallow contact's stiffness to the explicit
+    update, and a plate at rest on a table of E = 1e7 Pa/m (0.08 mm deep) rang and left the table after 16 steps.
     ``state.phi`` must be cached (``_substep`` fills it).
     """
     gain = model.dt / model.epsilon * dt_sub
@@ -895,7 +921,7 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
         spare = capacity - se3.safe_norm(f - f_n.unsqueeze(-2) * n, dim=-2)
         ramp = (1 - STICKING_SHARE) * capacity
         sticking = torch.where(ramp > 0, spare / torch.where(ramp > 0, ramp, torch.ones_like(ramp)), 0.0).clamp(0, 1)
-        contact = area * (-phi / STIFFNESS_DEPTH).clamp(0, 1)  # (B, n) m^2
+        contact = area * model.contact.stiffness_share(phi)  # (B, n) m^2
         k_t = model.material.K[m] * sticking * contact  # (B, n) N/m
         k_n = model.material.E[m] * contact - k_t
         lever_b = x - t_b0[:, m]
@@ -910,8 +936,11 @@ def _linearly_implicit_motion(model: Model, state: State, body_poses: Tensor, w:
 
 
 def _normal_wrench(model: Model, state: State) -> Tensor:
-    """Net wrench ``(B, 6)`` of the normal parts of the contact forces and gravity, about the centre of mass."""
-    normal = se3.rotate_vectors(state.object_pose, -model.normals).unsqueeze(1)
+    """Net wrench ``(B, 6)`` of the normal parts of the contact forces and gravity, about the centre of mass.
+
+    The normals turn by the rotation matrix of the object's quaternion, normalised on the fly as in the rest of the
+    step, so a quaternion of any scale gives the same wrench."""
+    normal = (se3.quat_to_matrix(state.object_pose[:, 3:]) @ -model.normals.mT).mT.unsqueeze(1)
     forces = (state.forces * normal).sum(-1, keepdim=True) * normal
     return object_wrench(model, state._replace(forces=forces))
 
@@ -958,15 +987,25 @@ def _integrate(model: Model, state: State, u: Tensor, substep, n: int) -> State:
 
 def _checked_step(model: Model, state: State, u: Tensor, substep, start_substeps: int | None = None
                   ) -> tuple[State, int | None]:
-    """One step with as many sub-steps as its contacts need, checked at its start and its end.
+    """One step with as many sub-steps as its contacts and its bodies' turns need, checked at its start and its end.
 
     The sub-step count is ``substeps_needed`` at the start (or ``start_substeps`` when the caller already knows
-    it for this very state); if the end state's contacts need more (the step pressed deeper), the step is run
-    again from the same start with that many. A state past the bound never passes silently: beyond
-    ``model.max_substeps`` it raises ``UnstableStepError``. Returns the state and ``substeps_needed`` of that
-    state, which the next step from it would compute again (None after a re-run, whose end was not checked).
+    it for this very state), raised to ``substeps_for_turn`` of the controls' largest turn; if the end state's
+    contacts need more (the step pressed deeper), the step is run again from the same start with that many. A state
+    past the bound never passes silently: beyond ``model.max_substeps`` it raises ``UnstableStepError``. Returns the
+    state and ``substeps_needed`` of that state, which the next step from it would compute again (None after a
+    re-run, whose end was not checked).
     """
     n = substeps_needed(model, state) if start_substeps is None else start_substeps
+    turn = largest_turn(model, u)
+    turning = substeps_for_turn(turn)
+    if turning > model.max_substeps:
+        raise UnstableStepError(
+            f"a body turns {turn:.3g} rad in one step: that needs {turning} sub-steps "
+            f"of at most {MAX_SUBSTEP_TURN} rad (a larger turn per sub-step aliases: the contacts see only its chord), "
+            f"but max_substeps = {model.max_substeps}. Split the motion over more steps or raise max_substeps."
+        )
+    n = max(n, turning)
     out = _integrate(model, state, u, substep, n)
     n_end = substeps_needed(model, out)
     if n_end > n:
@@ -1103,6 +1142,11 @@ def rollout(model: Model, state: State, controls: Tensor) -> list[State]:
     return states
 
 
+def _unit_quaternions(poses: Tensor) -> Tensor:
+    """Poses ``(..., 7)`` with their quaternions normalised."""
+    return torch.cat([poses[..., :3], se3.quat_normalize(poses[..., 3:])], dim=-1)
+
+
 def press_in(model: Model, object_pose: Tensor, body_poses: Tensor, steps: int = 4) -> State:
     """The state reached by pressing each body straight into its given pose from contact-free.
 
@@ -1111,7 +1155,9 @@ def press_in(model: Model, object_pose: Tensor, body_poses: Tensor, steps: int =
     ``steps`` kinematic steps with the model's contact model, the object held still. This is the consistent
     initial force state for a scene that starts in contact (an object resting on a table, held in a grasp):
     for NH, faces pressed along their normal carry ``E A depth`` and faces sliding in tangentially carry none.
+    The poses' quaternions are normalised first, so their scale does not matter.
     """
+    object_pose, body_poses = _unit_quaternions(object_pose), _unit_quaternions(body_poses)
     points = se3.transform_points(object_pose, model.points).unsqueeze(1)
     local = se3.transform_points(se3.inverse(body_poses), points)
     depth = torch.relu(-signed_distances(model, local)).amax(-1)

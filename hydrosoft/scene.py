@@ -60,6 +60,13 @@ from hydrosoft.geometry import surface as surfaces
 
 OBJECT_SHAPES = ("plate", "box", "cube", "triangle_prism", "trapezoid_prism", "cylinder", "mesh")
 IDENTITY_POSE = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+MAX_SURFACE_POINTS = 100_000
+"""Most surface points an object may have: each point costs every step of every planner sample a force state per
+body, so more would exhaust memory (a 0.1 mm spacing on a 5 cm cube asks for 1.5 million)."""
+MAX_SUBSTEPS = 10_000
+"""Most sub-steps a scene may allow per step (``max_substeps``): more would take seconds per step."""
+MAX_GRAVITY = 1e3
+"""m/s^2: the largest gravity a scene may have (about 100 g); far beyond it the forces overflow."""
 
 
 class SceneError(ValueError):
@@ -150,10 +157,19 @@ class Scene(msgspec.Struct, forbid_unknown_fields=True):
             value = getattr(self, field)
             if not (value >= 0 and math.isfinite(value)):
                 raise SceneError(f"{field}: must be a non-negative number of metres, got {value}")
+        if not math.isfinite(self.dt * self.dt / self.epsilon):
+            raise SceneError(
+                f"dt: the step's gain dt^2/epsilon overflows (dt = {self.dt} s, epsilon = {self.epsilon} s)")
         if len(self.gravity) != 3 or not all(math.isfinite(g) for g in self.gravity):
             raise SceneError(f"gravity: must be 3 finite numbers (m/s^2), got {self.gravity}")
-        if self.max_substeps < 1:
-            raise SceneError(f"max_substeps: must be at least 1, got {self.max_substeps}")
+        if math.hypot(*self.gravity) > MAX_GRAVITY:
+            raise SceneError(f"gravity: its magnitude must be at most {MAX_GRAVITY:g} m/s^2, got {self.gravity}")
+        if not 1 <= self.max_substeps <= MAX_SUBSTEPS:
+            raise SceneError(f"max_substeps: must be 1..{MAX_SUBSTEPS}, got {self.max_substeps}")
+        try:
+            contact_models.make(self.contact, **self.contact_params)
+        except ValueError as err:
+            raise SceneError(f"contact_params.{err}") from None
 
 
 def parse_scene(text: str | bytes, origin: str = "scene") -> Scene:
@@ -196,14 +212,29 @@ class CompileReport:
         )
 
 
-def build_surface(spec: ObjectSpec) -> surfaces.Surface:
-    """The object's discretized surface from its spec."""
+def _surface(spec: ObjectSpec, spacing: float) -> surfaces.Surface:
+    """The object's surface at ``spacing`` (m); SceneError naming ``object.params`` for bad sizes."""
     try:
         if spec.shape == "mesh":
-            return surfaces.from_mesh(spec.path, spacing=spec.spacing)
-        return getattr(surfaces, spec.shape)(spacing=spec.spacing, **spec.params)
-    except TypeError as err:
+            return surfaces.from_mesh(spec.path, spacing=spacing)
+        return getattr(surfaces, spec.shape)(spacing=spacing, **spec.params)
+    except (TypeError, ValueError) as err:
         raise SceneError(f"object.params: {err}") from err
+
+
+def build_surface(spec: ObjectSpec) -> surfaces.Surface:
+    """The object's discretized surface from its spec.
+
+    Raises SceneError naming ``object.spacing`` before building a surface of more than ``MAX_SURFACE_POINTS``
+    points: the count is estimated as the surface area (exact from one cell per face) over ``spacing^2``.
+    """
+    estimate = _surface(spec, math.inf).total_area / spec.spacing**2
+    if not estimate <= MAX_SURFACE_POINTS:
+        raise SceneError(
+            f"object.spacing: {spec.spacing} m would make about {estimate:.3g} surface points, more than the "
+            f"{MAX_SURFACE_POINTS} allowed; raise the spacing"
+        )
+    return _surface(spec, spec.spacing)
 
 
 def build_sdf(spec: BodySpec):
@@ -216,8 +247,8 @@ def build_sdf(spec: BodySpec):
 
 def _check_planar(scene: Scene) -> None:
     g = scene.gravity
-    if abs(g[0]) > 1e-12 or abs(g[1]) > 1e-12 or g[2] > 0:
-        raise SceneError(f"planar: a planar scene needs gravity along -z, got {g}")
+    if abs(g[0]) > 1e-12 or abs(g[1]) > 1e-12 or not g[2] < 0:
+        raise SceneError(f"planar: a planar scene needs gravity along -z (its table carries the weight), got {g}")
     qw, qx, qy, _ = scene.object.pose[3:]
     if abs(qx) > 1e-9 or abs(qy) > 1e-9:
         raise SceneError("planar: the object must be upright (its pose may only rotate about z)")

@@ -277,7 +277,7 @@ class PlannerConfig(Strict):
     the bubble back onto an object it lost (``services/reapproach.py``; one-arm scenes) before it fails; 0: a lost
     object fails the goal at once."""
 
-    model: Literal["nh", "snh", "pf", "pff"] = "nh"
+    model: Literal["nh", "snh", "pf", "pff", "nh_pressure_normal"] = "nh"
     spacing: float = 0.0125
     samples: int = 16
     elites: int = 4
@@ -310,8 +310,10 @@ class PlannerConfig(Strict):
                  f"{self.workers}")
         for key, value in self.max_age_s.items():
             _require(value > 0, f"planner.max_age_s.{key}", f"must be > 0 s, got {value}")
-        _require(self.object_update == "explicit" or self.model in ("nh", "snh"), "planner.object_update",
-                 f"linearly_implicit needs an NH or SNH planner (planner.model), got {self.model!r}")
+        _require(self.object_update == "explicit" or self.model in ("nh", "snh", "nh_pressure_normal"),
+                 "planner.object_update",
+                 f"linearly_implicit needs an NH, SNH or nh_pressure_normal planner (planner.model), "
+                 f"got {self.model!r}")
 
 
 MAX_SIM_FT_BIAS_N = 100.0

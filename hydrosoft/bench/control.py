@@ -72,7 +72,8 @@ TASK_TITLES = {
     "rolling": "Rolling",
     "in_hand": "In-hand Rotation",
 }
-MODEL_TITLES = {"nh": "Non-holonomic", "snh": "Smoothed NH", "pf": "Pressure Field", "pff": "PF Frictionless"}
+MODEL_TITLES = {"nh": "Non-holonomic", "snh": "Smoothed NH", "pf": "Pressure Field", "pff": "PF Frictionless",
+                "nh_pressure_normal": "NH, pressure normal"}
 FULL = {"spacing": 0.0084, "samples": 64, "elites": 8, "horizon": 10, "grad_steps": 2, "open_loop_iterations": 4,
         "goals": 10, "rate_solves": 5}
 QUICK = {"spacing": 0.0125, "samples": 16, "elites": 4, "horizon": 6, "grad_steps": 1, "open_loop_iterations": 3,
@@ -88,7 +89,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tasks", type=_csv, default=list(TASK_TITLES), metavar="T1,T2",
                         help="tasks: pushing,rotation,rolling,in_hand (default all)")
     parser.add_argument("--models", type=_csv, default=["nh", "pf", "pff"], metavar="M1,M2",
-                        help="planner contact models: nh,snh,pf,pff (default nh,pf,pff)")
+                        help="planner contact models: nh,snh,pf,pff,nh_pressure_normal (default nh,pf,pff)")
     parser.add_argument("--loops", type=_csv, default=["open", "closed"], metavar="L1,L2",
                         help="open,closed (default both)")
     parser.add_argument("--goals", type=int, default=None, help="seeded goals per task (default 10, quick 2)")

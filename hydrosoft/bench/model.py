@@ -1,4 +1,4 @@
-"""``hydrosoft-stack bench model``: step speed, memory and force accuracy of the four contact models.
+"""``hydrosoft-stack bench model``: step speed, memory and force accuracy of the contact models.
 
 Seven sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
 "wrench": [...], "object_update": [...], "pruning": [...], "point_sets": [...], "loop_tails": [...]}``, otherwise
@@ -7,9 +7,9 @@ as tables. Progress goes to stderr.
 ``rows``: one quasi-dynamic step (``dynamics.step``) of the planar pushing scene, a Soft Bubble (ellipsoid) pressed
 5 mm into a cube resting on the table (half-space): ``M = 2`` bodies, the cube's surface discretised to about
 ``points`` points, all kept (``compile_scene(prune=False)``, so ``N`` is what was asked for), for each contact
-model (nh, snh, pf, pff), dtype (float32, float64), batch ``B`` and point count ``N``. The step is timed in
-steady state: from a state whose signed distances are cached (every step of a rollout after the first), with the
-model's ``substeps = 1`` and a random sub-millimetre bubble motion per sample.
+model (nh, snh, pf, pff, nh_pressure_normal), dtype (float32, float64), batch ``B`` and point count ``N``. The step
+is timed in steady state: from a state whose signed distances are cached (every step of a rollout after the first),
+with the model's ``substeps = 1`` and a random sub-millimetre bubble motion per sample.
 
 - ``substeps``: the sub-steps that step takes: the run-time stability check (``dynamics.substeps_needed``) raises
   ``substeps = 1`` to what the current contacts need (3 for the unpruned 600-point scene). ``check_ms``: one
@@ -84,7 +84,8 @@ import weakref
 from collections.abc import Callable
 from typing import Any
 
-FULL_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,16,64,256", "points": "100,500,2000"}
+FULL_GRID = {"models": "nh,snh,pf,pff,nh_pressure_normal", "dtypes": "float32,float64", "batches": "1,16,64,256",
+             "points": "100,500,2000"}
 QUICK_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,64", "points": "100,500"}
 
 SECTIONS = ("rows", "accuracy", "wrench", "object-update", "pruning", "point-sets", "loop-tails")
@@ -103,7 +104,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch CPU threads (default: torch's own choice); reported in config")
     parser.add_argument("--compile", action="store_true",
                         help="also time the torch.compile'd step (dynamics.CompiledStep); compiling takes minutes")
-    parser.add_argument("--models", default=None, help="comma list of contact models (default nh,snh,pf,pff)")
+    parser.add_argument("--models", default=None,
+                        help="comma list of contact models (default nh,snh,pf,pff,nh_pressure_normal)")
     parser.add_argument("--dtypes", default=None, help="comma list: float32,float64 (float64 is always timed)")
     parser.add_argument("--batches", default=None, help="comma list of batch sizes (default 1,16,64,256)")
     parser.add_argument("--points", default=None, help="comma list of surface point counts (default 100,500,2000)")
@@ -508,7 +510,8 @@ class _Bench:
         settings += [("float32", "nh", {}, ref_points, ref_steps, torch.float32)]
         settings += [(f"smoothed nh: beta {b:.0e}/m", "snh", {"beta": b}, ref_points, ref_steps, torch.float64)
                      for b in betas]
-        settings += [(f"model: {m}", m, {}, ref_points, ref_steps, torch.float64) for m in ("pf", "pff")]
+        settings += [(f"model: {m}", m, {}, ref_points, ref_steps, torch.float64)
+                     for m in ("pf", "pff", "nh_pressure_normal")]
         reference = None
         out = []
         for label, contact, params, n_points, path_steps, dtype in settings:

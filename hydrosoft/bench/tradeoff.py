@@ -37,7 +37,7 @@ SWEEP = {
     "spacing": [0.0167, 0.0125, 0.0084],
     "dt": [1, 2],
     "dtype": ["float64", "float32"],
-    "model": ["nh", "snh"],
+    "model": ["nh", "snh", "nh_pressure_normal"],
     "sdf_solver_steps": [None, 2],
     "object_update": ["explicit", "linearly_implicit"],
 }

@@ -57,7 +57,7 @@ PAPER_TABLE_II = {
     "cylinder_r15": {"nh": (1.80, 0.50), "pf": (2.64, 0.72), "pff": (1.58, 0.44)},
     "cylinder_r25": {"nh": (1.69, 0.37), "pf": (3.20, 0.85), "pff": (1.75, 0.57)},
 }
-MODEL_TITLES = {"nh": "NH", "snh": "SNH", "pf": "PF", "pff": "PFF"}
+MODEL_TITLES = {"nh": "NH", "snh": "SNH", "pf": "PF", "pff": "PFF", "nh_pressure_normal": "NH-PN"}
 DEFAULT_MODELS = ("nh", "pf", "pff")
 
 
@@ -70,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recordings", nargs="+", type=Path,
                         help="wrench-<object>.mcap files of `hydrosoft-stack collect wrench`, or folders of them")
     parser.add_argument("--models", type=_csv, default=list(DEFAULT_MODELS), metavar="M1,M2",
-                        help="contact models: nh,snh,pf,pff (default nh,pf,pff)")
+                        help="contact models: nh,snh,pf,pff,nh_pressure_normal (default nh,pf,pff)")
     parser.add_argument("--spacing", type=float, default=None,
                         help="object surface spacing of the models, m (default: the sim plant's, recorded in the "
                              "file; 0.005 for lab recordings)")

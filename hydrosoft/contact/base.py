@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Protocol
 
 from torch import Tensor
@@ -16,6 +17,13 @@ class Material(NamedTuple):
     E: Tensor
     K: Tensor
     mu: Tensor
+
+
+def check_positive_parameter(name: str, value: float, unit: str) -> None:
+    """ValueError naming the contact model parameter ``name`` unless ``value`` is a positive finite number of
+    ``unit``."""
+    if not (isinstance(value, (int, float)) and 0 < value < math.inf):
+        raise ValueError(f"{name}: must be a positive finite number of {unit}, got {value!r}")
 
 
 class ContactStep(NamedTuple):

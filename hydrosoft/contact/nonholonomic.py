@@ -1,4 +1,5 @@
-"""Non-holonomic incremental hydroelastic model (NH, paper eq. 14-20) and its smoothed relaxation (IV-C).
+"""Non-holonomic incremental hydroelastic model (NH, paper eq. 14-20), its smoothed relaxation (IV-C), and NH with
+the pressure field's normal force (``NonHolonomicPressureNormal``).
 
 Each object surface point carries a force state. Per step the displacement of the body material relative to
 the point, ``r = p_k - p_{k+1}``, is split along the contact normal: the normal part loads the point with
@@ -17,8 +18,8 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from hydrosoft.contact.base import ContactStep, Material
-from hydrosoft.contact.cone import project_to_cone
+from hydrosoft.contact.base import ContactStep, Material, check_positive_parameter
+from hydrosoft.contact.cone import project_to_cone, split_normal
 
 
 def inside_fraction(phi_prev: Tensor, phi_next: Tensor) -> Tensor:
@@ -60,6 +61,11 @@ class NonHolonomic:
 
     name: ClassVar[str] = "nh"
 
+    def stiffness_share(self, phi: Tensor) -> Tensor:
+        """The share ``(...)`` of ``E A`` and ``K A`` with which a point at signed distance ``phi (...)`` (m) loads per
+        unit of motion: 1 inside the body (``phi <= 0``), 0 outside."""
+        return (phi <= 0).to(phi.dtype)
+
     def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
         """Next forces ``(B, M, N, 3)`` from the previous ``forces (B, M, N, 3)`` (``ContactModel`` on ``axis``)."""
         alpha = inside_fraction(geometry.phi_prev, geometry.phi_next)
@@ -82,8 +88,45 @@ class SmoothedNonHolonomic:
     beta: float = 1e4
     name: ClassVar[str] = "snh"
 
+    def __post_init__(self) -> None:
+        check_positive_parameter("beta", self.beta, "1/m")
+
+    def stiffness_share(self, phi: Tensor) -> Tensor:
+        """The share ``sigmoid(-beta phi) (...)`` of ``E A`` and ``K A`` with which a point at signed distance
+        ``phi (...)`` (m) loads per unit of motion: every point loads, scaled by the smoothed reset."""
+        return torch.sigmoid(-self.beta * phi)
+
     def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
         """Next forces ``(B, M, N, 3)`` from the previous ``forces (B, M, N, 3)`` (``ContactModel`` on ``axis``)."""
         f_n, f_t = _accumulate(forces, geometry.displacement, geometry, material, axis)
         weight = torch.sigmoid(-self.beta * geometry.phi_next)
         return weight.unsqueeze(axis) * (f_n.unsqueeze(axis) * geometry.normal + f_t)
+
+
+@dataclass(frozen=True)
+class NonHolonomicPressureNormal:
+    """NH's path-dependent shear and stick-slip (eq. 14, 15, 17, 19, reset 20) with the pressure field's normal force.
+
+    The normal force is not integrated (eq. 16) but taken from the current penetration, ``f_n = E A max(-phi_{k+1},
+    0)`` as in PF (eq. 3). NH's integrated normal force drifts wherever a contact slides without changing its depth:
+    the increments ``E A d_n`` are split against the object's own normal, so a tilted face sliding along a table
+    gains ``E A tan(tilt)`` per metre slid, and points crossing a body's edge leave with their force while the
+    points that replace them start from zero. Here the normal force depends on the pose alone, and only the
+    tangential force keeps its history: the previous force's tangential part plus ``K A d_t`` (the stick spring,
+    eq. 17) projected onto the cone ``mu f_n`` (slip, eq. 19).
+    """
+
+    name: ClassVar[str] = "nh_pressure_normal"
+    stiffness_share = NonHolonomic.stiffness_share
+
+    def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
+        """Next forces ``(B, M, N, 3)`` from the previous ``forces (B, M, N, 3)`` (``ContactModel`` on ``axis``)."""
+        alpha = inside_fraction(geometry.phi_prev, geometry.phi_next)
+        KA = material.K.view(1, -1, 1) * geometry.area
+        g = forces + (KA * alpha).unsqueeze(axis) * geometry.displacement
+        _, g_t = split_normal(g, geometry.normal, axis)
+        depth = torch.relu(-geometry.phi_next)
+        f_n, f_t = project_to_cone(material.E.view(1, -1, 1) * geometry.area * depth, g_t,
+                                   material.mu.view(1, -1, 1), axis)
+        inside = (geometry.phi_next <= 0).to(f_n.dtype)
+        return inside.unsqueeze(axis) * (f_n.unsqueeze(axis) * geometry.normal + f_t)

@@ -8,7 +8,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from hydrosoft.contact.base import ContactStep, Material
+from hydrosoft.contact.base import ContactStep, Material, check_positive_parameter
 from hydrosoft.contact.cone import split_normal
 from hydrosoft.geometry.se3 import safe_norm
 
@@ -49,6 +49,9 @@ class PressureField:
     slip_tolerance: float = 1e-7
     name: ClassVar[str] = "pf"
     implicit_friction: ClassVar[bool] = True
+
+    def __post_init__(self) -> None:
+        check_positive_parameter("slip_tolerance", self.slip_tolerance, "m")
 
     def step(self, geometry: ContactStep, forces: Tensor, material: Material, axis: int = -1) -> Tensor:
         """Forces ``(B, M, N, 3)``; ``forces`` (the previous state) is ignored (``ContactModel`` on ``axis``)."""

@@ -21,8 +21,11 @@ from torch import Tensor
 from hydrosoft.geometry.se3 import safe_norm
 
 
-def _positive(name: str, *values: float) -> tuple[float, ...]:
-    """The values as floats, or ValueError if one is not strictly positive and finite."""
+def _positive(name: str, *values: float, count: int | None = None) -> tuple[float, ...]:
+    """The values as floats, or ValueError naming ``name`` if one is not strictly positive and finite, or if there
+    are not ``count`` of them (when given)."""
+    if count is not None and len(values) != count:
+        raise ValueError(f"{name} must be {count} lengths (m), got {len(values)}: {values}")
     out = tuple(float(v) for v in values)
     if not all(0.0 < v < math.inf for v in out):
         raise ValueError(f"{name} must be positive and finite, got {values}")
@@ -82,7 +85,7 @@ class Box:
     lipschitz = 1.0
 
     def __post_init__(self):
-        object.__setattr__(self, "half_extents", _positive("half_extents", *self.half_extents))
+        object.__setattr__(self, "half_extents", _positive("half_extents", *self.half_extents, count=3))
 
     @property
     def bounding_radius(self) -> float:
@@ -189,7 +192,7 @@ class Ellipsoid:
     MAX_SOLVER_STEPS = 32  # most points converge in ~6; the slowest, next to the medial surface, in ~24
 
     def __post_init__(self):
-        object.__setattr__(self, "radii", _positive("radii", *self.radii))
+        object.__setattr__(self, "radii", _positive("radii", *self.radii, count=3))
         if self.solver_steps is not None and not 0 <= int(self.solver_steps) <= self.MAX_SOLVER_STEPS:
             raise ValueError(f"solver_steps must be None (solve to convergence) or 0..{self.MAX_SOLVER_STEPS}, "
                              f"got {self.solver_steps}")

@@ -84,10 +84,10 @@ class Surface:
 
 
 def _check_positive(**sizes: float) -> None:
-    """ValueError naming the sizes (m) that are not strictly positive."""
-    bad = {name: value for name, value in sizes.items() if not value > 0}
+    """ValueError naming the sizes (m) that are not positive finite numbers."""
+    bad = {name: value for name, value in sizes.items() if not 0 < value < math.inf}
     if bad:
-        raise ValueError(f"sizes must be positive, got {bad}")
+        raise ValueError(f"{', '.join(bad)}: must be positive finite lengths in metres, got {bad}")
 
 
 def _cells(n: float, spacing: float) -> int:
@@ -175,6 +175,8 @@ def _prism(polygon: list[tuple[float, float]], length: float, spacing: float) ->
 
 def box(size: tuple[float, float, float] = (0.05, 0.05, 0.05), spacing: float = 0.005) -> Surface:
     """Box of edge lengths ``size = (x, y, z)`` (m), centred, axis-aligned."""
+    if len(size) != 3:
+        raise ValueError(f"size: must be 3 edge lengths (x, y, z) in metres, got {size}")
     sx, sy, sz = (float(s) for s in size)
     _check_positive(x=sx, y=sy, z=sz)
     return _prism([(-sx / 2, -sz / 2), (sx / 2, -sz / 2), (sx / 2, sz / 2), (-sx / 2, sz / 2)], sy, spacing)
@@ -184,11 +186,13 @@ def plate(
     length: float = 0.10, width: float = 0.10, thickness: float = 0.005, spacing: float = 0.005
 ) -> Surface:
     """Flat plate: ``length`` along x, ``width`` along y, ``thickness`` along z (m)."""
+    _check_positive(length=length, width=width, thickness=thickness)
     return box((length, width, thickness), spacing)
 
 
 def cube(side: float = 0.05, spacing: float = 0.005) -> Surface:
     """Cube of edge ``side`` (m)."""
+    _check_positive(side=side)
     return box((side, side, side), spacing)
 
 

@@ -59,9 +59,9 @@ Loop = Literal["open", "closed"]
 class PlannerSettings:
     """The planner's model and CEM-GD settings (paper Algorithm 1).
 
-    model: contact model (``nh``, ``snh``, ``pf``, ``pff``). spacing: object surface spacing (m), None for the
-    scene's. samples B, elites M, horizon K, grad_steps G, cem_iterations per closed-loop solve;
-    open_loop_iterations: CEM rounds of the single open-loop solve. substep_factor: sub-steps per compiled sub-step
+    model: contact model (``nh``, ``snh``, ``pf``, ``pff``, ``nh_pressure_normal``). spacing: object surface
+    spacing (m), None for the scene's. samples B, elites M, horizon K, grad_steps G, cem_iterations per closed-loop
+    solve; open_loop_iterations: CEM rounds of the single open-loop solve. substep_factor: sub-steps per compiled sub-step
     (a finer integration step ``dt / (substeps * factor)`` within each control step). lr, init_std, min_std: fractions of the
     action half-range (``CemGdConfig``). dtype: the planner's float type. seed: the solver's seed.
     workers: solver threads that each roll out a share of the B samples (``CemGdConfig.workers``; 1: none).

@@ -150,7 +150,7 @@ def test_make_rejects_unknown_model():
         make("hydro")
 
 
-@pytest.mark.parametrize("name", ["pf", "pff", "nh", "snh"])
+@pytest.mark.parametrize("name", ["pf", "pff", "nh", "snh", "nh_pressure_normal"])
 def test_every_model_steps_coordinate_major_vectors_alike(name):
     """``step(..., axis=-2)`` on ``(B, M, 3, N)`` vectors is ``step`` on their ``(B, M, N, 3)`` transposes: the same
     forces, transposed, for random depths (in, out and crossing), displacements, normals and forces, some of them

@@ -2,6 +2,9 @@
 beta 1..1e6 /m, float32 and float64. Either the compiler refuses with the stability bound, or the rollout has
 finite forces and gradients, forces inside the cone and unit quaternions."""
 
+import math
+from dataclasses import replace
+
 import msgspec
 import pytest
 import torch
@@ -9,7 +12,7 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from hydrosoft.contact.cone import split_normal
-from hydrosoft.dynamics import UnstableStepError, step
+from hydrosoft.dynamics import UnstableStepError, press_in, step
 from hydrosoft.geometry import se3
 from hydrosoft.scene import SceneError, compile_scene
 from hydrosoft.tasks.scenes import task_scene
@@ -76,3 +79,54 @@ def test_grazing_start_exactly_on_the_surface(dtype):
         state = step(model, state, moved)
     (g,) = torch.autograd.grad(state.forces.sum() + state.object_pose.sum(), u)
     assert torch.isfinite(state.forces).all() and torch.isfinite(g).all()
+
+
+@pytest.mark.parametrize("contact", ["nh", "snh", "pf", "pff"])
+def test_a_step_does_not_depend_on_the_quaternions_scale(contact):
+    """Issue 34, answer 4: the rolling scene's object quaternion scaled to norm 2 (and the bodies' to norm 3) gives the
+    same step and the same pressed-in forces as the unit quaternions (PF moved 0.56 mm further and ``press_in`` put
+    1.3 N elsewhere)."""
+    model, state, _ = compile_scene(msgspec.structs.replace(task_scene("rolling"), contact=contact))
+    u = torch.zeros(1, model.n_bodies, 6, dtype=torch.float64)
+    u[0, 0, 0] = 0.002
+    scaled_object = torch.cat([state.object_pose[:, :3], 2 * state.object_pose[:, 3:]], -1)
+    scaled_bodies = torch.cat([state.body_poses[..., :3], 3 * state.body_poses[..., 3:]], -1)
+    pressed = press_in(model, scaled_object, scaled_bodies)
+    assert torch.equal(pressed.forces, press_in(model, state.object_pose, state.body_poses).forces)
+    unit, scaled = step(model, state, u), step(model, state._replace(object_pose=scaled_object, phi=None), u)
+    assert torch.allclose(scaled.object_pose, unit.object_pose, rtol=0, atol=1e-12)
+    assert torch.allclose(scaled.forces, unit.forces, rtol=0, atol=1e-9)
+
+
+def coarse_in_hand():
+    scene = task_scene("in_hand")
+    return compile_scene(msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, spacing=0.0125)))
+
+
+def cube_turn(model, state, twist, steps):
+    """The cube's turn about x (rad) after both bubbles twist by ``twist`` (rad) about x over ``steps`` steps."""
+    u = torch.zeros(1, model.n_bodies, 6, dtype=torch.float64)
+    u[0, :2, 3] = twist / steps
+    for _ in range(steps):
+        state = step(model, state, u)
+    return se3.so3_log(state.object_pose[:, 3:])[0, 0].item()
+
+
+@pytest.mark.parametrize("twist", [math.pi / 2, 2 * math.pi])
+def test_a_large_twist_per_step_turns_the_object_as_the_split_motion_does(twist):
+    """Issue 34, answer 5: twisting the in-hand bubbles by pi/2 and 2 pi in one step turned the cube 0.132 and 0 rad
+    (the contacts saw only the chord of the arc). Sub-stepped to 0.1 rad per sub-step, one step turns it as the
+    same motion split into steps of 0.05 rad (each of dt/k with epsilon/k, the same total relaxation) to 5 %."""
+    model, state, _ = coarse_in_hand()
+    k = math.ceil(twist / 0.05)
+    split = cube_turn(replace(model, dt=model.dt / k, epsilon=model.epsilon / k), state, twist, k)
+    assert split > 0.2
+    assert cube_turn(model, state, twist, 1) == pytest.approx(split, rel=0.05)
+
+
+def test_a_twist_needing_more_than_max_substeps_is_refused_naming_the_turn():
+    model, state, _ = coarse_in_hand()
+    u = torch.zeros(1, model.n_bodies, 6, dtype=torch.float64)
+    u[0, :2, 3] = 2 * math.pi
+    with pytest.raises(UnstableStepError, match=r"turns 6\.28 rad in one step: that needs 63 sub-steps"):
+        step(replace(model, max_substeps=16), state, u)

@@ -1,0 +1,134 @@
+"""Property tests of the step (issue 34, "still untested"): Newton's third law, no force without penetration, no
+yaw from a symmetric push, grazing contact at 1e-12 m, a cube's edge and corner on the table, and an object point
+at the bubble's centre."""
+
+import math
+
+import msgspec
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hydrosoft.contact import ContactStep, Material, make
+from hydrosoft.contact.cone import split_normal
+from hydrosoft.dynamics import body_wrenches, step
+from hydrosoft.geometry import se3
+from hydrosoft.geometry.sdf import Ellipsoid
+from hydrosoft.scene import compile_scene
+from hydrosoft.tasks.scenes import task_scene
+
+replace = msgspec.structs.replace
+
+
+def coarse(task, **fields):
+    scene = task_scene(task)
+    return compile_scene(replace(scene, object=replace(scene.object, spacing=0.0125), **fields))
+
+
+@settings(max_examples=10, deadline=None)
+@given(push=st.lists(st.floats(-2e-3, 2e-3), min_size=3, max_size=3), turn=st.floats(-0.05, 0.05))
+def test_every_step_keeps_newtons_third_law(push, turn):
+    """The wrenches the object applies to the bodies are minus the wrench of the bodies' forces on it: the forces sum
+    to zero and so do the torques, taken about the world origin."""
+    model, state, _ = coarse("rolling")
+    u = torch.zeros(1, model.n_bodies, 6, dtype=torch.float64)
+    u[0, 0, :3], u[0, 0, 5] = torch.tensor(push, dtype=torch.float64), turn
+    for _ in range(2):
+        state = step(model, state, u)
+    on_bodies = body_wrenches(model, state)[0]
+    points = se3.transform_points(state.object_pose, model.points)[0]
+    on_object = state.forces[0].sum(0)
+    force = on_object.sum(0)
+    torque = torch.linalg.cross(points, on_object).sum(0)
+    body_origins = state.body_poses[0, :, :3]
+    body_torque = (on_bodies[:, 3:] + torch.linalg.cross(body_origins, on_bodies[:, :3])).sum(0)
+    scale = on_object.norm(dim=-1).sum()
+    assert scale > 0
+    assert (on_bodies[:, :3].sum(0) + force).abs().max() <= 1e-12 * scale
+    assert (body_torque + torque).abs().max() <= 1e-12 * scale
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(["nh", "pf", "pff", "nh_pressure_normal"]),
+       phi_prev=st.lists(st.floats(-3e-3, 3e-3), min_size=5, max_size=5),
+       phi_next=st.lists(st.floats(1e-15, 3e-3), min_size=5, max_size=5),
+       seed=st.integers(0, 99))
+def test_no_point_outside_a_body_carries_force(name, phi_prev, phi_next, seed):
+    """Whatever the previous force and the motion, a point outside the body after the step (phi > 0) carries
+    exactly zero force (smoothed NH is left out: its reset is smooth on purpose)."""
+    g = torch.Generator().manual_seed(seed)
+    normal = torch.nn.functional.normalize(torch.randn(1, 1, 5, 3, generator=g, dtype=torch.float64), dim=-1)
+    geometry = ContactStep(phi_prev=torch.tensor(phi_prev, dtype=torch.float64).view(1, 1, 5),
+                           phi_next=torch.tensor(phi_next, dtype=torch.float64).view(1, 1, 5),
+                           displacement=1e-3 * torch.randn(1, 1, 5, 3, generator=g, dtype=torch.float64),
+                           normal=normal, area=torch.full((5,), 1e-4, dtype=torch.float64))
+    forces = torch.randn(1, 1, 5, 3, generator=g, dtype=torch.float64)
+    material = Material(*(torch.tensor([v], dtype=torch.float64) for v in (1e5, 3e4, 0.5)))
+    assert torch.count_nonzero(make(name).step(geometry, forces, material)) == 0
+
+
+def test_a_push_through_the_centre_line_turns_nothing():
+    """The pushing scene is mirror-symmetric about y = 0: a bubble push along x keeps the cube's yaw at 0 and its
+    y at 0 (to 1e-12) over ten steps."""
+    model, state, _ = compile_scene(task_scene("pushing"))
+    u = torch.zeros(1, model.n_bodies, 6, dtype=torch.float64)
+    u[0, 0, 0] = 2e-3
+    start = state.object_pose
+    for _ in range(10):
+        state = step(model, state, u)
+    assert state.object_pose[0, 0] - start[0, 0] > 5e-3
+    assert abs(se3.yaw(state.object_pose).item()) < 1e-12 and abs(state.object_pose[0, 1].item()) < 1e-12
+
+
+@pytest.mark.parametrize("offset", [1e-12, -1e-12])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_cube_grazing_the_table_by_1e_12_m_slides_with_finite_forces_and_gradients(offset, dtype):
+    scene = task_scene("pushing")
+    scene = replace(scene, object=replace(scene.object, pose=[0, 0, 0.025 - offset, 1, 0, 0, 0]))
+    model, state, _ = compile_scene(scene, dtype=dtype)
+    u = torch.zeros(1, model.n_bodies, 6, dtype=dtype, requires_grad=True)
+    moved = u + torch.tensor([0.002, 0, 0, 0, 0, 0], dtype=dtype)
+    for _ in range(3):
+        state = step(model, state, moved)
+    (g,) = torch.autograd.grad(state.forces.sum() + state.object_pose.sum(), u)
+    assert torch.isfinite(state.forces).all() and torch.isfinite(g).all()
+
+
+def tilted_cube(tilt, corner):
+    """The rolling scene's table with a 5 cm cube standing on an edge (turned 45 deg about x) or a corner (also about
+    y by atan(1/sqrt 2)), its lowest point 1 mm into the table; the bubble far above."""
+    edge = se3.so3_exp(torch.tensor([math.pi / 4, 0.0, 0.0], dtype=torch.float64))
+    q = se3.quat_multiply(se3.so3_exp(torch.tensor([0.0, tilt, 0.0], dtype=torch.float64)), edge) if corner else edge
+    lowest = se3.quat_rotate(q, torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
+                                             dtype=torch.float64) * 0.025)[:, 2].min().item()
+    scene = task_scene("rolling")
+    bodies = [replace(b, pose=[0.0, 0.0, 0.2, 1.0, 0.0, 0.0, 0.0]) if b.actuated else b for b in scene.bodies]
+    pose = [0.0, 0.0, -lowest - 1e-3, *q.tolist()]
+    return compile_scene(replace(scene, bodies=bodies, object=replace(
+        scene.object, shape="cube", params={"side": 0.05}, spacing=0.005, pose=pose)))
+
+
+@pytest.mark.parametrize("corner", [False, True])
+def test_a_cube_on_its_edge_or_corner_steps_with_forces_inside_the_cone(corner):
+    model, state, _ = tilted_cube(math.atan(1 / math.sqrt(2)), corner)
+    u = torch.zeros(1, model.n_bodies, 6, dtype=torch.float64)
+    for _ in range(3):
+        state = step(model, state, u)
+        assert torch.isfinite(state.forces).all() and torch.isfinite(state.object_pose).all()
+        normal = -se3.rotate_vectors(state.object_pose, model.normals).unsqueeze(1)
+        f_n, f_t = split_normal(state.forces, normal)
+        assert (f_n >= 0).all()
+        assert (f_t.norm(dim=-1) <= model.material.mu.view(1, -1, 1) * f_n * (1 + 1e-9) + 1e-15).all()
+    assert state.forces[..., 2].sum() > 0  # the table carries it
+
+
+def test_a_point_at_the_ellipsoids_centre_is_deepest_with_a_finite_gradient():
+    """The centre is the one point where every direction is closest-point-ambiguous up to the shortest radius: its
+    distance is minus that radius, and the gradient is finite."""
+    bubble = Ellipsoid((0.06, 0.045, 0.03))
+    centre = torch.zeros(1, 3, dtype=torch.float64, requires_grad=True)
+    phi = bubble(centre)
+    (g,) = torch.autograd.grad(phi.sum(), centre)
+    assert phi.item() == pytest.approx(-0.03, abs=1e-15)
+    assert torch.isfinite(g).all()
