@@ -17,7 +17,8 @@ compiled model (all its active points in contact at once); the compiler sub-step
 ``n`` sub-steps of ``h/n`` each (controls split evenly, mobility ``h/epsilon`` held fixed) satisfy
 ``(h/epsilon)(h/n) lambda < 2``. It raises an error naming the bound when that would need more sub-steps than
 allowed. A model with ``object_update = "linearly_implicit"`` moves the object by backward Euler on the linearised
-contact forces instead (``_linearly_implicit_motion``): stable at any stiffness, one sub-step per step.
+contact forces instead (``_linearly_implicit_motion``): stable at any stiffness where the forces are linear in the
+motion, one sub-step per step.
 
 Speed. Most of a step is the bodies' signed distances and the per-point transforms. Each step caches the signed
 distances of its end state in ``State.phi``, so the next step evaluates the SDFs once instead of twice. All
