@@ -7,7 +7,7 @@ logging context with up to two sinks:
 
 - ``--record PATH.mcap``: an MCAP file (``recording`` says what is in it: a raw channel per bus topic and the
   scene channels of ``scene``), its chunks compressed with zstd at ``ZSTD_LEVEL``. Camera images are JPEGs of
-  ``--jpeg-quality`` (``--camera-images png``: lossless PNGs); depth frames, poses and every other array are kept
+  ``--jpeg-quality`` (``--camera-images raw``: lossless); depth frames, poses and every other array are kept
   exactly. Chunks hold at most ``CHUNK_SIZE_BYTES`` and the current chunk is closed every
   ``FLUSH_PERIOD_S``, so a crash of the recorder (even SIGKILL) loses at most the last second: the file reads up to
   its last complete chunk. A restarted recorder writes ``PATH.restartN.mcap`` and never overwrites a file.
@@ -45,10 +45,11 @@ from hydrosoft.services import messages as msg
 from hydrosoft.services import service_main
 from hydrosoft.services.bus import RequestClient, is_local_endpoint
 from hydrosoft.services.config import StackConfig
-from hydrosoft.services.image_codec import FORMATS, ImageCodecError
+from hydrosoft.services.image_codec import ImageCodecError
 from hydrosoft.services.recording import (
     CLOCK_METADATA,
     EPOCH_OFFSET_KEY,
+    CAMERA_FORMATS,
     RawFormat,
     encode_raw,
     encoded_images,
@@ -69,8 +70,9 @@ SERVICE = "recorder"
 #: ``WRITER_CHUNK_FACTOR`` times larger, a backstop.
 CHUNK_SIZE_BYTES = 1024 * 1024
 WRITER_CHUNK_FACTOR = 4
-#: zstd level of the chunks: 9 made a recording of the sim stack 8 % smaller than level 3, at no CPU cost we could see.
-ZSTD_LEVEL = 9
+#: zstd level of the chunks (zstd's default). Level 9 made a sim stack recording 3 % smaller but compressed at 20 MB/s
+#: where 3 did 134 MB/s: with camera images kept raw (18 MB/s of input) the recorder fell behind on 2 busy cores.
+ZSTD_LEVEL = 3
 #: The current chunk is closed and written this often, s: the most a SIGKILL can lose.
 FLUSH_PERIOD_S = 1.0
 #: The static scene (frames, bubbles, object) is logged this often, s, so that a late viewer gets it.
@@ -257,7 +259,7 @@ async def serve(service: Service, config: StackConfig, config_path: str, options
     offset_ns = epoch_offset_ns()
     context = foxglove.Context()
     scene = SceneLog(context, SceneBuilder(geometry, offset_ns), options.raw_format)
-    scene.open_scene_channels(scene_topics(config))
+    scene.open_scene_channels(scene_topics(config, options.raw_format))
     path = recording_path(options.record, service.restarts) if options.record is not None else None
     metadata = {CLOCK_METADATA: {EPOCH_OFFSET_KEY: str(offset_ns)},
                 "hydrosoft.run": {"config": str(Path(config_path).resolve()), "services": json.dumps(
@@ -352,14 +354,14 @@ async def _log_counts_forever(service: Service, scene: SceneLog) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name recorder] [--record PATH.mcap] [--camera-images jpeg|png] [--jpeg-quality Q] [--view]
+    """Arguments: CONFIG [--name recorder] [--record PATH.mcap] [--camera-images jpeg|raw] [--jpeg-quality Q] [--view]
     [--view-host H] [--view-port P]."""
     parser.add_argument("config", help="the stack's TOML config (deploy/sim.toml, deploy/lab.toml)")
     parser.add_argument("--name", default=SERVICE, help=f"service name (default {SERVICE})")
     parser.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                         help="write every bus message to this MCAP file (it must not exist)")
-    parser.add_argument("--camera-images", choices=FORMATS, default=RawFormat.camera_format,
-                        help=f"how camera images are stored: jpeg (lossy, compact) or png (lossless, several times "
+    parser.add_argument("--camera-images", choices=CAMERA_FORMATS, default=RawFormat.camera_format,
+                        help=f"how camera images are stored: jpeg (lossy, compact) or raw (lossless, several times "
                              f"larger); default {RawFormat.camera_format}")
     parser.add_argument("--jpeg-quality", type=int, default=RawFormat.jpeg_quality,
                         help=f"JPEG quality of camera images, 1..100 (default {RawFormat.jpeg_quality})")

@@ -13,7 +13,8 @@ the planner's surface points on the predicted object pose) and ``/scene/forces/t
 per-point forces at its own points on the true pose). A force is an arrow from its point along the force,
 ``FORCE_ARROW_M_PER_N`` long per newton; forces under ``MIN_ARROW_FORCE_N`` are left out.
 
-Images: ``/image/CAMERA`` (``CompressedImage``, the JPEG or PNG the recording stores), ``/depth/ARM``
+Images: ``/image/CAMERA`` (``CompressedImage``, the JPEG the recording stores, or ``RawImage`` ``bgr8`` or
+``mono8`` where it keeps camera images raw), ``/depth/ARM``
 (``CompressedImage``, a 16-bit PNG of the counts of ``depth_scale_m``), ``/deformation/ARM`` (``RawImage``
 ``32FC1``, m, NaN = no return). Each image is the same bytes as the raw channel's, so the file's compression stores
 it once (``recording``).
@@ -52,7 +53,7 @@ from foxglove.messages import (
 from hydrosoft.services import messages as msg
 from hydrosoft.services.config import StackConfig
 from hydrosoft.services.image_codec import EncodedImage
-from hydrosoft.services.recording import encoded_images
+from hydrosoft.services.recording import JPEG, RawFormat, encoded_images
 
 WORLD = "world"
 OBJECT_FRAME = "object"
@@ -136,12 +137,14 @@ def depth_frame(arm: str) -> str:
     return f"depth_{arm}"
 
 
-def scene_topics(config: StackConfig) -> dict[str, type]:
-    """Every scene channel of ``config``'s stack and the Foxglove message type it carries."""
+def scene_topics(config: StackConfig, raw_format: RawFormat = RawFormat()) -> dict[str, type]:
+    """Every scene channel of ``config``'s stack and the Foxglove message type it carries (camera images as
+    ``raw_format`` stores them)."""
     topics: dict[str, type] = {TF_TOPIC: FrameTransforms}
     topics |= dict.fromkeys((BUBBLES_TOPIC, OBJECT_TOPIC, GOAL_TOPIC, PLAN_TOPIC, PREDICTED_FORCES_TOPIC,
                              TRUE_FORCES_TOPIC), SceneUpdate)
-    topics[f"/{msg.topic_for(msg.CameraImage, CAMERA_FRAME)}"] = CompressedImage
+    camera_type = CompressedImage if raw_format.camera_format == JPEG else RawImage
+    topics[f"/{msg.topic_for(msg.CameraImage, CAMERA_FRAME)}"] = camera_type
     for arm in config.arms:
         topics[f"/{msg.topic_for(msg.DepthFrame, arm.name)}"] = CompressedImage
         topics[f"/{msg.topic_for(msg.MembraneDeformation, arm.name)}"] = RawImage
@@ -252,7 +255,7 @@ def forces_update(bodies: tuple[str, ...], points_world: np.ndarray, forces: np.
 
 
 def raw_image(image: np.ndarray, encoding: str, frame: str, stamp: Timestamp) -> RawImage:
-    """A Foxglove raw image of ``image (H, W[, C])`` (C-ordered) in ``encoding`` (e.g. ``mono8``, ``32FC1``)."""
+    """A Foxglove raw image of ``image (H, W[, C])`` (C-ordered) in ``encoding`` (``bgr8``, ``mono8``, ``32FC1``)."""
     array = np.ascontiguousarray(image)
     height, width = array.shape[:2]
     return RawImage(timestamp=stamp, frame_id=frame, width=width, height=height, encoding=encoding,
@@ -324,11 +327,14 @@ class SceneBuilder:
                                    pose=message.goal.target_pose)
                 return [(GOAL_TOPIC, SceneUpdate(entities=[goal]))]
             case msg.CameraImage():
-                image = (images or encoded_images(message))["image"]
+                image = (encoded_images(message) if images is None else images).get("image")
                 image_stamp = timestamp(message.hw_stamp_ns or message.stamp_ns, self.epoch_offset_ns)
+                if image is None:  # kept raw
+                    encoding = "bgr8" if message.image.shape[2] == 3 else "mono8"
+                    return [(f"/{topic}", raw_image(message.image, encoding, message.camera, image_stamp))]
                 return [(f"/{topic}", compressed_image(image, message.camera, image_stamp))]
             case msg.DepthFrame():
-                image = (images or encoded_images(message))["depth"]
+                image = (encoded_images(message) if images is None else images)["depth"]
                 return [(f"/{topic}", compressed_image(image, depth_frame(message.bubble), stamp))]
             case msg.MembraneDeformation():
                 return [(f"/{topic}", raw_image(message.deformation, "32FC1", depth_frame(message.bubble), stamp))]

@@ -103,18 +103,20 @@ def test_recorded_depth_frames_and_poses_decode_bit_exactly_and_images_are_store
         assert array["encoding"] == "png" and array["data"] in scene[log_time]  # the scene copy: the same PNG
 
 
-def test_camera_images_are_jpeg_by_default_and_lossless_png_on_request():
+def test_camera_images_are_jpeg_by_default_and_raw_lossless_on_request():
     image = msg.CameraImage.of("tag_camera", camera_image(0))
     jpeg = encode_raw(image, None)
     back = decode_raw(msg.CameraImage, jpeg, "msgpack")
     assert back.image.shape == image.image.shape and back.image.dtype == np.uint8
     assert 0 < np.abs(back.image.astype(int) - image.image).mean() < 3.0
-    png = encode_raw(image, encoded_images(image, RawFormat(camera_format="png")))
-    assert_same(decode_raw(msg.CameraImage, png, "msgpack"), image, ignore=())
-    assert len(jpeg) < len(png) < image.image.nbytes
+    raw = encode_raw(image, encoded_images(image, RawFormat(camera_format="raw")))
+    assert_same(decode_raw(msg.CameraImage, raw, "msgpack"), image, ignore=())
+    assert len(jpeg) < image.image.nbytes / 5 < len(raw)
     grey = msg.CameraImage.of("tag_camera", camera_image(1)[..., 0])
-    assert_same(decode_raw(msg.CameraImage, encode_raw(grey, encoded_images(grey, RawFormat("png"))), "msgpack"),
+    assert_same(decode_raw(msg.CameraImage, encode_raw(grey, encoded_images(grey, RawFormat("raw"))), "msgpack"),
                 grey, ignore=())
+    with pytest.raises(ValueError, match="jpeg, raw"):
+        RawFormat(camera_format="png")
     with pytest.raises(ValueError, match="1..100"):
         RawFormat(jpeg_quality=0)
     with pytest.raises(ImageCodecError, match="cannot hold float32"):

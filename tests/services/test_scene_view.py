@@ -80,6 +80,8 @@ def test_each_message_becomes_its_scene_update():
     (topic, compressed), = builder.convert("image/tag_camera", image)
     assert topic == "/image/tag_camera" and isinstance(compressed, CompressedImage)
     assert b"jpeg" in compressed.encode() and b"\xff\xd8" in compressed.encode()  # format, JPEG's start marker
+    (topic, raw), = builder.convert("image/tag_camera", image, images={})  # a recorder keeping camera images raw
+    assert topic == "/image/tag_camera" and isinstance(raw, RawImage) and b"mono8" in raw.encode()
     depth = msg.DepthFrame(bubble="bubble", depth=np.zeros((4, 6), np.uint16), depth_scale_m=1e-4, fx_px=1.0,
                            fy_px=1.0, cx_px=1.0, cy_px=1.0)
     (topic, compressed), = builder.convert("depth/bubble", depth)
