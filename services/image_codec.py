@@ -1,8 +1,9 @@
 """Compressed images for recordings: lossless PNG and lossy JPEG, with OpenCV's codecs.
 
 PNG keeps every value (8-bit grey or BGR, 16-bit grey such as depth counts); JPEG takes 8-bit grey or BGR images
-and loses detail (about 2 grey levels rms at quality 85 on the sim camera's images). An image is ``(H, W)`` or ``(H, W, C)`` with C = 1 or 3
-channels in OpenCV's BGR order; ``(H, W, 1)`` is encoded as ``(H, W)`` and decoded back to the shape asked for.
+and loses detail (about 2 grey levels rms at quality 85 on the sim camera's images). An image is ``(H, W)`` or
+``(H, W, C)`` with C = 1 or 3 channels in OpenCV's BGR order; ``(H, W, 1)`` is encoded as ``(H, W)`` and decoded
+back to the shape asked for.
 """
 
 from __future__ import annotations

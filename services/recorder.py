@@ -242,8 +242,8 @@ def open_sinks(context: foxglove.Context, options: RecorderOptions, path: Path |
             raise RecorderError(f"{path} exists; the recorder never overwrites a recording")
         path.parent.mkdir(parents=True, exist_ok=True)
         writer = foxglove.open_mcap(path, context=context, writer_options=MCAPWriteOptions(
-            chunk_size=WRITER_CHUNK_FACTOR * CHUNK_SIZE_BYTES, compression=MCAPCompression.Zstd, compression_level=ZSTD_LEVEL,
-            compression_threads=0))
+            chunk_size=WRITER_CHUNK_FACTOR * CHUNK_SIZE_BYTES, compression=MCAPCompression.Zstd,
+            compression_level=ZSTD_LEVEL, compression_threads=0))
         for name, values in metadata.items():
             writer.write_metadata(name, values)
     if options.view:

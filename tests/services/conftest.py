@@ -2,7 +2,8 @@
 
 ``recorded_run`` (session): one short run of the fake publisher (``fakes/bus_publisher.py``) and the real tag
 tracker, recorded by two recorders at once: one SIGKILLed mid-run (``killed``, camera images as JPEG, the default),
-one stopped cleanly at the end (``clean``, camera images raw, lossless, so a replay re-runs the tracker exactly). The recorder, replay and plot tests read these files. Every process is stopped by its pid.
+one stopped cleanly at the end (``clean``, camera images raw, lossless, so a replay re-runs the tracker exactly).
+The recorder, replay and plot tests read these files. Every process is stopped by its pid.
 """
 
 from __future__ import annotations
