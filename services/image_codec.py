@@ -1,7 +1,7 @@
 """Compressed images for recordings: lossless PNG and lossy JPEG, with OpenCV's codecs.
 
 PNG keeps every value (8-bit grey or BGR, 16-bit grey such as depth counts); JPEG takes 8-bit grey or BGR images
-and loses detail (about 2 grey levels rms at quality 85 on the sim camera's images). An image is ``(H, W)`` or
+and loses detail (about 2 grey levels rms at quality 75 on the sim camera's images). An image is ``(H, W)`` or
 ``(H, W, C)`` with C = 1 or 3 channels in OpenCV's BGR order; ``(H, W, 1)`` is encoded as ``(H, W)`` and decoded
 back to the shape asked for.
 """
@@ -33,7 +33,7 @@ class EncodedImage:
     data: bytes
 
 
-def encode_image(image: np.ndarray, image_format: str, jpeg_quality: int = 85) -> EncodedImage:
+def encode_image(image: np.ndarray, image_format: str, jpeg_quality: int = 75) -> EncodedImage:
     """``image`` (see the module docstring) as ``image_format``; ``jpeg_quality`` 1..100 for JPEG. Raises
     ImageCodecError when the format cannot hold the image's dtype or shape."""
     if image_format not in FORMATS:
