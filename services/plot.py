@@ -1,6 +1,6 @@
 """``hydrosoft-stack plot PATH.mcap``: PNG plots of one recorded run.
 
-Written to ``--out`` (default: next to the file, ``STEM-plots/``), time in seconds from the first message:
+Written to ``--out`` (default: next to the file, ``STEM-plots/``), time in seconds from the first message's stamp:
 
 - ``object_error.png``: the planner's error of the tracked object against its goal (``StatusReply.error_mm``, ADD,
   mm) and, against the goal's target pose, the position error of the tracked (``object_pose``) and, in sim, the true
@@ -10,99 +10,231 @@ Written to ``--out`` (default: next to the file, ``STEM-plots/``), time in secon
   measured force (``wrench/ARM``), N;
 - ``planner.png``: each plan's solve time (ms) and the plan rate (plans per second, each from the spacing of two
   plans' stamps);
-- ``events.png``: per service, its error counts by kind over time (from ``status/SERVICE``) with the times it
-  went degraded or stopping, and each arm's watchdog stops (``ArmState.servo_active`` turning false, with the
-  reason).
+- ``events.png``: above, per service, its error counts by kind over time (from ``status/SERVICE``); below, a
+  timeline with one lane per cause: each arm's watchdog stops by reason (``ArmState.servo_active`` turning false)
+  and each service's turns to degraded or stopping, a tick per event (darker: several in one time bucket) and the
+  lane's total in its label. Hundreds of stops stay readable: they add ticks and counts, not labels.
 
-The series are plain functions of the recorded messages (``series``), tested without plotting. A file cut short by
-a crash is plotted up to its last complete chunk.
+The file is read as a stream, only the plotted topics decoded, and each series keeps at most ``MAX_BUCKETS`` time
+buckets (a series' lowest and highest point in each, which draws the same line at the figure's resolution): memory
+stays bounded whatever the file's length. The series are plain functions of the recorded messages (``series``),
+tested without plotting. A file cut short by a crash is plotted up to its last complete chunk.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from hydrosoft.services import messages as msg
-from hydrosoft.services.recording import RecordedMessage, RecordingError, read_recording
+from hydrosoft.services.recording import RecordedMessage, RecordingError, RecordingReader
+
+#: The bus topics the plots read (and their sub-topics); the rest of the file is not decoded.
+PLOTTED_TOPICS = ("reply/status", "object_pose", "eval", "plan", "wrench", "status", "arm_state")
+#: Most time buckets a series keeps (each holds up to two points): a plot 800 px wide shows no more.
+MAX_BUCKETS = 2000
+#: Narrowest time bucket, s (widths are this times a power of two, so buckets merge in pairs).
+MIN_BUCKET_S = 1e-3
+#: Most lanes of the events timeline; further causes share the lane ``OTHER_LANE``.
+MAX_LANES = 12
+OTHER_LANE = "other causes"
+
+
+class TimeBuckets:
+    """Values over time in at most ``max_buckets`` buckets of equal width: every point while there are at most twice
+    as many points as buckets, then the points of each bucket merged (``merge``); the width doubles, and neighbouring
+    buckets merge, whenever the buckets run out. A bucket is a tuple whose first item is its first time (s)."""
+
+    def __init__(self, merge, max_buckets: int = MAX_BUCKETS) -> None:
+        self.merge = merge
+        self.max_buckets = max_buckets
+        self.width_s = 0.0  # 0: every point kept as it came
+        self._points: list[tuple] = []
+        self._buckets: dict[int, tuple] = {}
+
+    def add(self, point: tuple) -> None:
+        """Add ``point`` (a bucket of one point: its time first)."""
+        if self.width_s:
+            self._put(point)
+        else:
+            self._points.append(point)
+            if len(self._points) <= 2 * self.max_buckets:
+                return
+            times = [p[0] for p in self._points]
+            self.width_s = MIN_BUCKET_S * 2.0 ** max(0, math.ceil(math.log2(
+                max(max(times) - min(times), MIN_BUCKET_S) / MIN_BUCKET_S / self.max_buckets)))
+            points, self._points = self._points, []
+            for old in points:
+                self._put(old)
+        while len(self._buckets) > self.max_buckets:
+            self.width_s *= 2
+            buckets, self._buckets = self._buckets, {}
+            for key, bucket in buckets.items():
+                self._merge_into(key // 2, bucket)
+
+    def _put(self, point: tuple) -> None:
+        self._merge_into(math.floor(point[0] / self.width_s), point)
+
+    def _merge_into(self, key: int, bucket: tuple) -> None:
+        held = self._buckets.get(key)
+        self._buckets[key] = bucket if held is None else self.merge(held, bucket)
+
+    def buckets(self) -> list[tuple]:
+        """The points (while every point is kept, in the order added) or the buckets in time order."""
+        return list(self._points) if not self.width_s else [self._buckets[k] for k in sorted(self._buckets)]
+
+
+def _envelope_merge(a: tuple, b: tuple) -> tuple:
+    low = a[:2] if a[1] <= b[1] else b[:2]
+    high = a[2:] if a[3] >= b[3] else b[2:]
+    return (*low, *high)
+
+
+class Envelope:
+    """A time series ``(t_s, value)`` kept in ``TimeBuckets``: per bucket its lowest and highest point, as
+    ``(t_low, low, t_high, high)``."""
+
+    def __init__(self, max_buckets: int = MAX_BUCKETS) -> None:
+        self._buckets = TimeBuckets(_envelope_merge, max_buckets)
+
+    def add(self, t_s: float, value: float) -> None:
+        self._buckets.add((t_s, value, t_s, value))
+
+    def points(self) -> list[tuple[float, float]]:
+        """The kept points in time order (every point while few)."""
+        out: list[tuple[float, float]] = []
+        for t_low, low, t_high, high in self._buckets.buckets():
+            out.extend(sorted({(t_low, low), (t_high, high)}))
+        return out
+
+
+class Tally:
+    """Events over time kept in ``TimeBuckets``: per bucket its first time and how many events fell in it."""
+
+    def __init__(self, max_buckets: int = MAX_BUCKETS) -> None:
+        self._buckets = TimeBuckets(lambda a, b: (min(a[0], b[0]), a[1] + b[1]), max_buckets)
+        self.total = 0
+
+    def add(self, t_s: float) -> None:
+        self._buckets.add((t_s, 1))
+        self.total += 1
+
+    def counts(self) -> list[tuple[float, int]]:
+        """``(t_s, events)`` per kept bucket (one per event while few)."""
+        return self._buckets.buckets()
 
 
 @dataclass
 class Series:
-    """Time series of one run, each a list of ``(t_s, value)`` (t from the first message's stamp, s).
+    """Time series of one run, each a list of ``(t_s, value)`` (t from the first message's stamp, s; at most
+    ``MAX_BUCKETS`` buckets' lowest and highest points each).
 
     error_mm: planner's ADD error; tracked_mm, true_mm: position error of the tracked and true object against the
     goal; forces: per label (``predicted BODY``, ``true BODY``, ``F/T ARM``) the force magnitude, N; solve_ms, plan_hz:
-    per plan; errors: per ``SERVICE: KIND`` the error count; states: ``(t_s, service, state)`` for every change to
-    degraded or stopping; stops: ``(t_s, arm, reason)`` for every watchdog stop."""
+    per plan; errors: per ``SERVICE: KIND`` the error count; events: per lane (``ARM stop: REASON``, ``SERVICE
+    degraded``, ``SERVICE stopping``) ``(t_s, count)`` of its events (one per event while few), and event_totals:
+    each lane's number of events."""
 
     error_mm: list[tuple[float, float]] = field(default_factory=list)
     tracked_mm: list[tuple[float, float]] = field(default_factory=list)
     true_mm: list[tuple[float, float]] = field(default_factory=list)
-    forces: dict[str, list[tuple[float, float]]] = field(default_factory=lambda: defaultdict(list))
+    forces: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     solve_ms: list[tuple[float, float]] = field(default_factory=list)
     plan_hz: list[tuple[float, float]] = field(default_factory=list)
-    errors: dict[str, list[tuple[float, int]]] = field(default_factory=lambda: defaultdict(list))
-    states: list[tuple[float, str, str]] = field(default_factory=list)
-    stops: list[tuple[float, str, str]] = field(default_factory=list)
+    errors: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    events: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
+    event_totals: dict[str, int] = field(default_factory=dict)
 
 
-def series(messages: Sequence[RecordedMessage]) -> Series:
-    """The plotted series of a run's raw messages (in file order)."""
-    out = Series()
-    if not messages:
-        return out
-    start_ns = min(item.message.stamp_ns for item in messages)
-    goal: np.ndarray | None = None
-    bodies: tuple[str, ...] = ()
-    last_plan_ns: int | None = None
-    last_state: dict[str, str] = {}
-    servoing: dict[str, bool] = {}
-    for item in sorted(messages, key=lambda i: i.message.stamp_ns):
+class SeriesBuilder:
+    """The plotted series of a run, built one raw message at a time (in file order) in bounded memory."""
+
+    def __init__(self, max_buckets: int = MAX_BUCKETS) -> None:
+        def envelopes() -> defaultdict[str, Envelope]:
+            return defaultdict(lambda: Envelope(max_buckets))
+
+        self._lines = envelopes()  # error_mm, tracked_mm, true_mm, solve_ms, plan_hz
+        self._forces = envelopes()
+        self._errors = envelopes()
+        self._events: defaultdict[str, Tally] = defaultdict(lambda: Tally(max_buckets))
+        self._start_ns: int | None = None
+        self._goal: np.ndarray | None = None
+        self._bodies: tuple[str, ...] = ()
+        self._last_plan_ns: int | None = None
+        self._last_state: dict[str, str] = {}
+        self._servoing: dict[str, bool] = {}
+
+    def add(self, item: RecordedMessage) -> None:
+        """Take one raw message into the series."""
         m = item.message
-        t = (m.stamp_ns - start_ns) * 1e-9
+        if self._start_ns is None:
+            self._start_ns = m.stamp_ns
+        t = (m.stamp_ns - self._start_ns) * 1e-9
         match m:
             case msg.StatusReply():
                 if m.goal is not None and m.goal.target_pose is not None:
-                    goal = np.asarray(m.goal.target_pose)
+                    self._goal = np.asarray(m.goal.target_pose)
                 if m.running:
-                    out.error_mm.append((t, m.error_mm))
-            case msg.ObjectPose() if goal is not None:
-                out.tracked_mm.append((t, 1e3 * float(np.linalg.norm(m.pose[:3] - goal[:3]))))
-            case msg.EvalObjectPose() if goal is not None:
-                out.true_mm.append((t, 1e3 * float(np.linalg.norm(m.pose[:3] - goal[:3]))))
+                    self._lines["error_mm"].add(t, m.error_mm)
+            case msg.ObjectPose() if self._goal is not None:
+                self._lines["tracked_mm"].add(t, 1e3 * float(np.linalg.norm(m.pose[:3] - self._goal[:3])))
+            case msg.EvalObjectPose() if self._goal is not None:
+                self._lines["true_mm"].add(t, 1e3 * float(np.linalg.norm(m.pose[:3] - self._goal[:3])))
             case msg.EvalContactForces():
-                bodies = m.bodies
+                self._bodies = m.bodies
                 for body, force in zip(m.bodies, m.forces):
-                    out.forces[f"true {body}"].append((t, float(np.linalg.norm(force.sum(axis=0)))))
+                    self._forces[f"true {body}"].add(t, float(np.linalg.norm(force.sum(axis=0))))
             case msg.Plan():
                 for index, force in enumerate(np.asarray(m.predicted_forces, dtype=np.float64)):
-                    name = bodies[index] if len(bodies) == len(m.predicted_forces) else f"body {index}"
-                    out.forces[f"predicted {name}"].append((t, float(np.linalg.norm(force.sum(axis=0)))))
-                out.solve_ms.append((t, m.solve_ms))
-                if last_plan_ns is not None and m.stamp_ns > last_plan_ns:
-                    out.plan_hz.append((t, 1e9 / (m.stamp_ns - last_plan_ns)))
-                last_plan_ns = m.stamp_ns
+                    name = self._bodies[index] if len(self._bodies) == len(m.predicted_forces) else f"body {index}"
+                    self._forces[f"predicted {name}"].add(t, float(np.linalg.norm(force.sum(axis=0))))
+                self._lines["solve_ms"].add(t, m.solve_ms)
+                if self._last_plan_ns is not None and m.stamp_ns > self._last_plan_ns:
+                    self._lines["plan_hz"].add(t, 1e9 / (m.stamp_ns - self._last_plan_ns))
+                self._last_plan_ns = m.stamp_ns
             case msg.Wrench():
-                out.forces[f"F/T {m.sensor}"].append((t, float(np.linalg.norm(m.wrench[:3]))))
+                self._forces[f"F/T {m.sensor}"].add(t, float(np.linalg.norm(m.wrench[:3])))
             case msg.ServiceStatus():
                 service = item.topic.partition("/")[2]
                 for kind, count in m.errors.items():
-                    out.errors[f"{service}: {kind}"].append((t, count))
-                if m.state != last_state.get(service) and m.state in ("degraded", "stopping"):
-                    out.states.append((t, service, m.state))
-                last_state[service] = m.state
+                    self._errors[f"{service}: {kind}"].add(t, count)
+                if m.state != self._last_state.get(service) and m.state in ("degraded", "stopping"):
+                    self._event(f"{service} {m.state}", t)
+                self._last_state[service] = m.state
             case msg.ArmState():
-                if servoing.get(m.arm, False) and not m.servo_active:
-                    out.stops.append((t, m.arm, m.stop_reason))
-                servoing[m.arm] = m.servo_active
-    return out
+                if self._servoing.get(m.arm, False) and not m.servo_active:
+                    self._event(f"{m.arm} stop: {m.stop_reason}", t)
+                self._servoing[m.arm] = m.servo_active
+
+    def _event(self, lane: str, t: float) -> None:
+        if lane not in self._events and len(self._events) >= MAX_LANES - 1:
+            lane = OTHER_LANE
+        self._events[lane].add(t)
+
+    def result(self) -> Series:
+        """The series so far."""
+        return Series(
+            **{name: self._lines[name].points() for name in ("error_mm", "tracked_mm", "true_mm", "solve_ms",
+                                                              "plan_hz")},
+            forces={label: line.points() for label, line in self._forces.items()},
+            errors={label: line.points() for label, line in self._errors.items()},
+            events={lane: tally.counts() for lane, tally in self._events.items()},
+            event_totals={lane: tally.total for lane, tally in self._events.items()})
+
+
+def series(messages: Iterable[RecordedMessage], max_buckets: int = MAX_BUCKETS) -> Series:
+    """The plotted series of a run's raw messages (in file order), read one at a time."""
+    builder = SeriesBuilder(max_buckets)
+    for item in messages:
+        builder.add(item)
+    return builder.result()
 
 
 def _plot_lines(axis, lines: dict[str, list[tuple[float, float]]], ylabel: str) -> None:
@@ -150,21 +282,29 @@ def write_plots(run: Series, out_dir: Path, title: str) -> list[Path]:
     rate.set_xlabel("t, s")
     save(figure, "planner.png")
 
-    figure, axis = plt.subplots(figsize=(8, 4))
+    lanes = sorted(run.events, key=lambda lane: -run.event_totals[lane])
+    figure, (errors, timeline) = plt.subplots(2, 1, figsize=(8, 3 + 0.3 * max(len(lanes), 2)), sharex=True,
+                                              height_ratios=(2, max(len(lanes), 1) * 0.4 + 0.6))
     for label, points in run.errors.items():
         t, v = zip(*points)
-        axis.step(t, v, where="post", label=label, linewidth=1)
-    for t, service, state in run.states:
-        axis.axvline(t, color="orange" if state == "degraded" else "grey", linewidth=0.8, linestyle="--")
-        axis.annotate(f"{service} {state}", (t, 0), rotation=90, fontsize=6, va="bottom")
-    for t, arm, reason in run.stops:
-        axis.axvline(t, color="red", linewidth=1)
-        axis.annotate(f"{arm} stop: {reason}", (t, 0), rotation=90, fontsize=6, va="bottom", color="red")
-    axis.set_ylabel("errors so far")
-    axis.set_xlabel("t, s")
-    axis.grid(alpha=0.3)
+        errors.step(t, v, where="post", label=label, linewidth=1)
+    errors.set_ylabel("errors so far")
+    errors.grid(alpha=0.3)
     if run.errors:
-        axis.legend(fontsize=7, loc="upper left")
+        errors.legend(fontsize=7, loc="upper left")
+    most = max((count for lane in lanes for _, count in run.events[lane]), default=1)
+    for row, lane in enumerate(lanes):
+        t, counts = zip(*run.events[lane])
+        color = "red" if " stop: " in lane else "orange" if lane.endswith("degraded") else "grey"
+        timeline.scatter(t, [row] * len(t), marker="|", s=120, color=color,
+                         alpha=[0.35 + 0.65 * count / most for count in counts], linewidths=1)
+    timeline.set_yticks(range(len(lanes)), [f"{lane} ({run.event_totals[lane]})" for lane in lanes], fontsize=7)
+    timeline.set_ylim(-0.7, max(len(lanes), 1) - 0.3)
+    timeline.invert_yaxis()
+    timeline.set_xlabel("t, s")
+    timeline.grid(alpha=0.3, axis="x")
+    if not lanes:
+        timeline.text(0.5, 0.5, "no stops", transform=timeline.transAxes, ha="center", va="center", fontsize=8)
     save(figure, "events.png")
     return written
 
@@ -180,12 +320,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         if not args.recording.is_file():
             raise RecordingError(f"{args.recording} does not exist")
-        messages, reader = read_recording(args.recording)
+        reader = RecordingReader(args.recording, PLOTTED_TOPICS)
+        run_series = series(reader)
     except RecordingError as error:
         print(f"hydrosoft-stack plot: {error}", file=sys.stderr)
         return 2
     out_dir = args.out or args.recording.with_name(f"{args.recording.stem}-plots")
-    for path in write_plots(series(messages), out_dir, args.recording.name):
+    for path in write_plots(run_series, out_dir, args.recording.name):
         print(path)
     if reader.truncated:
         print(f"the file ends early (a crashed recorder?): plotted up to its last complete chunk ({reader.error})")

@@ -5,8 +5,10 @@ host, which need CURVE keys, are left out with a warning) and asks the planner f
 ``PLANNER_POLL_S`` (the goal and the object's error travel only there). Each message goes to one foxglove-sdk
 logging context with up to two sinks:
 
-- ``--record PATH.mcap``: an MCAP file (``recording`` says what is in it: a raw JSON channel per bus topic and the
-  scene channels of ``scene``). Chunks hold at most ``CHUNK_SIZE_BYTES`` and the current chunk is closed every
+- ``--record PATH.mcap``: an MCAP file (``recording`` says what is in it: a raw channel per bus topic and the
+  scene channels of ``scene``), its chunks compressed with zstd at ``ZSTD_LEVEL``. Camera images are JPEGs of
+  ``--jpeg-quality`` (``--camera-images raw``: lossless); depth frames, poses and every other array are kept
+  exactly. Chunks hold at most ``CHUNK_SIZE_BYTES`` and the current chunk is closed every
   ``FLUSH_PERIOD_S``, so a crash of the recorder (even SIGKILL) loses at most the last second: the file reads up to
   its last complete chunk. A restarted recorder writes ``PATH.restartN.mcap`` and never overwrites a file.
 - ``--view``: Foxglove's WebSocket server on ``--view-host`` (loopback only: the protocol has no authentication)
@@ -43,21 +45,34 @@ from hydrosoft.services import messages as msg
 from hydrosoft.services import service_main
 from hydrosoft.services.bus import RequestClient, is_local_endpoint
 from hydrosoft.services.config import StackConfig
+from hydrosoft.services.image_codec import ImageCodecError
 from hydrosoft.services.recording import (
     CLOCK_METADATA,
     EPOCH_OFFSET_KEY,
+    CAMERA_FORMATS,
+    RawFormat,
     encode_raw,
+    encoded_images,
     epoch_offset_ns,
+    BINARY_ENCODING,
     raw_channel_metadata,
     raw_channel_name,
+    raw_encoding,
     raw_schema,
 )
 from hydrosoft.services.runtime import Service
 from hydrosoft.services.scene import SceneBuilder, SceneError, SceneGeometry, SceneOutput, scene_topics
 
 SERVICE = "recorder"
-#: Largest uncompressed chunk of the MCAP file, bytes (a tag camera image makes a chunk of its own).
-CHUNK_SIZE_BYTES = 256 * 1024
+#: Uncompressed size of the MCAP file's chunks, bytes (about half a second of the sim stack; 256 KiB chunks made its
+#: recording a fifth larger, each membrane deformation image compressing alone): the recorder
+#: closes a chunk before a message that would take it past this (``ChunkBudget``); the writer's own limit is
+#: ``WRITER_CHUNK_FACTOR`` times larger, a backstop.
+CHUNK_SIZE_BYTES = 1024 * 1024
+WRITER_CHUNK_FACTOR = 4
+#: zstd level of the chunks (zstd's default). Level 9 made a sim stack recording 3 % smaller but compressed at 20 MB/s
+#: where 3 did 134 MB/s: with camera images kept raw (18 MB/s of input) the recorder fell behind on 2 busy cores.
+ZSTD_LEVEL = 3
 #: The current chunk is closed and written this often, s: the most a SIGKILL can lose.
 FLUSH_PERIOD_S = 1.0
 #: The static scene (frames, bubbles, object) is logged this often, s, so that a late viewer gets it.
@@ -82,12 +97,13 @@ class RecorderError(Exception):
 @dataclass(frozen=True)
 class RecorderOptions:
     """record: the MCAP file to write, or None. view: serve the live view. view_host, view_port: where (port 0:
-    any free port)."""
+    any free port). raw_format: how image fields are stored."""
 
     record: Path | None = None
     view: bool = False
     view_host: str = "127.0.0.1"
     view_port: int = VIEW_PORT
+    raw_format: RawFormat = RawFormat()
 
     def __post_init__(self) -> None:
         if self.record is None and not self.view:
@@ -128,32 +144,69 @@ class SeqGaps:
         return seq - last - 1 if last is not None and seq > last + 1 else 0
 
 
+class ChunkBudget:
+    """Where the recorder closes the file's chunks: before a message (with its scene copy) that would take the
+    current chunk past ``limit_bytes``, so that a message and its scene copy share one chunk and zstd stores the copy
+    as a back-reference (an image's copy in the next chunk would be stored again)."""
+
+    def __init__(self, limit_bytes: int) -> None:
+        self.limit_bytes = limit_bytes
+        self.used_bytes = 0
+
+    def close_before(self, nbytes: int) -> bool:
+        """Whether to close the current chunk before logging ``nbytes`` more; counts them in either case."""
+        close = self.used_bytes > 0 and self.used_bytes + nbytes > self.limit_bytes
+        self.used_bytes = nbytes if close else self.used_bytes + nbytes
+        return close
+
+    def closed(self) -> None:
+        """The chunk was closed (by the periodic flush)."""
+        self.used_bytes = 0
+
+
 class SceneLog:
     """The foxglove-sdk logging context with its sinks and channels: a raw channel per bus topic and publisher and a
-    typed channel per scene topic, each made on first use."""
+    typed channel per scene topic, each made on first use. ``writer``, when set, is the MCAP file's, whose chunks
+    ``chunks`` closes."""
 
-    def __init__(self, context: foxglove.Context, builder: SceneBuilder) -> None:
+    def __init__(self, context: foxglove.Context, builder: SceneBuilder, raw_format: RawFormat = RawFormat()) -> None:
         self.context = context
         self.builder = builder
+        self.raw_format = raw_format
+        self.writer: MCAPWriter | None = None
+        self.chunks = ChunkBudget(CHUNK_SIZE_BYTES)
         self.counts: Counter[str] = Counter()
         self._raw: dict[str, foxglove.Channel] = {}
         self._scene: dict[str, object] = {}
 
     def log_message(self, topic: str, message: msg.Message, received_ns: int) -> None:
-        """Log ``message`` on its raw channel and its scene channels, at ``received_ns`` (monotonic). Raises
-        SceneError when it does not fit the scene (the raw message is logged all the same)."""
+        """Log ``message`` on its raw channel and its scene channels, at ``received_ns`` (monotonic); an image is
+        compressed once for both. Raises SceneError when it does not fit the scene or its image does not compress
+        (the raw message is logged all the same, uncompressed)."""
         log_time = received_ns + self.builder.epoch_offset_ns
         name = raw_channel_name(topic, message.source)
         channel = self._raw.get(name)
+        kind = type(message)
         if channel is None:
-            kind = type(message)
+            schema = foxglove.Schema(name=kind.__name__, encoding="jsonschema",
+                                     data=json.dumps(raw_schema(kind)).encode())
             channel = self._raw[name] = foxglove.Channel(
-                name, schema=raw_schema(kind), message_encoding="json", context=self.context,
+                name, schema=schema, message_encoding=raw_encoding(kind), context=self.context,
                 metadata=raw_channel_metadata(topic, kind, message.source))
+        try:
+            images = encoded_images(message, self.raw_format)
+        except ImageCodecError as error:
+            channel.log(encode_raw(message, images={}), log_time=log_time)
+            self.counts[topic] += 1
+            raise SceneError(f"{topic}: image not compressed: {error}") from None
         if channel.has_sinks():
-            channel.log(encode_raw(message), log_time=log_time)
+            data = encode_raw(message, images)
+            copies = 2 if raw_encoding(kind) == BINARY_ENCODING else 1  # an image kind's scene copy is as large
+            if self.writer is not None and self.chunks.close_before(copies * len(data)):
+                self.writer.flush()
+            channel.log(data, log_time=log_time)
         self.counts[topic] += 1
-        self.log_scene(self.builder.convert(topic, message), log_time)
+        self.log_scene(self.builder.convert(topic, message, images), log_time)
 
     def open_scene_channels(self, topics: dict[str, type]) -> None:
         """Make the scene channels ``topics`` (topic -> Foxglove message type) now. A channel made while a viewer is
@@ -189,7 +242,8 @@ def open_sinks(context: foxglove.Context, options: RecorderOptions, path: Path |
             raise RecorderError(f"{path} exists; the recorder never overwrites a recording")
         path.parent.mkdir(parents=True, exist_ok=True)
         writer = foxglove.open_mcap(path, context=context, writer_options=MCAPWriteOptions(
-            chunk_size=CHUNK_SIZE_BYTES, compression=MCAPCompression.Lz4, compression_threads=0))
+            chunk_size=WRITER_CHUNK_FACTOR * CHUNK_SIZE_BYTES, compression=MCAPCompression.Zstd,
+            compression_level=ZSTD_LEVEL, compression_threads=0))
         for name, values in metadata.items():
             writer.write_metadata(name, values)
     if options.view:
@@ -204,13 +258,14 @@ async def serve(service: Service, config: StackConfig, config_path: str, options
     geometry = await loop.run_in_executor(None, SceneGeometry.from_config, config)
     offset_ns = epoch_offset_ns()
     context = foxglove.Context()
-    scene = SceneLog(context, SceneBuilder(geometry, offset_ns))
-    scene.open_scene_channels(scene_topics(config))
+    scene = SceneLog(context, SceneBuilder(geometry, offset_ns), options.raw_format)
+    scene.open_scene_channels(scene_topics(config, options.raw_format))
     path = recording_path(options.record, service.restarts) if options.record is not None else None
     metadata = {CLOCK_METADATA: {EPOCH_OFFSET_KEY: str(offset_ns)},
                 "hydrosoft.run": {"config": str(Path(config_path).resolve()), "services": json.dumps(
                     config.service_names()), "config_text": Path(config_path).read_text()}}
     writer, server = open_sinks(context, options, path, metadata)
+    scene.writer = writer
 
     async def close_sinks() -> None:
         if writer is not None:
@@ -270,6 +325,7 @@ async def _static_and_flush_forever(scene: SceneLog, writer: MCAPWriter | None) 
         scene.log_static(time.monotonic_ns())
         if writer is not None:
             writer.flush()
+            scene.chunks.closed()
         await asyncio.sleep(min(STATIC_PERIOD_S, FLUSH_PERIOD_S))
 
 
@@ -298,11 +354,17 @@ async def _log_counts_forever(service: Service, scene: SceneLog) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name recorder] [--record PATH.mcap] [--view] [--view-host H] [--view-port P]."""
+    """Arguments: CONFIG [--name recorder] [--record PATH.mcap] [--camera-images jpeg|raw] [--jpeg-quality Q] [--view]
+    [--view-host H] [--view-port P]."""
     parser.add_argument("config", help="the stack's TOML config (deploy/sim.toml, deploy/lab.toml)")
     parser.add_argument("--name", default=SERVICE, help=f"service name (default {SERVICE})")
     parser.add_argument("--record", type=Path, default=None, metavar="PATH.mcap",
                         help="write every bus message to this MCAP file (it must not exist)")
+    parser.add_argument("--camera-images", choices=CAMERA_FORMATS, default=RawFormat.camera_format,
+                        help=f"how camera images are stored: jpeg (lossy, compact) or raw (lossless, several times "
+                             f"larger); default {RawFormat.camera_format}")
+    parser.add_argument("--jpeg-quality", type=int, default=RawFormat.jpeg_quality,
+                        help=f"JPEG quality of camera images, 1..100 (default {RawFormat.jpeg_quality})")
     parser.add_argument("--view", action="store_true", help="serve the live view over Foxglove's WebSocket")
     parser.add_argument("--view-host", default="127.0.0.1", help="the live view's address (loopback only)")
     parser.add_argument("--view-port", type=int, default=VIEW_PORT,
@@ -312,7 +374,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the recorder until SIGINT/SIGTERM; the exit code (2: a bad config or options)."""
     return run_with_options(args, lambda: RecorderOptions(record=args.record, view=args.view,
-                                                          view_host=args.view_host, view_port=args.view_port))
+                                                          view_host=args.view_host, view_port=args.view_port,
+                                                          raw_format=_raw_format(args)))
+
+
+def _raw_format(args: argparse.Namespace) -> RawFormat:
+    try:
+        return RawFormat(args.camera_images, args.jpeg_quality)
+    except ValueError as error:
+        raise RecorderError(str(error)) from None
 
 
 def run_with_options(args: argparse.Namespace, options: Callable[[], RecorderOptions]) -> int:

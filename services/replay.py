@@ -16,7 +16,8 @@ never get a burst at many times the recorded rate and the replayed rates stay th
 ends later, by ``slipped_ms`` in its summary). It never skips a message. Before the first message it waits ``--connect-s`` for subscribers to
 connect (a ZeroMQ subscriber misses what is sent before its connection is up).
 
-What. Every field as recorded, arrays bit for bit and ``hw_stamp_ns`` included, except ``seq`` and ``stamp_ns``,
+What. Every field as recorded (arrays as the file holds them: bit for bit, camera images as their JPEG holds them
+unless the recorder kept them raw) and ``hw_stamp_ns`` included, except ``seq`` and ``stamp_ns``,
 which the replay's publishers set as every publisher does (``seq`` from 1 per topic, ``stamp_ns`` = now): the stack
 refuses stamps from the future and treats old ones as stale, so a replayed message must carry the time it is sent.
 A file cut short by a crash replays up to its last complete chunk.

@@ -13,8 +13,11 @@ the planner's surface points on the predicted object pose) and ``/scene/forces/t
 per-point forces at its own points on the true pose). A force is an arrow from its point along the force,
 ``FORCE_ARROW_M_PER_N`` long per newton; forces under ``MIN_ARROW_FORCE_N`` are left out.
 
-Images (``RawImage``): ``/image/CAMERA`` (``bgr8`` or ``mono8``), ``/depth/ARM`` (``16UC1`` counts of
-``depth_scale_m``), ``/deformation/ARM`` (``32FC1``, m, NaN = no return).
+Images: ``/image/CAMERA`` (``CompressedImage``, the JPEG the recording stores, or ``RawImage`` ``bgr8`` or
+``mono8`` where it keeps camera images raw), ``/depth/ARM``
+(``CompressedImage``, a 16-bit PNG of the counts of ``depth_scale_m``), ``/deformation/ARM`` (``RawImage``
+``32FC1``, m, NaN = no return). Each image is the same bytes as the raw channel's, so the file's compression stores
+it once (``recording``).
 
 Every stamp is ``stamp_ns`` (or the hardware stamp of an image) plus the recording's epoch offset (see
 ``recording``). ``SceneGeometry.from_config`` compiles the task scene as the planner does (it imports torch);
@@ -30,6 +33,7 @@ import numpy as np
 from foxglove.messages import (
     ArrowPrimitive,
     Color,
+    CompressedImage,
     FrameTransform,
     FrameTransforms,
     LinePrimitive,
@@ -48,6 +52,8 @@ from foxglove.messages import (
 
 from hydrosoft.services import messages as msg
 from hydrosoft.services.config import StackConfig
+from hydrosoft.services.image_codec import EncodedImage
+from hydrosoft.services.recording import JPEG, RawFormat, encoded_images
 
 WORLD = "world"
 OBJECT_FRAME = "object"
@@ -131,15 +137,17 @@ def depth_frame(arm: str) -> str:
     return f"depth_{arm}"
 
 
-def scene_topics(config: StackConfig) -> dict[str, type]:
-    """Every scene channel of ``config``'s stack and the Foxglove message type it carries."""
+def scene_topics(config: StackConfig, raw_format: RawFormat = RawFormat()) -> dict[str, type]:
+    """Every scene channel of ``config``'s stack and the Foxglove message type it carries (camera images as
+    ``raw_format`` stores them)."""
     topics: dict[str, type] = {TF_TOPIC: FrameTransforms}
     topics |= dict.fromkeys((BUBBLES_TOPIC, OBJECT_TOPIC, GOAL_TOPIC, PLAN_TOPIC, PREDICTED_FORCES_TOPIC,
                              TRUE_FORCES_TOPIC), SceneUpdate)
-    topics[f"/{msg.topic_for(msg.CameraImage, CAMERA_FRAME)}"] = RawImage
+    camera_type = CompressedImage if raw_format.camera_format == JPEG else RawImage
+    topics[f"/{msg.topic_for(msg.CameraImage, CAMERA_FRAME)}"] = camera_type
     for arm in config.arms:
-        for kind in (msg.DepthFrame, msg.MembraneDeformation):
-            topics[f"/{msg.topic_for(kind, arm.name)}"] = RawImage
+        topics[f"/{msg.topic_for(msg.DepthFrame, arm.name)}"] = CompressedImage
+        topics[f"/{msg.topic_for(msg.MembraneDeformation, arm.name)}"] = RawImage
     return topics
 
 
@@ -247,12 +255,16 @@ def forces_update(bodies: tuple[str, ...], points_world: np.ndarray, forces: np.
 
 
 def raw_image(image: np.ndarray, encoding: str, frame: str, stamp: Timestamp) -> RawImage:
-    """A Foxglove raw image of ``image (H, W[, C])`` (C-ordered) in ``encoding`` (``bgr8``, ``mono8``, ``16UC1``,
-    ``32FC1``)."""
+    """A Foxglove raw image of ``image (H, W[, C])`` (C-ordered) in ``encoding`` (``bgr8``, ``mono8``, ``32FC1``)."""
     array = np.ascontiguousarray(image)
     height, width = array.shape[:2]
     return RawImage(timestamp=stamp, frame_id=frame, width=width, height=height, encoding=encoding,
                     step=array.strides[0], data=array.tobytes())
+
+
+def compressed_image(image: EncodedImage, frame: str, stamp: Timestamp) -> CompressedImage:
+    """A Foxglove compressed image of the PNG or JPEG ``image``."""
+    return CompressedImage(timestamp=stamp, frame_id=frame, data=image.data, format=image.format)
 
 
 # --- the builder -------------------------------------------------------------------------------------------------
@@ -288,8 +300,10 @@ class SceneBuilder:
         return [(TF_TOPIC, frames), (BUBBLES_TOPIC, SceneUpdate(entities=bubbles)),
                 (OBJECT_TOPIC, SceneUpdate(entities=objects))]
 
-    def convert(self, topic: str, message: msg.Message) -> list[SceneOutput]:
-        """The scene messages of one bus message (none for the kinds the scene does not show)."""
+    def convert(self, topic: str, message: msg.Message,
+                images: dict[str, EncodedImage] | None = None) -> list[SceneOutput]:
+        """The scene messages of one bus message (none for the kinds the scene does not show). ``images``: its
+        compressed image fields as the recording stores them (default: ``recording.encoded_images``)."""
         stamp = timestamp(message.stamp_ns, self.epoch_offset_ns)
         match message:
             case msg.ArmState():
@@ -313,11 +327,15 @@ class SceneBuilder:
                                    pose=message.goal.target_pose)
                 return [(GOAL_TOPIC, SceneUpdate(entities=[goal]))]
             case msg.CameraImage():
-                encoding = "bgr8" if message.image.shape[2] == 3 else "mono8"
+                image = (encoded_images(message) if images is None else images).get("image")
                 image_stamp = timestamp(message.hw_stamp_ns or message.stamp_ns, self.epoch_offset_ns)
-                return [(f"/{topic}", raw_image(message.image, encoding, message.camera, image_stamp))]
+                if image is None:  # kept raw
+                    encoding = "bgr8" if message.image.shape[2] == 3 else "mono8"
+                    return [(f"/{topic}", raw_image(message.image, encoding, message.camera, image_stamp))]
+                return [(f"/{topic}", compressed_image(image, message.camera, image_stamp))]
             case msg.DepthFrame():
-                return [(f"/{topic}", raw_image(message.depth, "16UC1", depth_frame(message.bubble), stamp))]
+                image = (encoded_images(message) if images is None else images)["depth"]
+                return [(f"/{topic}", compressed_image(image, depth_frame(message.bubble), stamp))]
             case msg.MembraneDeformation():
                 return [(f"/{topic}", raw_image(message.deformation, "32FC1", depth_frame(message.bubble), stamp))]
         return []

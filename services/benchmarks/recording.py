@@ -10,7 +10,8 @@ recorder service writing an MCAP file, started mid-run as ``launch --record`` st
 - the bus latency per topic: a probe subscriber in this process reads every message of the arm commander, the F/T
   reader, the bubble camera and the planner, and takes its age on arrival (``time.monotonic_ns()`` minus the
   publisher's ``stamp_ns``: one host, one clock); p50 and p99 in ms, and the rate received;
-- with the recorder: its CPU use (% of one core, from ``/proc``) and the file's size and growth.
+- with the recorder: its CPU use (% of one core, from ``/proc``) and the file's size and growth (MB per second of
+  the span its messages cover, from the file's statistics record).
 
 It prints one JSON document (and a table without ``--json``). Every process it starts is stopped by its pid.
 """
@@ -29,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import zmq
+from mcap.reader import make_reader
 
 from hydrosoft.services import messages as msg
 from hydrosoft.services.benchmarks.launched_stack import (
@@ -91,6 +93,13 @@ async def probe(config: StackConfig, seconds: float) -> dict[str, object]:
             else None, "latency": latency_summary(ages, seconds)}
 
 
+def recorded_span_s(path: Path) -> float:
+    """The time from a closed MCAP file's first message to its last (log times, from its statistics record), s."""
+    with open(path, "rb") as stream:
+        statistics = make_reader(stream).get_summary().statistics
+    return (statistics.message_end_time - statistics.message_start_time) * 1e-9
+
+
 async def _status(config_path: Path) -> msg.StatusReply:
     async with StackClient(config_path) as client:
         return await client.status()
@@ -126,7 +135,8 @@ def measure(config: Path, seconds: float, keep: Path | None = None) -> dict[str,
             100 * (cpu_time_s(recorder.process.pid) - cpu_before_s) / (time.monotonic() - tic_s), 1)
         recorder.stop()
         result["recording_mb"] = round(recording.stat().st_size / 1e6, 1)
-        result["recording_mb_per_s"] = round(recording.stat().st_size / 1e6 / seconds, 2)
+        result["recording_s"] = round(recorded_span_s(recording), 1)
+        result["recording_mb_per_s"] = round(recording.stat().st_size / 1e6 / result["recording_s"], 3)
         result["without_again"] = asyncio.run(probe(stack_config, seconds))
         status = asyncio.run(_status(config_path))
         result["episode"] = {"outcome": status.outcome, "solves": status.solves,
@@ -154,7 +164,8 @@ def format_table(result: dict[str, object]) -> str:
             row = result[phase]["latency"].get(topic)
             cells.append(f"{row['p50_ms']:.2f}/{row['p99_ms']:.2f} ms {row['hz']:.0f} Hz" if row else "-")
         lines.append(f"{topic:<24}" + "".join(f"{cell:>24}" for cell in cells))
-    lines.append(f"recording: {result['recording_mb']} MB ({result['recording_mb_per_s']} MB/s), recorder CPU "
+    lines.append(f"recording: {result['recording_mb']} MB over {result.get('recording_s', '?')} s "
+                 f"({result['recording_mb_per_s']} MB/s), recorder CPU "
                  f"{result['recorder_cpu_percent']} % of one core")
     return "\n".join(lines)
 
@@ -162,7 +173,9 @@ def format_table(result: dict[str, object]) -> str:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``hydrosoft-stack bench recording``."""
     add_config_argument(parser)
-    parser.add_argument("--seconds", type=float, default=20.0, help="length of each phase, s (default 20)")
+    parser.add_argument("--seconds", type=float, default=20.0,
+                        help="length of each phase, s (default 20; the run takes the stack's start, 1-3 min on 2 "
+                             "cores, plus about 3 x SECONDS + 20 s)")
     parser.add_argument("--keep", type=Path, default=None, metavar="DIR",
                         help="copy the logs and the recording to DIR")
     parser.add_argument("--json", action="store_true", help="print only the JSON document")

@@ -1,8 +1,9 @@
 """Fixtures shared by the service tests.
 
 ``recorded_run`` (session): one short run of the fake publisher (``fakes/bus_publisher.py``) and the real tag
-tracker, recorded by two recorders at once: one SIGKILLed mid-run (``killed``), one stopped cleanly at the end
-(``clean``). The recorder, replay and plot tests read these files. Every process is stopped by its pid.
+tracker, recorded by two recorders at once: one SIGKILLed mid-run (``killed``, camera images as JPEG, the default),
+one stopped cleanly at the end (``clean``, camera images raw, lossless, so a replay re-runs the tracker exactly).
+The recorder, replay and plot tests read these files. Every process is stopped by its pid.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def recorded_run():
     config_path = write_config(root)
     clean, killed = root / "clean.mcap", root / "killed.mcap"
     killed_recorder = recorder(config_path, root, "--record", killed, name="recorder")
-    clean_recorder = recorder(config_path, root, "--record", clean, name="recorder-clean")
+    clean_recorder = recorder(config_path, root, "--record", clean, "--camera-images", "raw", name="recorder-clean")
     tracker = service("tag_tracker", config_path, root)
     processes = [killed_recorder, clean_recorder, tracker]
     try:

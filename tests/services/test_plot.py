@@ -1,16 +1,31 @@
-"""``hydrosoft-stack plot``: the series it draws, from hand-made messages, and the four PNGs of a real recording
-(``conftest.recorded_run``)."""
+"""``hydrosoft-stack plot``: the series it draws, from hand-made messages, the four PNGs of a real recording
+(``conftest.recorded_run``), and long synthetic recordings: plotted in memory that does not grow with the file, with
+hundreds of stops in a few timeline lanes."""
 
 from __future__ import annotations
 
 import argparse
+import gc
+import json
+import tracemalloc
 
+import msgspec
 import numpy as np
+import pytest
+from mcap.writer import Writer
 from PIL import Image
 
 from hydrosoft.services import messages as msg
-from hydrosoft.services.plot import run, series
-from hydrosoft.services.recording import RecordedMessage
+from hydrosoft.services.plot import MAX_BUCKETS, PLOTTED_TOPICS, Envelope, Tally, run, series
+from hydrosoft.services.recording import (
+    RecordedMessage,
+    RecordingReader,
+    encode_raw,
+    raw_channel_metadata,
+    raw_channel_name,
+    raw_encoding,
+    raw_schema,
+)
 
 POSE = np.array([0.0, 0.0, 0.02, 1.0, 0.0, 0.0, 0.0])
 
@@ -57,10 +72,10 @@ def test_the_series_follow_the_messages():
                                                             (1.25, round(float(np.linalg.norm([3.0] * 3)), 6))]
     assert points(run_series.solve_ms) == [(1.0, 150.0), (1.25, 150.0)]
     assert points(run_series.plan_hz) == [(1.25, 4.0)]
-    assert [(round(t, 6), arm_name, reason) for t, arm_name, reason in run_series.stops] == [
-        (1.4, "bubble", "deadline passed")]
+    assert {lane: points(events) for lane, events in run_series.events.items()} == {
+        "bubble stop: deadline passed": [(1.4, 1)], "planner degraded": [(1.5, 1)]}
+    assert run_series.event_totals == {"bubble stop: deadline passed": 1, "planner degraded": 1}
     assert points(run_series.errors["planner: stale_input"]) == [(1.5, 2), (2.5, 3)]
-    assert [(round(t, 6), service, state) for t, service, state in run_series.states] == [(1.5, "planner", "degraded")]
 
 
 def test_a_recording_gives_four_pngs(recorded_run, tmp_path, capsys):
@@ -72,3 +87,93 @@ def test_a_recording_gives_four_pngs(recorded_run, tmp_path, capsys):
     for path in written:
         with Image.open(path) as image:
             assert image.size[0] >= 600 and image.getextrema() != ((255, 255), (255, 255), (255, 255), (255, 255))
+
+
+# --- long runs: bounded series, streamed files, readable events -----------------------------------------------------
+
+REASONS = ("target deadline passed", "heartbeat lost", "force 41 N > 40 N")
+
+
+def test_a_long_series_keeps_a_bounded_number_of_points_and_every_peak_and_count():
+    line, events = Envelope(max_buckets=100), Tally(max_buckets=100)
+    t = np.arange(100_000) * 0.01
+    values = np.sin(t)
+    values[54_321] = 7.0  # one spike among a hundred thousand points
+    for time_s, value in zip(t, values):
+        line.add(float(time_s), float(value))
+        events.add(float(time_s))
+    kept = line.points()
+    assert len(kept) <= 200 and [p[0] for p in kept] == sorted(p[0] for p in kept)
+    assert max(v for _, v in kept) == 7.0 and min(v for _, v in kept) == pytest.approx(-1.0, abs=1e-6)
+    assert len(events.counts()) <= 100 and sum(n for _, n in events.counts()) == events.total == 100_000
+
+
+def write_run(path, seconds: int) -> int:
+    """A synthetic recording of ``seconds`` of a pushing run in the recorder's format: a wrench at 100 Hz, arm
+    states at 50 Hz with a watchdog stop every half second (three reasons in turn), plans at 5 Hz, the planner's
+    status and status reply; returns the number of stops."""
+    goal = msg.Goal(task="pushing", target_pose=POSE + np.array([0.03, 0, 0, 0, 0, 0, 0]), tolerance_mm=5.0,
+                    timeout_s=60.0)
+    plan = msg.Plan(task="pushing", actions=np.zeros((6, 2, 6), np.float32),
+                    predicted_object_poses=np.tile(POSE, (6, 1)).astype(np.float32),
+                    predicted_forces=np.ones((2, 64, 3), np.float32), cost=1.0, solve_ms=150.0)
+    stops = 0
+    with open(path, "wb") as stream:
+        writer = Writer(stream, chunk_size=1 << 20)
+        writer.start()
+        channels = {}
+
+        def log(topic: str, message: msg.Message, t_s: float, source: str = "x") -> None:
+            kind = type(message)
+            if topic not in channels:
+                schema = writer.register_schema(kind.__name__, "jsonschema", json.dumps(raw_schema(kind)).encode())
+                channels[topic] = writer.register_channel(raw_channel_name(topic, source), raw_encoding(kind), schema,
+                                                          raw_channel_metadata(topic, kind, source))
+            stamp_ns = int(1e9 + t_s * 1e9)
+            writer.add_message(channels[topic], log_time=stamp_ns, publish_time=stamp_ns,
+                               data=encode_raw(msgspec.structs.replace(message, stamp_ns=stamp_ns)))
+
+        for tick in range(seconds * 100):
+            t_s = tick / 100
+            log("wrench/bubble", msg.Wrench(sensor="bubble", wrench=np.full(6, np.sin(t_s)), tared=True), t_s)
+            if tick % 2 == 0:
+                stopped = tick % 50 == 0 and tick > 0
+                stops += stopped
+                log("arm_state/bubble", arm(not stopped, REASONS[(tick // 50) % 3] if stopped else ""), t_s)
+            if tick % 20 == 0:
+                log("plan/pushing", msgspec.structs.replace(plan, solve_ms=100.0 + tick % 7), t_s)
+            if tick % 50 == 0:
+                log("reply/status", msg.StatusReply(ok=True, running=True, goal=goal, error_mm=30.0 - t_s / 100), t_s)
+            if tick % 100 == 0:
+                log("status/planner", msg.ServiceStatus(state="ready", pid=1, uptime_s=t_s,
+                                                        errors={"stale_input": tick // 100}), t_s)
+        writer.finish()
+    return stops
+
+
+def plot_peak_bytes(path, out) -> int:
+    """The peak of Python's traced memory while ``plot`` runs on ``path``, bytes."""
+    gc.collect()
+    tracemalloc.start()
+    try:
+        assert run(argparse.Namespace(recording=path, out=out)) == 0
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_plot_streams_a_long_recording_in_bounded_memory_with_hundreds_of_stops_in_three_lanes(tmp_path, capsys):
+    short, long = tmp_path / "short.mcap", tmp_path / "long.mcap"
+    write_run(short, seconds=20)
+    stops = write_run(long, seconds=200)  # ten times the messages: 31,000
+    plot_peak_bytes(short, tmp_path / "warm-up")  # imports, fonts and caches
+    short_peak = plot_peak_bytes(short, tmp_path / "short")
+    long_peak = plot_peak_bytes(long, tmp_path / "long")
+    assert long_peak < 1.3 * short_peak, (short_peak, long_peak)
+    reader = RecordingReader(long, PLOTTED_TOPICS)
+    run_series = series(reader)
+    assert stops == 399 and run_series.event_totals == {f"bubble stop: {r}": 133 for r in REASONS}
+    assert len(run_series.forces["F/T bubble"]) <= 2 * MAX_BUCKETS < 20_000  # 20,000 wrenches
+    with Image.open(tmp_path / "long" / "events.png") as image:
+        assert image.size[1] < 800  # three lanes, not a line and a label per stop
+    capsys.readouterr()

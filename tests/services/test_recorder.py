@@ -1,7 +1,8 @@
 """The recorder: its plain parts, the raw channels' codec, and two recordings of one run of the fake publisher and
-the real tag tracker (``conftest.recorded_run``): one recorder SIGKILLed mid-run, whose file reads back every
-message up to its last flush, and one stopped cleanly, whose file passes the MCAP reader's strict checks and whose
-every message decodes with its channel's own schema, without our code.
+the real tag tracker (``conftest.recorded_run``): one recorder SIGKILLed mid-run (default format: JPEG camera
+images), whose file reads back every message up to its last flush, and one stopped cleanly (lossless), whose file
+passes the MCAP reader's strict checks and whose every message decodes with its channel's own schema and a standard
+JSON or msgpack decoder, without our code.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from hydrosoft.services import messages as msg
 from hydrosoft.services.config import parse_config
 from hydrosoft.services.recorder import (
     FLUSH_PERIOD_S,
+    ChunkBudget,
     RecorderError,
     RecorderOptions,
     SeqGaps,
@@ -36,6 +38,7 @@ from hydrosoft.services.recording import (
     bus_topic,
     decode_raw,
     encode_raw,
+    raw_encoding,
     raw_schema,
     read_recording,
 )
@@ -45,6 +48,8 @@ from hydrosoft.services.recording import (
 KILL_LOSS_S = FLUSH_PERIOD_S + 4.0
 #: Header fields the publisher sets (and, for images, the exposure stamp it takes at send time).
 STAMPED = ("seq", "stamp_ns", "source")
+#: How far a JPEG camera image of the default quality may be from the image sent: mean absolute error, grey levels.
+JPEG_MEAN_ERROR = 3.0
 SCENE_TOPICS = {"/tf", "/scene/bubbles", "/scene/object", "/scene/plan", "/scene/forces/predicted",
                 "/scene/forces/true", "/image/tag_camera", "/depth/bubble"}
 
@@ -71,16 +76,23 @@ def by_topic(messages) -> dict[str, list]:
     return grouped
 
 
-def check_published_contents(messages, config, images) -> dict[str, list]:
-    """Each topic of the fake publisher: contiguous seqs, each message as sent; returns the messages by topic."""
+def check_published_contents(messages, config, images, jpeg: bool = False) -> dict[str, list]:
+    """Each topic of the fake publisher: contiguous seqs, each message as sent (``jpeg``: camera images within
+    ``JPEG_MEAN_ERROR`` of the sent ones, every other array bit for bit); returns the messages by topic."""
     grouped = by_topic(messages)
     for topic in topics(config):
         received = grouped[topic]
         seqs = [m.seq for m in received]
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), f"{topic}: gaps in {seqs}"
         for message in received:
+            sent = expected(topic, message.seq, config, images)
             ignore = STAMPED + ("hw_stamp_ns",) if topic.startswith("image/") else STAMPED
-            assert_same(message, expected(topic, message.seq, config, images), ignore)
+            if jpeg and topic.startswith("image/"):
+                assert message.image.shape == sent.image.shape and message.image.dtype == sent.image.dtype
+                error = np.abs(message.image.astype(np.int16) - sent.image).mean()
+                assert 0 < error < JPEG_MEAN_ERROR, (topic, message.seq, error)
+                ignore += ("image",)
+            assert_same(message, sent, ignore)
     return grouped
 
 
@@ -100,9 +112,10 @@ def test_raw_messages_round_trip_bit_exactly_and_match_their_json_schema():
     ]
     for message in sent:
         data = encode_raw(message)
-        back = decode_raw(type(message), data)
+        back = decode_raw(type(message), data, raw_encoding(type(message)))
         assert_same(back, message, ignore=())
-        jsonschema.validate(json.loads(data), raw_schema(type(message)))
+        loads = json.loads if raw_encoding(type(message)) == "json" else msgspec.msgpack.decode
+        jsonschema.validate(loads(data), raw_schema(type(message)))
     assert raw_schema(msg.Wrench)["title"] == "Wrench" and raw_schema(msg.Wrench)["type"] == "object"
     with pytest.raises(RecordingError, match="Wrench"):
         decode_raw(msg.Wrench, b'{"sensor": 1}')
@@ -118,6 +131,10 @@ def test_plain_parts():
     assert [gaps.missing("t", "b", s) for s in (1, 2)] == [0, 0]  # another publisher of the same topic
     assert recording_path(Path("/r/run.mcap"), 0).name == "run.mcap"
     assert recording_path(Path("/r/run.mcap"), 2).name == "run.restart2.mcap"
+    budget = ChunkBudget(100)  # closes a chunk before what would overflow it, never before the first message
+    assert [budget.close_before(n) for n in (150, 10, 60, 40, 1)] == [False, True, False, True, False]
+    budget.closed()
+    assert budget.close_before(90) is False
     with pytest.raises(RecorderError, match="nothing to do"):
         RecorderOptions()
     with pytest.raises(RecorderError, match="loopback"):
@@ -136,7 +153,7 @@ def test_plain_parts():
 def test_a_sigkilled_recorder_leaves_every_message_up_to_its_last_flush_readable_with_schemas(recorded_run):
     run = recorded_run
     messages, reader = read_recording(run.killed)
-    grouped = check_published_contents(messages, run.config, rendered_images(run.config))
+    grouped = check_published_contents(messages, run.config, rendered_images(run.config), jpeg=True)
     for topic in topics(run.config):
         last_stamp_ns = grouped[topic][-1].stamp_ns
         assert last_stamp_ns > run.kill_ns - KILL_LOSS_S * 1e9, (
@@ -149,8 +166,9 @@ def test_a_sigkilled_recorder_leaves_every_message_up_to_its_last_flush_readable
         if topic.startswith("/"):
             assert channel.message_encoding == "protobuf" and schema.name.startswith("foxglove."), topic
         else:
-            assert (channel.message_encoding, schema.encoding) == ("json", "jsonschema"), topic
-            assert schema.name == msg.kind_for_topic(bus_topic(channel)).__name__
+            kind = msg.kind_for_topic(bus_topic(channel))
+            assert (channel.message_encoding, schema.encoding) == (raw_encoding(kind), "jsonschema"), topic
+            assert schema.name == kind.__name__
             assert topic == f"{channel.metadata['hydrosoft.source']}/{bus_topic(channel)}"
     with open(run.killed, "rb") as stream:
         chunks = 0
@@ -184,9 +202,10 @@ def test_a_clean_recording_passes_the_strict_reader_and_decodes_with_its_own_sch
         for schema, channel, message in strict.iter_messages(topics=[t for t in reader.channels
                                                                      if not t.startswith("/")]):
             counts[channel.topic] += 1
-            jsonschema.validate(json.loads(message.data), json.loads(schema.data))
+            loads = json.loads if channel.message_encoding == "json" else msgspec.msgpack.decode
+            jsonschema.validate(loads(message.data), json.loads(schema.data))
     assert sum(counts.values()) == summary.statistics.message_count
     assert dict(summary.statistics.channel_message_counts) == {
         summary.channels[i].id: counts[summary.channels[i].topic] for i in summary.channels}
     image = next(m for m in messages if m.topic == "image/tag_camera").message
-    assert msgspec.json.decode(encode_raw(image))["image"]["shape"] == [480, 640, 3]
+    assert msgspec.msgpack.decode(encode_raw(image))["image"]["shape"] == [480, 640, 3]

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from foxglove.messages import Color, FrameTransforms, RawImage, SceneUpdate
+from foxglove.messages import Color, CompressedImage, FrameTransforms, RawImage, SceneUpdate
 
 from hydrosoft.geometry import se3
 from hydrosoft.services import messages as msg
@@ -77,11 +77,20 @@ def test_each_message_becomes_its_scene_update():
     assert [t for t, _ in builder.convert("reply/status", msg.StatusReply(ok=True, goal=goal))] == ["/scene/goal"]
     assert builder.convert("reply/status", msg.StatusReply(ok=True)) == []
     image = msg.CameraImage.of("tag_camera", np.zeros((4, 6), dtype=np.uint8), hw_stamp_ns=3)
-    (topic, raw), = builder.convert("image/tag_camera", image)
-    assert topic == "/image/tag_camera" and isinstance(raw, RawImage)
+    (topic, compressed), = builder.convert("image/tag_camera", image)
+    assert topic == "/image/tag_camera" and isinstance(compressed, CompressedImage)
+    assert b"jpeg" in compressed.encode() and b"\xff\xd8" in compressed.encode()  # format, JPEG's start marker
+    (topic, raw), = builder.convert("image/tag_camera", image, images={})  # a recorder keeping camera images raw
+    assert topic == "/image/tag_camera" and isinstance(raw, RawImage) and b"mono8" in raw.encode()
     depth = msg.DepthFrame(bubble="bubble", depth=np.zeros((4, 6), np.uint16), depth_scale_m=1e-4, fx_px=1.0,
                            fy_px=1.0, cx_px=1.0, cy_px=1.0)
-    assert [t for t, _ in builder.convert("depth/bubble", depth)] == ["/depth/bubble"]
+    (topic, compressed), = builder.convert("depth/bubble", depth)
+    assert topic == "/depth/bubble" and isinstance(compressed, CompressedImage)
+    assert b"png" in compressed.encode() and b"\x89PNG" in compressed.encode()
+    deformation = msg.MembraneDeformation(bubble="bubble", deformation=np.ones((4, 6), np.float32),
+                                          reference_stamp_ns=1)
+    (topic, raw), = builder.convert("deformation/bubble", deformation)
+    assert topic == "/deformation/bubble" and isinstance(raw, RawImage) and b"32FC1" in raw.encode()
     assert builder.convert("wrench/bubble", msg.Wrench(sensor="b", wrench=np.zeros(6), tared=True)) == []
 
 

@@ -101,7 +101,8 @@ def test_a_websocket_client_gets_the_scene_channels_and_decodes_their_updates():
         remove_root(root)
     assert EXPECTED <= set(channels), sorted(channels)
     assert channels["/scene/forces/predicted"]["schemaName"] == "foxglove.SceneUpdate"
-    assert channels["/image/tag_camera"]["schemaName"] == "foxglove.RawImage"
+    assert channels["/image/tag_camera"]["schemaName"] == "foxglove.CompressedImage"
+    assert channels["sim_world/image/tag_camera"]["encoding"] == "msgpack"  # an image kind's raw channel
     wrench = channels["ft_reader-bubble/wrench/bubble"]
     assert wrench["encoding"] == "json" and wrench["schemaName"] == "Wrench"
     forces = decoded["/scene/forces/predicted"][-1]
