@@ -25,13 +25,13 @@ from __future__ import annotations
 import math
 import re
 from collections import Counter
-from enum import IntEnum
 
 import numpy as np
 
 from hydrosoft.drivers.ur.motion import MotionMode, TcpMotion
 from hydrosoft.drivers.ur.pose import ur_to_pose
 from hydrosoft.drivers.ur.rtde_protocol import REGISTER_COUNT
+from hydrosoft.drivers.ur.safety_status import RuntimeState
 
 # Command ids written into input_int_register_<offset> by the client (devices.md section 3.3).
 CMD_CLEAR = 0
@@ -55,17 +55,6 @@ ASYNC_RUNNING_BIT = 1 << 15
 UPPER_RANGE_OFFSET = 24
 PROGRAM_HEADER = "def rtde_control():"
 _OFFSET_MARKER = re.compile(r"# int register offset\n\s*(\d+)")
-
-
-class RuntimeState(IntEnum):
-    """RTDE ``runtime_state`` values (UR RTDE guide)."""
-
-    STOPPING = 0
-    STOPPED = 1
-    PLAYING = 2
-    PAUSING = 3
-    PAUSED = 4
-    RESUMING = 5
 
 
 def is_control_program(text: str) -> bool:

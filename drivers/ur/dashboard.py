@@ -8,7 +8,7 @@ four-part version, ``get serial number`` -> digits, ``is in remote control`` -> 
 
 from __future__ import annotations
 
-from hydrosoft.drivers.ur.control_script import RuntimeState
+from hydrosoft.drivers.ur.safety_status import RuntimeState
 from hydrosoft.drivers.ur.controller import URControllerModel
 
 BANNER = "Connected: Universal Robots Dashboard Server"

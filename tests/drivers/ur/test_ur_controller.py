@@ -7,7 +7,7 @@ import re
 import numpy as np
 
 from hydrosoft.drivers.ur import rtde_protocol as rtde
-from hydrosoft.drivers.ur.control_script import RuntimeState
+from hydrosoft.drivers.ur.safety_status import RuntimeState
 from hydrosoft.drivers.ur.controller import (SAFETY_STATUS_NORMAL, SAFETY_STATUS_PROTECTIVE_STOP, URControllerModel)
 from hydrosoft.drivers.ur.safety_status import controller_stop
 from hydrosoft.drivers.ur.dashboard import UNLOCK_TOO_EARLY, dashboard_reply
