@@ -35,16 +35,12 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-# quat_to_matrix, sensor_to_tcp and predict_tcp_wrenches stay importable from here, where they were first defined
-from hydrosoft.bench.wrench_replay import (  # noqa: F401
+from hydrosoft.bench.wrench_replay import (
     DEFAULT_SUBSTEPS,
     load_recordings,
     mean_and_std,
     predict_grouped,
-    predict_tcp_wrenches,
-    quat_to_matrix,
     recording_files,
-    sensor_to_tcp,
     trajectory_errors,
 )
 

@@ -14,7 +14,7 @@ import pytest
 import torch
 from mcap.reader import make_reader
 
-from hydrosoft.bench import wrench
+from hydrosoft.bench import wrench, wrench_replay
 from hydrosoft.bench.wrench_recording import (
     METADATA_NAME,
     TOPIC,
@@ -85,13 +85,13 @@ def test_sensor_to_tcp_moves_a_wrench_to_the_tcp_frame():
     w_tcp = rng.normal(size=(5, 6))
     turn = rng.normal(size=4)
     tcp_in_sensor = np.concatenate([[0.01, -0.02, 0.12], turn / np.linalg.norm(turn)])
-    R, p = wrench.quat_to_matrix(tcp_in_sensor[3:]), tcp_in_sensor[:3]
+    R, p = wrench_replay.quat_to_matrix(tcp_in_sensor[3:]), tcp_in_sensor[:3]
     f_sensor = w_tcp[:, :3] @ R.T
     m_sensor = w_tcp[:, 3:] @ R.T + np.cross(p, f_sensor)  # the same forces, about the sensor's origin
-    np.testing.assert_allclose(wrench.sensor_to_tcp(np.concatenate([f_sensor, m_sensor], 1), tcp_in_sensor), w_tcp,
+    np.testing.assert_allclose(wrench_replay.sensor_to_tcp(np.concatenate([f_sensor, m_sensor], 1), tcp_in_sensor), w_tcp,
                                atol=1e-12)
     identity = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
-    np.testing.assert_allclose(wrench.sensor_to_tcp(w_tcp, identity), w_tcp)
+    np.testing.assert_allclose(wrench_replay.sensor_to_tcp(w_tcp, identity), w_tcp)
 
 
 def _nh_recording(path, name: str, kinds, steps: int) -> list:
@@ -102,7 +102,7 @@ def _nh_recording(path, name: str, kinds, steps: int) -> list:
     params = [sample_press_and_shear(rng, steps, kind) for kind in kinds]
     bubbles = np.stack([press_and_shear(obj, p) for p in params])
     objects = np.broadcast_to(obj.pose(), bubbles.shape).copy()
-    truth = wrench.predict_tcp_wrenches(name, objects, bubbles, "nh", SPACING_M, substeps=4)
+    truth = wrench_replay.predict_tcp_wrenches(name, objects, bubbles, "nh", SPACING_M, substeps=4)
     measured = np.round(truth / FT300_RESOLUTION) * FT300_RESOLUTION
     info = RecordingInfo(object=name, config="test", mode="sim", tcp_in_sensor=(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0),
                          plant_spacing_m=SPACING_M, seed=7, epoch_offset_ns=1_700_000_000_000_000_000,
