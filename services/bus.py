@@ -25,6 +25,14 @@ one; ``CurveClient`` on the other); without them ``BusConfigError`` says so. Key
 files (``zmq.auth.create_certificates(dir, name)`` writes ``name.key`` and ``name.key_secret``); a CURVE server
 admits only the clients whose public ``.key`` files lie in its ``authorized_keys_dir``, checked by a ZAP
 authenticator thread the ``Bus`` starts (a thread, so handshakes proceed while a planner's solve holds the loop).
+It counts every peer it refuses (``Bus.curve_refused``, which a service's status reports as ``curve_refused``): a
+refused peer's handshake fails, so it receives nothing and nothing it sends is delivered. A secret key file that
+its owner's group or others may read or write is refused (``BusConfigError`` naming the file).
+
+A process's ``CurveKeys`` (``Bus(curve=...)``) say which of its sockets use CURVE: every ``tcp://`` endpoint
+beyond loopback, and with ``loopback`` also those on 127.x (so that CI runs the secure path); ``ipc://`` never
+(it does not leave the host, and its file's permissions guard it). A bound socket is then a CURVE server, a
+connected one a client of the server key the ``CurveKeys`` name for that endpoint.
 
 Every socket option (HWM, LINGER 0, MAXMSGSIZE, subscriptions, CURVE) is set before bind/connect, where libzmq
 applies it. Receive timeouts are asyncio's (``wait(timeout_s)``, the client's ``timeout_s``): ``RCVTIMEO`` does
@@ -39,10 +47,11 @@ import ipaddress
 import itertools
 import logging
 import math
+import stat
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Awaitable, Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Generic, TypeVar
 
@@ -209,6 +218,34 @@ class CurveClient:
 Curve = CurveServer | CurveClient
 
 
+@dataclass(frozen=True)
+class CurveKeys:
+    """A process's CURVE keys and the endpoints they apply to (see the module docstring).
+
+    secret_key_file: this host's ``.key_secret`` certificate. authorized_keys_dir: the folder of the public ``.key``
+    certificates of the peers its CURVE servers admit. server_key_files: per endpoint this process connects to,
+    the public key certificate of the host that binds it; an endpoint not listed is bound on this host (its own
+    public key, read from ``secret_key_file``). loopback: CURVE also on ``tcp://127.x.x.x`` endpoints.
+    """
+
+    secret_key_file: Path
+    authorized_keys_dir: Path
+    server_key_files: Mapping[str, Path] = field(default_factory=dict)
+    loopback: bool = False
+
+    def uses_curve(self, endpoint: str) -> bool:
+        """Whether a socket on ``endpoint`` uses CURVE: tcp beyond loopback, or any tcp with ``loopback``."""
+        return endpoint.startswith("tcp://") and (self.loopback or not is_local_endpoint(endpoint))
+
+    def for_endpoint(self, endpoint: str, bind: bool) -> Curve | None:
+        """The CURVE role of a socket bound (``bind``) or connected to ``endpoint``, or None for none."""
+        if not self.uses_curve(endpoint):
+            return None
+        if bind:
+            return CurveServer(self.secret_key_file, self.authorized_keys_dir)
+        return CurveClient(self.secret_key_file, self.server_key_files.get(endpoint, self.secret_key_file))
+
+
 def is_local_endpoint(endpoint: str) -> bool:
     """True for ``ipc://``, ``inproc://`` and ``tcp://`` on a literal 127.0.0.0/8 address. Raises BusConfigError
     for a transport other than those three or a tcp endpoint without a port."""
@@ -240,6 +277,17 @@ def check_endpoint(endpoint: str, curve: Curve | None) -> None:
         )
 
 
+def check_secret_key_file(path: Path) -> None:
+    """Raise BusConfigError naming ``path`` when its group or others may read or write it (or it is missing)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as error:
+        raise BusConfigError(f"cannot read CURVE certificate {path}: {error}") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise BusConfigError(f"CURVE secret key file {path} has mode {stat.S_IMODE(mode):04o}: it must be readable "
+                             f"by its owner only; run chmod 600 {path}")
+
+
 def _load_key_pair(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
     try:
         public, secret = zmq.auth.load_certificate(path)
@@ -247,7 +295,26 @@ def _load_key_pair(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
         raise BusConfigError(f"cannot read CURVE certificate {path}: {error}") from None
     if need_secret and secret is None:
         raise BusConfigError(f"CURVE certificate {path} holds no secret key: give the .key_secret file")
+    if need_secret:
+        check_secret_key_file(Path(path))
     return public, secret
+
+
+class _CountingAuthenticator(ThreadAuthenticator):
+    """pyzmq's ZAP thread, counting the peers it refuses (``refused``, written by its thread only)."""
+
+    def __init__(self, context: zmq.Context, logger: logging.Logger) -> None:
+        super().__init__(context, log=logger)
+        self.refused = 0
+
+    def _send_zap_reply(self, request_id: bytes, status_code: bytes, status_text: bytes,
+                        user_id: str = "anonymous") -> None:
+        if status_code != b"200":
+            self.refused += 1
+            if self.refused % LOG_EVERY_N == 1:
+                self.log.warning("curve_refused (%d so far, logged every %d): a peer's key was refused: %s",
+                                 self.refused, LOG_EVERY_N, status_text.decode(errors="replace"))
+        super()._send_zap_reply(request_id, status_code, status_text, user_id)
 
 
 class Bus:
@@ -257,9 +324,10 @@ class Bus:
     queued for sending (LINGER 0), so that a dead peer never delays an exit.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, curve: CurveKeys | None = None) -> None:
         self.context = zmq.asyncio.Context()
-        self._authenticator: ThreadAuthenticator | None = None
+        self.curve = curve
+        self._authenticator: _CountingAuthenticator | None = None
         self._zap_domains: dict[Path, str] = {}
         self._sockets: list[zmq.asyncio.Socket] = []
 
@@ -274,22 +342,27 @@ class Bus:
     ) -> zmq.asyncio.Socket:
         """A socket of ``socket_type`` bound (``bind``) or connected to each of ``endpoints``.
 
-        LINGER 0, ``options`` (``(zmq.SNDHWM, 16)``, ``(zmq.SUBSCRIBE, b"topic")``, ...) and ``curve`` are set
-        before any bind or connect. Raises BusConfigError on a policy violation, bad keys or a failed bind.
+        LINGER 0, ``options`` (``(zmq.SNDHWM, 16)``, ``(zmq.SUBSCRIBE, b"topic")``, ...) and the CURVE keys are
+        set before any bind or connect. ``curve`` applies to every endpoint; None: the bus's ``CurveKeys`` decide
+        per endpoint (the endpoints without CURVE are joined first, as libzmq keeps a CURVE option once set).
+        Raises BusConfigError on a policy violation, bad keys or a failed bind.
         """
         endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
+        curves = {endpoint: curve if curve is not None or self.curve is None else self.curve.for_endpoint(endpoint, bind)
+                  for endpoint in endpoints}
         for endpoint in endpoints:
-            check_endpoint(endpoint, curve)
+            check_endpoint(endpoint, curves[endpoint])
         sock = self.context.socket(socket_type)
         try:
             sock.setsockopt(zmq.LINGER, 0)
             for option, value in options:
                 sock.setsockopt(option, value)
-            if isinstance(curve, CurveServer):
-                self._make_curve_server(sock, curve)
-            elif isinstance(curve, CurveClient):
-                self._make_curve_client(sock, curve)
-            for endpoint in endpoints:
+            for endpoint in sorted(endpoints, key=lambda endpoint: curves[endpoint] is not None):
+                endpoint_curve = curves[endpoint]
+                if isinstance(endpoint_curve, CurveServer):
+                    self._make_curve_server(sock, endpoint_curve)
+                elif isinstance(endpoint_curve, CurveClient):
+                    self._make_curve_client(sock, endpoint_curve)
                 (sock.bind if bind else sock.connect)(endpoint)
         except zmq.ZMQError as error:
             sock.close(linger=0)
@@ -322,12 +395,17 @@ class Bus:
         if not keys_dir.is_dir() or not any(keys_dir.glob("*.key")):
             raise BusConfigError(f"CURVE authorized_keys_dir {keys_dir} holds no public .key certificates")
         if self._authenticator is None:
-            self._authenticator = ThreadAuthenticator(self.context, log=log.getChild("zap"))
+            self._authenticator = _CountingAuthenticator(self.context, log.getChild("zap"))
             self._authenticator.start()
         domain = f"hydrosoft-{len(self._zap_domains)}"
         self._authenticator.configure_curve(domain=domain, location=str(keys_dir))
         self._zap_domains[keys_dir] = domain
         return domain
+
+    @property
+    def curve_refused(self) -> int:
+        """How many peers this bus's CURVE servers refused (an unauthorised key, or none)."""
+        return self._authenticator.refused if self._authenticator is not None else 0
 
     def close(self, linger_ms: int = 0) -> None:
         """Close every socket made here, stop the authenticator and end the context. linger_ms: how long queued

@@ -20,7 +20,8 @@ Layout (see ``deploy/sim.toml`` for a commented example)::
     [sim]                             sim_world: rate, plant resolution, noise
     [services.NAME]                   per service: restart policy and readiness timeout
     [endpoints]                       optional overrides "SERVICE.data|status|cmd" = "tcp://..." (else ipc://)
-    [curve]                           CURVE key files, required for endpoints other than loopback or ipc
+    [curve]                           CURVE key files, required for endpoints other than loopback or ipc;
+                                      ``loopback = true`` puts CURVE on tcp://127.x endpoints too (CI)
 
 Service names: ``sim_world`` (sim mode only), ``tag_tracker``, ``planner`` and one ``arm_commander-ARM``,
 ``bubble_camera-ARM`` and ``ft_reader-ARM`` per arm. Each binds ``ipc://RUN_DIR/NAME.data`` (its topics) and
@@ -35,7 +36,7 @@ from typing import Literal
 
 import msgspec
 
-from hydrosoft.services.bus import CurveServer, check_endpoint
+from hydrosoft.services.bus import CurveKeys, CurveServer, check_endpoint
 from hydrosoft.services.runtime import RuntimeConfig
 
 Pose = tuple[float, float, float, float, float, float, float]
@@ -373,11 +374,14 @@ class ServiceConfig(Strict):
 
 
 class CurveConfig(Strict):
-    """CURVE keys (pyzmq zmq.auth certificate files): the servers' secret key file and the folder of authorised
-    client public keys."""
+    """CURVE keys (pyzmq zmq.auth certificate files, ``hydrosoft-stack keys generate``): this host's secret key
+    file (mode 0600) and the folder of the authorised peers' public keys. Every ``tcp://`` endpoint beyond
+    loopback uses them; ``loopback``: also every ``tcp://127.x`` one, so that a test on one machine runs the
+    secure path (``ipc://`` never: it does not leave the host)."""
 
     secret_key_file: str
     authorized_keys_dir: str
+    loopback: bool = False
 
 
 class StackConfig(Strict):
@@ -457,7 +461,8 @@ class StackConfig(Strict):
         file in ``service_log_dir``)."""
         heartbeat = {"heartbeat_period_s": self.planner.heartbeat_period_s} if service == "planner" else {}
         return RuntimeConfig(status_endpoint=self.endpoint(service, "status"), log_level=self.log_level,
-                             log_file=str(self.service_log_dir() / f"{service}.log"), **heartbeat)
+                             log_file=str(self.service_log_dir() / f"{service}.log"), curve=self.curve_keys(),
+                             **heartbeat)
 
     def service_log_dir(self) -> Path:
         """Where each service writes its own log file ``NAME.log``: ``log_dir``, or ``RUN_DIR/logs``."""
@@ -468,6 +473,13 @@ class StackConfig(Strict):
         ``run_dir``). Keep it off a folder that a restart empties (the lab's ``/run``): a lost tare leaves the F/T
         readings untared until a person tares again."""
         return Path(self.run_dir) / Path(self.state_dir).expanduser()
+
+    def curve_keys(self) -> CurveKeys | None:
+        """The CURVE keys every process of this stack gives its bus (``Bus(curve=...)``), or None."""
+        if self.curve is None:
+            return None
+        return CurveKeys(Path(self.curve.secret_key_file), Path(self.curve.authorized_keys_dir),
+                         loopback=self.curve.loopback)
 
     def curve_server(self) -> CurveServer | None:
         """The CURVE server keys, or None."""
