@@ -32,7 +32,8 @@ its owner's group or others may read or write is refused (``BusConfigError`` nam
 A process's ``CurveKeys`` (``Bus(curve=...)``) say which of its sockets use CURVE: every ``tcp://`` endpoint
 beyond loopback, and with ``loopback`` also those on 127.x (so that CI runs the secure path); ``ipc://`` never
 (it does not leave the host, and its file's permissions guard it). A bound socket is then a CURVE server, a
-connected one a client of the server key the ``CurveKeys`` name for that endpoint.
+connected one a client of the server key the ``CurveKeys`` name for that endpoint. A bus's ``also_bind`` adds a
+second endpoint to a bind (an ipc endpoint's tcp twin, for the peers on another host).
 
 Every socket option (HWM, LINGER 0, MAXMSGSIZE, subscriptions, CURVE) is set before bind/connect, where libzmq
 applies it. Receive timeouts are asyncio's (``wait(timeout_s)``, the client's ``timeout_s``): ``RCVTIMEO`` does
@@ -324,9 +325,10 @@ class Bus:
     queued for sending (LINGER 0), so that a dead peer never delays an exit.
     """
 
-    def __init__(self, curve: CurveKeys | None = None) -> None:
+    def __init__(self, curve: CurveKeys | None = None, also_bind: Mapping[str, str] | None = None) -> None:
         self.context = zmq.asyncio.Context()
         self.curve = curve
+        self.also_bind = dict(also_bind or {})
         self._authenticator: _CountingAuthenticator | None = None
         self._zap_domains: dict[Path, str] = {}
         self._sockets: list[zmq.asyncio.Socket] = []
@@ -345,9 +347,12 @@ class Bus:
         LINGER 0, ``options`` (``(zmq.SNDHWM, 16)``, ``(zmq.SUBSCRIBE, b"topic")``, ...) and the CURVE keys are
         set before any bind or connect. ``curve`` applies to every endpoint; None: the bus's ``CurveKeys`` decide
         per endpoint (the endpoints without CURVE are joined first, as libzmq keeps a CURVE option once set).
-        Raises BusConfigError on a policy violation, bad keys or a failed bind.
+        A bind also binds each endpoint's ``also_bind`` twin. Raises BusConfigError on a policy violation, bad keys
+        or a failed bind.
         """
         endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
+        if bind:
+            endpoints += [self.also_bind[endpoint] for endpoint in endpoints if endpoint in self.also_bind]
         curves = {endpoint: curve if curve is not None or self.curve is None else self.curve.for_endpoint(endpoint, bind)
                   for endpoint in endpoints}
         for endpoint in endpoints:

@@ -92,7 +92,8 @@ class RuntimeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     between heartbeats (readers should time out after more than twice this). shutdown_timeout_s: the longest the
     shutdown hooks may take, s. log_level: a ``logging`` level name. log_file: where the service also writes its
     log (its directory is created), or None for stderr only. curve: the CURVE keys of the service's sockets
-    (``bus.CurveKeys``), or None where every endpoint is local.
+    (``bus.CurveKeys``), or None where every endpoint is local. also_bind: per ipc endpoint the service binds, a
+    tcp endpoint it binds beside it (a stack split across hosts: its peers on the other host read it there).
     """
 
     status_endpoint: str
@@ -102,6 +103,7 @@ class RuntimeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     log_level: str = "INFO"
     log_file: str | None = None
     curve: CurveKeys | None = None
+    also_bind: dict[str, str] = {}
 
     def __post_init__(self) -> None:
         for name in ("status_period_s", "heartbeat_period_s", "shutdown_timeout_s"):
@@ -325,7 +327,7 @@ def run_service(name: str, config: RuntimeConfig, main: Callable[[Service], Awai
 
 
 async def _run(name: str, config: RuntimeConfig, main: Callable[[Service], Awaitable[None]]) -> int:
-    bus = Bus(curve=config.curve)
+    bus = Bus(curve=config.curve, also_bind=config.also_bind)
     try:
         service = Service(name, config, bus)
     except BusConfigError as error:
