@@ -12,7 +12,9 @@ import os
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
+import msgspec
 import pytest
 from fakes.stack_run import LauncherRun, remove_tree, short_run_root, wait_until, write_config
 from loopback import free_loopback_address
@@ -20,6 +22,8 @@ from loopback import free_loopback_address
 from hydrosoft.services import bus as b
 from hydrosoft.services import keys
 from hydrosoft.services.config import ENDPOINT_KINDS, HOST_ENV, load_config
+
+DEPLOY = Path(__file__).parents[2] / "deploy"
 
 #: The hosts' tcp ports start here (three per service, see services/config.py).
 FIRST_PORT = 5600
@@ -108,3 +112,16 @@ def test_two_launchers_of_one_config_split_the_stack_and_refuse_an_unauthorised_
                 run.process.send_signal(signal.SIGINT)
                 run.wait_exit()
             run.cleanup()
+
+
+def test_the_lab_two_hosts_config_is_the_lab_config_split_with_curve_between_the_hosts():
+    split, lab = load_config(DEPLOY / "lab-two-hosts.toml"), load_config(DEPLOY / "lab.toml")
+    assert msgspec.structs.replace(split, curve=None, hosts={}) == lab
+    assert split.local_services() == lab.service_names()
+    assert split.on_host("compute").local_services() == ["planner"]
+    robot = split.on_host("robot")
+    assert robot.curve.secret_key_file.endswith("robot.key_secret")
+    planner_cmd = robot.endpoint("planner", "cmd")
+    assert planner_cmd.startswith("tcp://192.168.2.2:") and not b.is_local_endpoint(planner_cmd)
+    assert isinstance(robot.curve_keys().for_endpoint(planner_cmd, bind=False), b.CurveClient)
+    assert robot.endpoint("tag_tracker").startswith("ipc://")
