@@ -37,8 +37,15 @@ second endpoint to a bind (an ipc endpoint's tcp twin, for the peers on another 
 
 Every socket option (HWM, LINGER 0, MAXMSGSIZE, subscriptions, CURVE) is set before bind/connect, where libzmq
 applies it. Receive timeouts are asyncio's (``wait(timeout_s)``, the client's ``timeout_s``): ``RCVTIMEO`` does
-not govern ``zmq.asyncio`` sockets. Ages and deadlines use ``time.monotonic_ns``, which all processes on one host
-share; across hosts they would not compare, which ``FutureStamp`` errors would show.
+not govern ``zmq.asyncio`` sockets.
+
+Clocks. Ages and deadlines use ``time.monotonic_ns``, which all processes on one host share. A bus that knows its
+host's senders (``local_sources``) treats every other ``source`` as another host's clock: its subscribers and
+request servers move that sender's clock fields (``SENDER_CLOCK_FIELDS``) onto this host's clock with the offset
+``peer_clocks`` measures, before any age, order or deadline check; so no offset between the hosts' clocks makes a
+message stale or fresh. Other ``*_ns`` fields (the planner's timing breakdown) stay on the sender's clock, for
+latency statistics only. A bus without ``local_sources`` (one host) moves nothing, and a stamp in its future is
+refused (``FutureStamp``).
 """
 
 from __future__ import annotations
@@ -63,6 +70,7 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import parse_monitor_message
 
+from hydrosoft.services.peer_clocks import PeerClocks
 from hydrosoft.services.messages import (
     MAX_FRAME_BYTES,
     BusError,
@@ -103,6 +111,9 @@ REQUEST_TIMEOUT_S = 2.0
 LOG_EVERY_N = 100
 
 _LOOPBACK = ipaddress.ip_network("127.0.0.0/8")
+#: The message fields that hold the sender's ``time.monotonic_ns`` (a 0 means "none" and is kept): moved onto the
+#: receiver's clock for a sender on another host.
+SENDER_CLOCK_FIELDS = ("stamp_ns", "deadline_ns", "goal_started_ns", "plan_done_ns")
 
 M = TypeVar("M", bound=Message)
 T = TypeVar("T")
@@ -131,6 +142,13 @@ class StaleStamp(MessageError):
 
 
 # --- errors and latest values ------------------------------------------------------------------------------------
+
+
+def on_receiver_clock(msg: M, offset_ns: int) -> M:
+    """``msg`` with each non-zero ``SENDER_CLOCK_FIELDS`` field moved by ``offset_ns`` (the sender's clock offset,
+    ``peer_clocks``)."""
+    moved = {name: value + offset_ns for name in SENDER_CLOCK_FIELDS if (value := getattr(msg, name, 0))}
+    return msgspec.structs.replace(msg, **moved)
 
 
 class ErrorCounter:
@@ -323,12 +341,24 @@ class Bus:
 
     Close it (``close`` or a ``with`` block) to close every socket it made; a ``with`` block drops what is still
     queued for sending (LINGER 0), so that a dead peer never delays an exit.
+
+    curve: which sockets use CURVE, with which keys (None: none). also_bind: a second endpoint for each bound one
+    listed (its tcp twin). local_sources: the ``source`` names that stamp with this host's clock (None: all).
+    clock_ns: this process's monotonic clock, ns (a test hook: a clock offset by hours stands for another host).
     """
 
-    def __init__(self, curve: CurveKeys | None = None, also_bind: Mapping[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        curve: CurveKeys | None = None,
+        also_bind: Mapping[str, str] | None = None,
+        local_sources: frozenset[str] | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         self.context = zmq.asyncio.Context()
         self.curve = curve
         self.also_bind = dict(also_bind or {})
+        self.local_sources = local_sources
+        self.clock_ns = clock_ns
         self._authenticator: _CountingAuthenticator | None = None
         self._zap_domains: dict[Path, str] = {}
         self._sockets: list[zmq.asyncio.Socket] = []
@@ -407,6 +437,10 @@ class Bus:
         self._zap_domains[keys_dir] = domain
         return domain
 
+    def is_remote(self, source: str) -> bool:
+        """Whether ``source`` stamps with another host's clock (see Clocks in the module docstring)."""
+        return self.local_sources is not None and source not in self.local_sources
+
     @property
     def curve_refused(self) -> int:
         """How many peers this bus's CURVE servers refused (an unauthorised key, or none)."""
@@ -440,7 +474,8 @@ def _bound_endpoint(sock: zmq.Socket) -> str:
 class Publisher:
     """A PUB socket that stamps and sends messages.
 
-    Each ``send`` sets ``seq`` (per topic, from 1), ``stamp_ns`` (``time.monotonic_ns()``) and ``source``, checks
+    Each ``send`` sets ``seq`` (per topic, from 1), ``stamp_ns`` (the bus's ``clock_ns``, ``time.monotonic_ns``) and
+    ``source``, checks
     the message and hands its arrays to ZeroMQ without copying them (do not modify an array after sending it).
     A subscriber that is not keeping up loses new messages beyond ``sndhwm``; the publisher never blocks.
     """
@@ -457,6 +492,7 @@ class Publisher:
     ) -> None:
         self.source = source
         self.sent: Counter[str] = Counter()
+        self._clock_ns = bus.clock_ns
         self._sock = bus.socket(zmq.PUB, endpoint, bind=bind, curve=curve, options=[(zmq.SNDHWM, sndhwm)])
 
     @property
@@ -468,7 +504,7 @@ class Publisher:
         """Stamp ``msg`` and publish it on ``topic`` (default its kind's topic); return the stamped message.
         Raises the ``MessageError`` of a message that breaks its kind's rules."""
         topic = msg.topic if topic is None else topic
-        stamped = msgspec.structs.replace(msg, seq=self.sent[topic] + 1, stamp_ns=time.monotonic_ns(),
+        stamped = msgspec.structs.replace(msg, seq=self.sent[topic] + 1, stamp_ns=self._clock_ns(),
                                           source=self.source)
         frames = encode(stamped, topic)
         await self._sock.send_multipart(frames, copy=False)
@@ -505,6 +541,8 @@ class LatestSubscriber:
     ) -> None:
         self.errors = errors if errors is not None else ErrorCounter()
         self.received: Counter[str] = Counter()
+        self._bus = bus
+        self._peer_clocks = PeerClocks()
         self._latest: dict[str, Latest[Message]] = {}
         self._arrivals: dict[str, asyncio.Event] = {}
         self._waiting = False
@@ -532,9 +570,11 @@ class LatestSubscriber:
             if not self._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a recv that fails with Again
                 break
             frames = self._sock.recv_multipart(zmq.NOBLOCK, copy=False).result()
-            received_ns = time.monotonic_ns()
+            received_ns = self._bus.clock_ns()
             try:
                 topic, msg = decode(frames)
+                if self._bus.is_remote(msg.source):
+                    msg = on_receiver_clock(msg, self._peer_clocks.offset_ns(msg.source, msg.stamp_ns, received_ns))
                 if msg.stamp_ns > received_ns + FUTURE_STAMP_TOLERANCE_NS:
                     raise FutureStamp(f"{topic!r} seq {msg.seq} from {msg.source!r} is stamped "
                                       f"{(msg.stamp_ns - received_ns) * 1e-6:.1f} ms in the future")
@@ -546,7 +586,7 @@ class LatestSubscriber:
                 self.errors.count(error.kind, str(error))
                 continue
             if slot is None:
-                slot = self._latest[topic] = Latest(topic, math.inf)
+                slot = self._latest[topic] = Latest(topic, math.inf, self._bus.clock_ns)
             slot.put(msg, msg.stamp_ns)
             self.received[topic] += 1
             updated.add(topic)
@@ -716,6 +756,8 @@ class RequestServer:
         self.errors = errors if errors is not None else ErrorCounter()
         self._handler = handler
         self._budget = budget if budget is not None else RequestBudget()
+        self._bus = bus
+        self._peer_clocks = PeerClocks()
         self._replies = 0
         self._sock = bus.socket(zmq.ROUTER, endpoint, bind=bind, curve=curve,
                                 options=[(zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)])
@@ -757,7 +799,7 @@ class RequestServer:
         """The frames of ``reply`` (stamped, its error text bounded), or of a short refusal of ``kind`` when the
         reply cannot be encoded."""
         self._replies += 1
-        stamp = {"seq": self._replies, "stamp_ns": time.monotonic_ns(), "source": self.source}
+        stamp = {"seq": self._replies, "stamp_ns": self._bus.clock_ns(), "source": self.source}
         try:
             return encode(msgspec.structs.replace(reply, error=bounded(reply.error), **stamp))
         except MessageError as error:
@@ -766,7 +808,9 @@ class RequestServer:
             return encode(kind(ok=False, error=text, **stamp))
 
     async def _answer(self, frames: Sequence[zmq.Frame]) -> tuple[type[Reply], Reply]:
-        """The reply kind the request expects and the reply to it."""
+        """The reply kind the request expects and the reply to it (a request from another host's clock moved onto
+        this one's first)."""
+        received_ns = self._bus.clock_ns()
         try:
             topic, request = decode(frames)
             if not isinstance(request, Request):
@@ -774,8 +818,11 @@ class RequestServer:
         except MessageError as error:
             self.errors.count(error.kind, bounded(f"bad request: {error}"))
             return CommandReply, CommandReply(ok=False, error=f"{error.kind}: {error}")
+        if self._bus.is_remote(request.source):
+            request = on_receiver_clock(request, self._peer_clocks.offset_ns(request.source, request.stamp_ns,
+                                                                             received_ns))
         kind = request.reply
-        if request.deadline_ns and time.monotonic_ns() > request.deadline_ns:
+        if request.deadline_ns and self._bus.clock_ns() > request.deadline_ns:
             text = f"{type(request).__name__} from {quote(request.source)} arrived after its deadline"
             self.errors.count("expired_request", text)
             return kind, kind(ok=False, error=text)
@@ -813,6 +860,7 @@ class RequestClient:
         self.timeout_s = timeout_s
         self.endpoint = endpoint
         self._ids = itertools.count(1)
+        self._clock_ns = bus.clock_ns
         self._lock = asyncio.Lock()
         self._sock = bus.socket(zmq.DEALER, endpoint, bind=False, curve=curve,
                                 options=[(zmq.IMMEDIATE, 1), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)])
@@ -823,7 +871,7 @@ class RequestClient:
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         async with self._lock:
             request_id = next(self._ids).to_bytes(8, "big")
-            now_ns = time.monotonic_ns()
+            now_ns = self._clock_ns()
             request = msgspec.structs.replace(request, seq=int.from_bytes(request_id, "big"), stamp_ns=now_ns,
                                               source=self.source, deadline_ns=now_ns + int(timeout_s * 1e9))
             try:

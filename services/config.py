@@ -555,16 +555,23 @@ class StackConfig(Strict):
             return self.service_names()
         return [name for name in self.service_names() if self.host_of(name) == self.host]
 
+    def local_sources(self) -> frozenset[str] | None:
+        """The services that stamp with this process's clock (``Bus.local_sources``): None on a stack on one
+        host (all of them), this host's services on a split stack, none where this process names no host."""
+        if not self.hosts:
+            return None
+        return frozenset(self.local_services()) if self.host is not None else frozenset()
+
     def runtime(self, service: str) -> RuntimeConfig:
         """The runtime settings of ``service`` (the planner's heartbeat at ``planner.heartbeat_period_s``, its log
         file in ``service_log_dir``, its CURVE keys, and on a split stack its tcp endpoints bound beside the ipc
-        ones)."""
+        ones and the services of its host, whose stamps share its clock)."""
         heartbeat = {"heartbeat_period_s": self.planner.heartbeat_period_s} if service == "planner" else {}
         also_bind = {} if not self.hosts or service not in self.service_names() else {
             f"ipc://{self.run_dir}/{service}.{kind}": self.tcp_endpoint(service, kind) for kind in ENDPOINT_KINDS}
         return RuntimeConfig(status_endpoint=self.endpoint(service, "status"), log_level=self.log_level,
                              log_file=str(self.service_log_dir() / f"{service}.log"), curve=self.curve_keys(),
-                             also_bind=also_bind, **heartbeat)
+                             also_bind=also_bind, local_sources=self.local_sources(), **heartbeat)
 
     def service_log_dir(self) -> Path:
         """Where each service writes its own log file ``NAME.log``: ``log_dir``, or ``RUN_DIR/logs``."""

@@ -94,6 +94,7 @@ class RuntimeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     log (its directory is created), or None for stderr only. curve: the CURVE keys of the service's sockets
     (``bus.CurveKeys``), or None where every endpoint is local. also_bind: per ipc endpoint the service binds, a
     tcp endpoint it binds beside it (a stack split across hosts: its peers on the other host read it there).
+    local_sources: the senders that share this host's clock (``Bus.local_sources``; None: all).
     """
 
     status_endpoint: str
@@ -104,6 +105,7 @@ class RuntimeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     log_file: str | None = None
     curve: CurveKeys | None = None
     also_bind: dict[str, str] = {}
+    local_sources: frozenset[str] | None = None
 
     def __post_init__(self) -> None:
         for name in ("status_period_s", "heartbeat_period_s", "shutdown_timeout_s"):
@@ -327,7 +329,7 @@ def run_service(name: str, config: RuntimeConfig, main: Callable[[Service], Awai
 
 
 async def _run(name: str, config: RuntimeConfig, main: Callable[[Service], Awaitable[None]]) -> int:
-    bus = Bus(curve=config.curve, also_bind=config.also_bind)
+    bus = Bus(curve=config.curve, also_bind=config.also_bind, local_sources=config.local_sources)
     try:
         service = Service(name, config, bus)
     except BusConfigError as error:

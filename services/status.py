@@ -114,7 +114,7 @@ async def collect(config: StackConfig, names: Sequence[str], window_s: float) ->
     heartbeat_ages: dict[str, float | None] = dict.fromkeys(names)
     if not local:
         return {name: None for name in names}
-    with Bus(curve=keys) as bus:
+    with Bus(curve=keys, local_sources=config.local_sources()) as bus:
         topics = [topic_for(kind, name) for name in local for kind in (ServiceStatus, Heartbeat)]
         subscriber = LatestSubscriber(bus, [config.endpoint(name, "status") for name in local], topics)
         deadline_s = time.monotonic() + window_s
