@@ -2,7 +2,9 @@
 arm's services, the tag tracker) and ``launch --host compute`` (the planner) on two free 127.0.0.N, CURVE forced on
 loopback, each host with its own key pair and run_dir. A client on the robot host pushes the cube to its goal
 (sim_world's true error within 5 mm) while a process with an unauthorised key connects to every inter-host
-endpoint: it receives nothing, its request is never answered, and the refusals are counted.
+endpoint: it receives nothing, its request is never answered, and the refusals are counted. Then the compute host
+dies mid-goal (SIGKILL of its launcher and planner): the arm stops within the planner heartbeat timeout plus a servo
+period (as the robot host sees it: the commander's published state), and nothing moves it again by itself.
 
 One two-host launch for the whole module (a launch takes minutes on a loaded 2-core machine). Every process is
 stopped by its pid (each launcher's process group, then a check that none is left)."""
@@ -12,8 +14,10 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 from loopback import free_loopback_address
@@ -28,6 +32,12 @@ from hydrosoft.services.config import ENDPOINT_KINDS, load_config
 pytestmark = pytest.mark.slow
 
 GOAL_TIMEOUT_S = 240.0
+#: The planner's heartbeat timeout (deploy/sim.toml: 0.5 s) plus one servo period (8 ms), plus the time for the
+#: commander's next published state to show it (one servo period) and scheduling slack on a busy machine (as
+#: test_stack.py's bound for a killed planner).
+HOST_LOSS_STOP_BOUND_S = 0.5 + 0.008 + 0.008 + 0.2
+#: How long the arm is watched after the compute host died, to show that nothing moves it again, s.
+WATCH_AFTER_S = 3.0
 FIRST_PORT = 5600
 ROBOT_SERVICES = ["sim_world", "arm_commander-bubble", "ft_reader-bubble", "bubble_camera-bubble", "tag_tracker"]
 
@@ -83,6 +93,34 @@ async def intruder_run(config, secret, authorized) -> tuple[int, bool]:
         return sum(subscriber.received.values()), answered
 
 
+async def compute_host_dies_mid_goal(client: StackClient, compute: HostStack) -> tuple[float, bool]:
+    """Start a goal, SIGKILL the compute host's launcher and planner while the arm servoes; the seconds until the
+    commander reports the arm stopped, and whether it servoed again within ``WATCH_AFTER_S`` after that."""
+    arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
+    await client.set_goal("pushing", dy_m=-0.03, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
+    await client.start()
+    deadline = time.monotonic() + 30.0
+    while True:  # wait until the arm servoes towards a target
+        await arm.wait(1.0)
+        if arm.latest("arm_state/bubble", 1.0, m.ArmState).value.servo_active:
+            break
+        assert time.monotonic() < deadline, "the arm never started servoing"
+    planner_pid = (await client.status()).status.pid
+    os.kill(compute.process.pid, signal.SIGKILL)  # the launcher first: it must not restart the planner
+    os.kill(planner_pid, signal.SIGKILL)
+    killed = time.monotonic()
+    while arm.latest("arm_state/bubble", 1.0, m.ArmState).value.servo_active:
+        await arm.wait(1.0)
+        assert time.monotonic() - killed < 5.0, "the arm kept servoing after the compute host died"
+    stop_s = time.monotonic() - killed
+    watched = time.monotonic()
+    servoed_again = False
+    while time.monotonic() - watched < WATCH_AFTER_S:
+        await arm.wait(0.5)
+        servoed_again |= arm.latest("arm_state/bubble", 1.0, m.ArmState).value.servo_active
+    return stop_s, servoed_again
+
+
 def test_two_hosts_push_the_cube_with_curve_while_an_unauthorised_peer_gets_nothing(tmp_path):
     config_path, intruder = split_config(tmp_path)
     robot = HostStack(config_path, tmp_path / "robot.log", "robot")
@@ -111,6 +149,11 @@ def test_two_hosts_push_the_cube_with_curve_while_an_unauthorised_peer_gets_noth
         services = json.loads(status.stdout)["services"]
         assert all(report is not None for report in services.values()), services
         assert services["planner"]["errors"].get("curve_refused", 0) >= 1, services["planner"]
+
+        stop_s, servoed_again = asyncio.run(compute_host_dies_mid_goal(client, compute))
+        print(f"arm stopped {stop_s:.3f} s after the compute host died")
+        assert stop_s < HOST_LOSS_STOP_BOUND_S, stop_s
+        assert not servoed_again
     finally:
         client.close()
         compute.stop()
