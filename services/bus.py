@@ -383,8 +383,7 @@ class Bus:
         endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
         if bind:
             endpoints += [self.also_bind[endpoint] for endpoint in endpoints if endpoint in self.also_bind]
-        curves = {endpoint: curve if curve is not None or self.curve is None else self.curve.for_endpoint(endpoint, bind)
-                  for endpoint in endpoints}
+        curves = {endpoint: self._curve_for(endpoint, bind, curve) for endpoint in endpoints}
         for endpoint in endpoints:
             check_endpoint(endpoint, curves[endpoint])
         sock = self.context.socket(socket_type)
@@ -407,6 +406,12 @@ class Bus:
             raise
         self._sockets.append(sock)
         return sock
+
+    def _curve_for(self, endpoint: str, bind: bool, curve: Curve | None) -> Curve | None:
+        """``curve`` when given, else what the bus's ``CurveKeys`` say for ``endpoint`` (None without them)."""
+        if curve is not None or self.curve is None:
+            return curve
+        return self.curve.for_endpoint(endpoint, bind)
 
     def _make_curve_server(self, sock: zmq.Socket, curve: CurveServer) -> None:
         public, secret = _load_key_pair(curve.secret_key_file, need_secret=True)

@@ -196,7 +196,8 @@ def test_unknown_only_name_exits_2(root, capsys):
 def test_a_secret_key_others_may_read_or_an_unknown_host_exits_2_before_anything_starts(root, capsys):
     public, secret = keys.generate_key_pair(root / "keys", "robot")
     secret.chmod(0o640)
-    path = write_config(root, ["a"], f'[curve]\nsecret_key_file = "{secret}"\nauthorized_keys_dir = "{public.parent}"\n')
+    path = write_config(root, ["a"], f'[curve]\nsecret_key_file = "{secret}"\n'
+                                     f'authorized_keys_dir = "{public.parent}"\n')
     assert launcher.launch(path) == 2
     assert f"{secret} has mode 0640" in capsys.readouterr().err
     secret.chmod(0o600)

@@ -63,7 +63,8 @@ def two_host_config(root) -> tuple:
 
 def run_status(config, host: str) -> dict:
     result = subprocess.run([sys.executable, "-m", "hydrosoft.services.status", str(config), "--json", "--wait", "4"],
-                            capture_output=True, text=True, timeout=STATUS_TIMEOUT_S, env={**os.environ, HOST_ENV: host})
+                            capture_output=True, text=True, timeout=STATUS_TIMEOUT_S,
+                            env={**os.environ, HOST_ENV: host})
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout)["services"]
 
