@@ -40,7 +40,7 @@ async def enable(config_path: str, arm: str, by: str) -> msg.ArmEnableReply:
     """Send ``EnableArm`` to ``arm``'s commander and return its reply; TimeoutError when none comes."""
     config = load_config(config_path)
     config.arm(arm)
-    with Bus() as bus:
+    with Bus(curve=config.curve_keys()) as bus:
         client = RequestClient(bus, config.endpoint(f"arm_commander-{arm}", "cmd"), source="arm enable",
                                timeout_s=ENABLE_TIMEOUT_S)
         reply = await client.request(msg.EnableArm(arm=arm, by=by))

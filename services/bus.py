@@ -25,11 +25,27 @@ one; ``CurveClient`` on the other); without them ``BusConfigError`` says so. Key
 files (``zmq.auth.create_certificates(dir, name)`` writes ``name.key`` and ``name.key_secret``); a CURVE server
 admits only the clients whose public ``.key`` files lie in its ``authorized_keys_dir``, checked by a ZAP
 authenticator thread the ``Bus`` starts (a thread, so handshakes proceed while a planner's solve holds the loop).
+It counts every peer it refuses (``Bus.curve_refused``, which a service's status reports as ``curve_refused``): a
+refused peer's handshake fails, so it receives nothing and nothing it sends is delivered. A secret key file that
+its owner's group or others may read or write is refused (``BusConfigError`` naming the file).
+
+A process's ``CurveKeys`` (``Bus(curve=...)``) say which of its sockets use CURVE: every ``tcp://`` endpoint
+beyond loopback, and with ``loopback`` also those on 127.x (so that CI runs the secure path); ``ipc://`` never
+(it does not leave the host, and its file's permissions guard it). A bound socket is then a CURVE server, a
+connected one a client of the server key the ``CurveKeys`` name for that endpoint. A bus's ``also_bind`` adds a
+second endpoint to a bind (an ipc endpoint's tcp twin, for the peers on another host).
 
 Every socket option (HWM, LINGER 0, MAXMSGSIZE, subscriptions, CURVE) is set before bind/connect, where libzmq
 applies it. Receive timeouts are asyncio's (``wait(timeout_s)``, the client's ``timeout_s``): ``RCVTIMEO`` does
-not govern ``zmq.asyncio`` sockets. Ages and deadlines use ``time.monotonic_ns``, which all processes on one host
-share; across hosts they would not compare, which ``FutureStamp`` errors would show.
+not govern ``zmq.asyncio`` sockets.
+
+Clocks. Ages and deadlines use ``time.monotonic_ns``, which all processes on one host share. A bus that knows its
+host's senders (``local_sources``) treats every other ``source`` as another host's clock: its subscribers and
+request servers move that sender's clock fields (``SENDER_CLOCK_FIELDS``) onto this host's clock with the offset
+``peer_clocks`` measures, before any age, order or deadline check; so no offset between the hosts' clocks makes a
+message stale or fresh. Other ``*_ns`` fields (the planner's timing breakdown) stay on the sender's clock, for
+latency statistics only. A bus without ``local_sources`` (one host) moves nothing, and a stamp in its future is
+refused (``FutureStamp``).
 """
 
 from __future__ import annotations
@@ -39,10 +55,11 @@ import ipaddress
 import itertools
 import logging
 import math
+import stat
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Awaitable, Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Generic, TypeVar
 
@@ -53,6 +70,7 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import parse_monitor_message
 
+from hydrosoft.services.peer_clocks import PeerClocks
 from hydrosoft.services.messages import (
     MAX_FRAME_BYTES,
     BusError,
@@ -93,6 +111,9 @@ REQUEST_TIMEOUT_S = 2.0
 LOG_EVERY_N = 100
 
 _LOOPBACK = ipaddress.ip_network("127.0.0.0/8")
+#: The message fields that hold the sender's ``time.monotonic_ns`` (a 0 means "none" and is kept): moved onto the
+#: receiver's clock for a sender on another host.
+SENDER_CLOCK_FIELDS = ("stamp_ns", "deadline_ns", "goal_started_ns", "plan_done_ns")
 
 M = TypeVar("M", bound=Message)
 T = TypeVar("T")
@@ -121,6 +142,13 @@ class StaleStamp(MessageError):
 
 
 # --- errors and latest values ------------------------------------------------------------------------------------
+
+
+def on_receiver_clock(msg: M, offset_ns: int) -> M:
+    """``msg`` with each non-zero ``SENDER_CLOCK_FIELDS`` field moved by ``offset_ns`` (the sender's clock offset,
+    ``peer_clocks``)."""
+    moved = {name: value + offset_ns for name in SENDER_CLOCK_FIELDS if (value := getattr(msg, name, 0))}
+    return msgspec.structs.replace(msg, **moved)
 
 
 class ErrorCounter:
@@ -209,6 +237,34 @@ class CurveClient:
 Curve = CurveServer | CurveClient
 
 
+@dataclass(frozen=True)
+class CurveKeys:
+    """A process's CURVE keys and the endpoints they apply to (see the module docstring).
+
+    secret_key_file: this host's ``.key_secret`` certificate. authorized_keys_dir: the folder of the public ``.key``
+    certificates of the peers its CURVE servers admit. server_key_files: per endpoint this process connects to,
+    the public key certificate of the host that binds it; an endpoint not listed is bound on this host (its own
+    public key, read from ``secret_key_file``). loopback: CURVE also on ``tcp://127.x.x.x`` endpoints.
+    """
+
+    secret_key_file: Path
+    authorized_keys_dir: Path
+    server_key_files: Mapping[str, Path] = field(default_factory=dict)
+    loopback: bool = False
+
+    def uses_curve(self, endpoint: str) -> bool:
+        """Whether a socket on ``endpoint`` uses CURVE: tcp beyond loopback, or any tcp with ``loopback``."""
+        return endpoint.startswith("tcp://") and (self.loopback or not is_local_endpoint(endpoint))
+
+    def for_endpoint(self, endpoint: str, bind: bool) -> Curve | None:
+        """The CURVE role of a socket bound (``bind``) or connected to ``endpoint``, or None for none."""
+        if not self.uses_curve(endpoint):
+            return None
+        if bind:
+            return CurveServer(self.secret_key_file, self.authorized_keys_dir)
+        return CurveClient(self.secret_key_file, self.server_key_files.get(endpoint, self.secret_key_file))
+
+
 def is_local_endpoint(endpoint: str) -> bool:
     """True for ``ipc://``, ``inproc://`` and ``tcp://`` on a literal 127.0.0.0/8 address. Raises BusConfigError
     for a transport other than those three or a tcp endpoint without a port."""
@@ -240,6 +296,17 @@ def check_endpoint(endpoint: str, curve: Curve | None) -> None:
         )
 
 
+def check_secret_key_file(path: Path) -> None:
+    """Raise BusConfigError naming ``path`` when its group or others may read or write it (or it is missing)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as error:
+        raise BusConfigError(f"cannot read CURVE certificate {path}: {error}") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise BusConfigError(f"CURVE secret key file {path} has mode {stat.S_IMODE(mode):04o}: it must be readable "
+                             f"by its owner only; run chmod 600 {path}")
+
+
 def _load_key_pair(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
     try:
         public, secret = zmq.auth.load_certificate(path)
@@ -247,7 +314,26 @@ def _load_key_pair(path: Path, need_secret: bool) -> tuple[bytes, bytes | None]:
         raise BusConfigError(f"cannot read CURVE certificate {path}: {error}") from None
     if need_secret and secret is None:
         raise BusConfigError(f"CURVE certificate {path} holds no secret key: give the .key_secret file")
+    if need_secret:
+        check_secret_key_file(Path(path))
     return public, secret
+
+
+class _CountingAuthenticator(ThreadAuthenticator):
+    """pyzmq's ZAP thread, counting the peers it refuses (``refused``, written by its thread only)."""
+
+    def __init__(self, context: zmq.Context, logger: logging.Logger) -> None:
+        super().__init__(context, log=logger)
+        self.refused = 0
+
+    def _send_zap_reply(self, request_id: bytes, status_code: bytes, status_text: bytes,
+                        user_id: str = "anonymous") -> None:
+        if status_code != b"200":
+            self.refused += 1
+            if self.refused % LOG_EVERY_N == 1:
+                self.log.warning("curve_refused (%d so far, logged every %d): a peer's key was refused: %s",
+                                 self.refused, LOG_EVERY_N, status_text.decode(errors="replace"))
+        super()._send_zap_reply(request_id, status_code, status_text, user_id)
 
 
 class Bus:
@@ -255,11 +341,25 @@ class Bus:
 
     Close it (``close`` or a ``with`` block) to close every socket it made; a ``with`` block drops what is still
     queued for sending (LINGER 0), so that a dead peer never delays an exit.
+
+    curve: which sockets use CURVE, with which keys (None: none). also_bind: a second endpoint for each bound one
+    listed (its tcp twin). local_sources: the ``source`` names that stamp with this host's clock (None: all).
+    clock_ns: this process's monotonic clock, ns (a test hook: a clock offset by hours stands for another host).
     """
 
-    def __init__(self) -> None:
+    def __init__(
+        self,
+        curve: CurveKeys | None = None,
+        also_bind: Mapping[str, str] | None = None,
+        local_sources: frozenset[str] | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         self.context = zmq.asyncio.Context()
-        self._authenticator: ThreadAuthenticator | None = None
+        self.curve = curve
+        self.also_bind = dict(also_bind or {})
+        self.local_sources = local_sources
+        self.clock_ns = clock_ns
+        self._authenticator: _CountingAuthenticator | None = None
         self._zap_domains: dict[Path, str] = {}
         self._sockets: list[zmq.asyncio.Socket] = []
 
@@ -274,22 +374,29 @@ class Bus:
     ) -> zmq.asyncio.Socket:
         """A socket of ``socket_type`` bound (``bind``) or connected to each of ``endpoints``.
 
-        LINGER 0, ``options`` (``(zmq.SNDHWM, 16)``, ``(zmq.SUBSCRIBE, b"topic")``, ...) and ``curve`` are set
-        before any bind or connect. Raises BusConfigError on a policy violation, bad keys or a failed bind.
+        LINGER 0, ``options`` (``(zmq.SNDHWM, 16)``, ``(zmq.SUBSCRIBE, b"topic")``, ...) and the CURVE keys are
+        set before any bind or connect. ``curve`` applies to every endpoint; None: the bus's ``CurveKeys`` decide
+        per endpoint (the endpoints without CURVE are joined first, as libzmq keeps a CURVE option once set).
+        A bind also binds each endpoint's ``also_bind`` twin. Raises BusConfigError on a policy violation, bad keys
+        or a failed bind.
         """
         endpoints = [endpoints] if isinstance(endpoints, str) else list(endpoints)
+        if bind:
+            endpoints += [self.also_bind[endpoint] for endpoint in endpoints if endpoint in self.also_bind]
+        curves = {endpoint: self._curve_for(endpoint, bind, curve) for endpoint in endpoints}
         for endpoint in endpoints:
-            check_endpoint(endpoint, curve)
+            check_endpoint(endpoint, curves[endpoint])
         sock = self.context.socket(socket_type)
         try:
             sock.setsockopt(zmq.LINGER, 0)
             for option, value in options:
                 sock.setsockopt(option, value)
-            if isinstance(curve, CurveServer):
-                self._make_curve_server(sock, curve)
-            elif isinstance(curve, CurveClient):
-                self._make_curve_client(sock, curve)
-            for endpoint in endpoints:
+            for endpoint in sorted(endpoints, key=lambda endpoint: curves[endpoint] is not None):
+                endpoint_curve = curves[endpoint]
+                if isinstance(endpoint_curve, CurveServer):
+                    self._make_curve_server(sock, endpoint_curve)
+                elif isinstance(endpoint_curve, CurveClient):
+                    self._make_curve_client(sock, endpoint_curve)
                 (sock.bind if bind else sock.connect)(endpoint)
         except zmq.ZMQError as error:
             sock.close(linger=0)
@@ -299,6 +406,12 @@ class Bus:
             raise
         self._sockets.append(sock)
         return sock
+
+    def _curve_for(self, endpoint: str, bind: bool, curve: Curve | None) -> Curve | None:
+        """``curve`` when given, else what the bus's ``CurveKeys`` say for ``endpoint`` (None without them)."""
+        if curve is not None or self.curve is None:
+            return curve
+        return self.curve.for_endpoint(endpoint, bind)
 
     def _make_curve_server(self, sock: zmq.Socket, curve: CurveServer) -> None:
         public, secret = _load_key_pair(curve.secret_key_file, need_secret=True)
@@ -322,12 +435,21 @@ class Bus:
         if not keys_dir.is_dir() or not any(keys_dir.glob("*.key")):
             raise BusConfigError(f"CURVE authorized_keys_dir {keys_dir} holds no public .key certificates")
         if self._authenticator is None:
-            self._authenticator = ThreadAuthenticator(self.context, log=log.getChild("zap"))
+            self._authenticator = _CountingAuthenticator(self.context, log.getChild("zap"))
             self._authenticator.start()
         domain = f"hydrosoft-{len(self._zap_domains)}"
         self._authenticator.configure_curve(domain=domain, location=str(keys_dir))
         self._zap_domains[keys_dir] = domain
         return domain
+
+    def is_remote(self, source: str) -> bool:
+        """Whether ``source`` stamps with another host's clock (see Clocks in the module docstring)."""
+        return self.local_sources is not None and source not in self.local_sources
+
+    @property
+    def curve_refused(self) -> int:
+        """How many peers this bus's CURVE servers refused (an unauthorised key, or none)."""
+        return self._authenticator.refused if self._authenticator is not None else 0
 
     def close(self, linger_ms: int = 0) -> None:
         """Close every socket made here, stop the authenticator and end the context. linger_ms: how long queued
@@ -357,7 +479,8 @@ def _bound_endpoint(sock: zmq.Socket) -> str:
 class Publisher:
     """A PUB socket that stamps and sends messages.
 
-    Each ``send`` sets ``seq`` (per topic, from 1), ``stamp_ns`` (``time.monotonic_ns()``) and ``source``, checks
+    Each ``send`` sets ``seq`` (per topic, from 1), ``stamp_ns`` (the bus's ``clock_ns``, ``time.monotonic_ns``) and
+    ``source``, checks
     the message and hands its arrays to ZeroMQ without copying them (do not modify an array after sending it).
     A subscriber that is not keeping up loses new messages beyond ``sndhwm``; the publisher never blocks.
     """
@@ -374,6 +497,7 @@ class Publisher:
     ) -> None:
         self.source = source
         self.sent: Counter[str] = Counter()
+        self._clock_ns = bus.clock_ns
         self._sock = bus.socket(zmq.PUB, endpoint, bind=bind, curve=curve, options=[(zmq.SNDHWM, sndhwm)])
 
     @property
@@ -385,7 +509,7 @@ class Publisher:
         """Stamp ``msg`` and publish it on ``topic`` (default its kind's topic); return the stamped message.
         Raises the ``MessageError`` of a message that breaks its kind's rules."""
         topic = msg.topic if topic is None else topic
-        stamped = msgspec.structs.replace(msg, seq=self.sent[topic] + 1, stamp_ns=time.monotonic_ns(),
+        stamped = msgspec.structs.replace(msg, seq=self.sent[topic] + 1, stamp_ns=self._clock_ns(),
                                           source=self.source)
         frames = encode(stamped, topic)
         await self._sock.send_multipart(frames, copy=False)
@@ -422,6 +546,8 @@ class LatestSubscriber:
     ) -> None:
         self.errors = errors if errors is not None else ErrorCounter()
         self.received: Counter[str] = Counter()
+        self._bus = bus
+        self._peer_clocks = PeerClocks()
         self._latest: dict[str, Latest[Message]] = {}
         self._arrivals: dict[str, asyncio.Event] = {}
         self._waiting = False
@@ -449,9 +575,11 @@ class LatestSubscriber:
             if not self._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a recv that fails with Again
                 break
             frames = self._sock.recv_multipart(zmq.NOBLOCK, copy=False).result()
-            received_ns = time.monotonic_ns()
+            received_ns = self._bus.clock_ns()
             try:
                 topic, msg = decode(frames)
+                if self._bus.is_remote(msg.source):
+                    msg = on_receiver_clock(msg, self._peer_clocks.offset_ns(msg.source, msg.stamp_ns, received_ns))
                 if msg.stamp_ns > received_ns + FUTURE_STAMP_TOLERANCE_NS:
                     raise FutureStamp(f"{topic!r} seq {msg.seq} from {msg.source!r} is stamped "
                                       f"{(msg.stamp_ns - received_ns) * 1e-6:.1f} ms in the future")
@@ -463,7 +591,7 @@ class LatestSubscriber:
                 self.errors.count(error.kind, str(error))
                 continue
             if slot is None:
-                slot = self._latest[topic] = Latest(topic, math.inf)
+                slot = self._latest[topic] = Latest(topic, math.inf, self._bus.clock_ns)
             slot.put(msg, msg.stamp_ns)
             self.received[topic] += 1
             updated.add(topic)
@@ -633,6 +761,8 @@ class RequestServer:
         self.errors = errors if errors is not None else ErrorCounter()
         self._handler = handler
         self._budget = budget if budget is not None else RequestBudget()
+        self._bus = bus
+        self._peer_clocks = PeerClocks()
         self._replies = 0
         self._sock = bus.socket(zmq.ROUTER, endpoint, bind=bind, curve=curve,
                                 options=[(zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)])
@@ -674,7 +804,7 @@ class RequestServer:
         """The frames of ``reply`` (stamped, its error text bounded), or of a short refusal of ``kind`` when the
         reply cannot be encoded."""
         self._replies += 1
-        stamp = {"seq": self._replies, "stamp_ns": time.monotonic_ns(), "source": self.source}
+        stamp = {"seq": self._replies, "stamp_ns": self._bus.clock_ns(), "source": self.source}
         try:
             return encode(msgspec.structs.replace(reply, error=bounded(reply.error), **stamp))
         except MessageError as error:
@@ -683,7 +813,9 @@ class RequestServer:
             return encode(kind(ok=False, error=text, **stamp))
 
     async def _answer(self, frames: Sequence[zmq.Frame]) -> tuple[type[Reply], Reply]:
-        """The reply kind the request expects and the reply to it."""
+        """The reply kind the request expects and the reply to it (a request from another host's clock moved onto
+        this one's first)."""
+        received_ns = self._bus.clock_ns()
         try:
             topic, request = decode(frames)
             if not isinstance(request, Request):
@@ -691,8 +823,11 @@ class RequestServer:
         except MessageError as error:
             self.errors.count(error.kind, bounded(f"bad request: {error}"))
             return CommandReply, CommandReply(ok=False, error=f"{error.kind}: {error}")
+        if self._bus.is_remote(request.source):
+            request = on_receiver_clock(request, self._peer_clocks.offset_ns(request.source, request.stamp_ns,
+                                                                             received_ns))
         kind = request.reply
-        if request.deadline_ns and time.monotonic_ns() > request.deadline_ns:
+        if request.deadline_ns and self._bus.clock_ns() > request.deadline_ns:
             text = f"{type(request).__name__} from {quote(request.source)} arrived after its deadline"
             self.errors.count("expired_request", text)
             return kind, kind(ok=False, error=text)
@@ -730,6 +865,7 @@ class RequestClient:
         self.timeout_s = timeout_s
         self.endpoint = endpoint
         self._ids = itertools.count(1)
+        self._clock_ns = bus.clock_ns
         self._lock = asyncio.Lock()
         self._sock = bus.socket(zmq.DEALER, endpoint, bind=False, curve=curve,
                                 options=[(zmq.IMMEDIATE, 1), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)])
@@ -740,7 +876,7 @@ class RequestClient:
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         async with self._lock:
             request_id = next(self._ids).to_bytes(8, "big")
-            now_ns = time.monotonic_ns()
+            now_ns = self._clock_ns()
             request = msgspec.structs.replace(request, seq=int.from_bytes(request_id, "big"), stamp_ns=now_ns,
                                               source=self.source, deadline_ns=now_ns + int(timeout_s * 1e9))
             try:

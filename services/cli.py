@@ -40,6 +40,7 @@ GROUPS = {
     "arm": ("act on a running stack's arm (see `arm ACTION --help`)", {
         "enable": ("hydrosoft.services.arm_enable", "re-enable an arm after an external stop (pendant, dashboard, protective, safeguard or emergency stop): refused while the controller still reports one"),
     }),
+    "keys": ("CURVE keys for a stack split across hosts (see `keys generate --help`)", {"generate": ("hydrosoft.services.keys", "write a host's CURVE key pair: DIR/HOST.key (public, for its peers' authorized_keys_dir) and DIR/HOST.key_secret (mode 0600)")}),
     "capture": ("capture what a device needs before a run (see `capture WHAT --help`)", {
         "reference": ("hydrosoft.services.capture_reference", "a Soft Bubble's reference membrane (its undeformed depth image, the median of N frames) for lab mode, as a .npz file"),
     }),

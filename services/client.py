@@ -118,7 +118,7 @@ class StackClient:
 
     def __init__(self, config: StackConfig | str | Path) -> None:
         self.config = config if isinstance(config, StackConfig) else load_config(config)
-        self.bus = Bus()
+        self.bus = Bus(curve=self.config.curve_keys())
         self.requests = RequestClient(self.bus, self.config.endpoint("planner", "cmd"), source="client",
                                       timeout_s=REQUEST_TIMEOUT_S)
         self.pursuit: Pursuit | None = None

@@ -20,28 +20,42 @@ Layout (see ``deploy/sim.toml`` for a commented example)::
     [sim]                             sim_world: rate, plant resolution, noise
     [services.NAME]                   per service: restart policy and readiness timeout
     [endpoints]                       optional overrides "SERVICE.data|status|cmd" = "tcp://..." (else ipc://)
-    [curve]                           CURVE key files, required for endpoints other than loopback or ipc
+    [curve]                           CURVE key files, required for endpoints other than loopback or ipc;
+                                      ``loopback = true`` puts CURVE on tcp://127.x endpoints too (CI)
+    [hosts.NAME]                      a stack split across hosts: each host's address, services, first tcp port,
+                                      CURVE public key and (optionally) its own run_dir
+    host                              the host this process runs on (``launch --host``, ``$HYDROSOFT_HOST``)
 
 Service names: ``sim_world`` (sim mode only), ``tag_tracker``, ``planner`` and one ``arm_commander-ARM``,
 ``bubble_camera-ARM`` and ``ft_reader-ARM`` per arm. Each binds ``ipc://RUN_DIR/NAME.data`` (its topics) and
 ``ipc://RUN_DIR/NAME.status`` (status, heartbeat); the planner also ``ipc://RUN_DIR/planner.cmd`` (the client API).
+
+Split across hosts. With ``[hosts.NAME]`` tables every service belongs to one host. Each service binds its ipc
+endpoints and, beside them, ``tcp://ADDRESS:PORT`` on its host's address (``RuntimeConfig.also_bind``), the port
+``first_port + 3 * i + k`` (``i``: its place in ``service_names()``, ``k``: 0 data, 1 status, 2 cmd), so the ports
+follow from the config alone. A process reads a service of its own host (``host``) over ipc and any other over
+tcp; a process that names no host (a tool run without ``$HYDROSOFT_HOST``) reads every service over tcp.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import math
+import os
 from pathlib import Path
 from typing import Literal
 
 import msgspec
 
-from hydrosoft.services.bus import CurveServer, check_endpoint
+from hydrosoft.services.bus import CurveKeys, CurveServer, check_endpoint
 from hydrosoft.services.runtime import RuntimeConfig
 
 Pose = tuple[float, float, float, float, float, float, float]
 Vec3 = tuple[float, float, float]
 RestartPolicy = Literal["never", "on-failure", "always"]
 ENDPOINT_KINDS = ("data", "status", "cmd")
+#: Environment variable naming the host a process runs on (the launcher's ``--host`` sets it for its services).
+HOST_ENV = "HYDROSOFT_HOST"
 SDF_SOLVER_STEPS_MAX = 32  # hydrosoft.geometry.sdf.Ellipsoid.MAX_SOLVER_STEPS, not imported: config loads no torch
 
 
@@ -375,11 +389,31 @@ class ServiceConfig(Strict):
 
 
 class CurveConfig(Strict):
-    """CURVE keys (pyzmq zmq.auth certificate files): the servers' secret key file and the folder of authorised
-    client public keys."""
+    """CURVE keys (pyzmq zmq.auth certificate files, ``hydrosoft-stack keys generate``): this host's secret key
+    file (mode 0600) and the folder of the authorised peers' public keys. Every ``tcp://`` endpoint beyond
+    loopback uses them; ``loopback``: also every ``tcp://127.x`` one, so that a test on one machine runs the
+    secure path (``ipc://`` never: it does not leave the host)."""
 
     secret_key_file: str
     authorized_keys_dir: str
+    loopback: bool = False
+
+
+class HostConfig(Strict):
+    """One host of a stack split across hosts. address: the IP address its peers reach it at (its tcp endpoints
+    bind there). services: the services it runs (each service on exactly one host). first_port: the first of its
+    tcp ports (three per service of the stack, see the module docstring). public_key_file: its CURVE public key
+    (``NAME.key`` of ``hydrosoft-stack keys generate``), with which clients on other hosts authenticate its
+    servers; empty: the key of ``curve.secret_key_file`` (one key pair for all hosts). secret_key_file: its own
+    secret key, used in place of ``curve.secret_key_file`` by the processes on it; empty: that one. run_dir: its
+    own run_dir (two hosts simulated on one machine need two); None: the stack's."""
+
+    address: str
+    services: list[str]
+    first_port: int = 5600
+    public_key_file: str = ""
+    secret_key_file: str = ""
+    run_dir: str | None = None
 
 
 class StackConfig(Strict):
@@ -400,6 +434,8 @@ class StackConfig(Strict):
     services: dict[str, ServiceConfig] = {}
     endpoints: dict[str, str] = {}
     curve: CurveConfig | None = None
+    hosts: dict[str, HostConfig] = {}
+    host: str | None = None
 
     def __post_init__(self) -> None:
         _require(len(self.arms) >= 1, "arms", "the stack needs at least one arm")
@@ -421,6 +457,37 @@ class StackConfig(Strict):
                 check_endpoint(endpoint, self.curve_server())
             except Exception as err:  # noqa: BLE001 - re-raised with the key named
                 raise ConfigError(f"endpoints.{key}: {err}") from err
+        self._check_hosts()
+
+    def _check_hosts(self) -> None:
+        """Every service on exactly one host, addresses that are IP literals, ports in range, ``host`` known."""
+        _require(self.host is None or self.host in self.hosts, "host",
+                 f"must be one of the [hosts] tables ({', '.join(self.hosts) or 'none'}), got {self.host!r}")
+        if not self.hosts:
+            return
+        placed: dict[str, str] = {}
+        for name, host in self.hosts.items():
+            try:
+                ipaddress.ip_address(host.address)
+            except ValueError:
+                raise ConfigError(f"hosts.{name}.address: must be an IP address, got {host.address!r}") from None
+            last_port = host.first_port + len(ENDPOINT_KINDS) * len(self.service_names()) - 1
+            _require(1024 <= host.first_port and last_port <= 65535, f"hosts.{name}.first_port",
+                     f"its ports {host.first_port}..{last_port} must lie in 1024..65535")
+            for service in host.services:
+                _require(service in self.service_names(), f"hosts.{name}.services",
+                         f"no service {service!r}; the services are {', '.join(self.service_names())}")
+                _require(service not in placed, f"hosts.{name}.services",
+                         f"{service} is also on host {placed.get(service)!r}: each service runs on one host")
+                placed[service] = name
+        missing = [service for service in self.service_names() if service not in placed]
+        _require(not missing, "hosts", f"these services are on no host: {', '.join(missing)}")
+        for service in self.service_names():
+            for kind in ENDPOINT_KINDS:
+                try:
+                    check_endpoint(self.tcp_endpoint(service, kind), self.curve_server())
+                except Exception as err:  # noqa: BLE001 - re-raised with the key named
+                    raise ConfigError(f"hosts.{placed[service]}: {err}") from err
 
     def service_names(self) -> list[str]:
         """Every service of this stack, in start order (sim_world first, the planner last)."""
@@ -451,15 +518,62 @@ class StackConfig(Strict):
         return name, arm
 
     def endpoint(self, service: str, kind: str = "data") -> str:
-        """Where ``service`` binds its ``kind`` socket (data, status or cmd)."""
-        return self.endpoints.get(f"{service}.{kind}", f"ipc://{self.run_dir}/{service}.{kind}")
+        """Where this process reaches (or, for its own service, binds) ``service``'s ``kind`` socket (data,
+        status or cmd): the ``[endpoints]`` override; else, for a service of another host (or of any host when
+        this process names none), its tcp endpoint; else ipc in ``run_dir``."""
+        override = self.endpoints.get(f"{service}.{kind}")
+        if override is not None:
+            return override
+        if self.hosts and self.host_of(service) != self.host:
+            return self.tcp_endpoint(service, kind)
+        return f"ipc://{self.run_dir}/{service}.{kind}"
+
+    def host_of(self, service: str) -> str | None:
+        """The host that runs ``service``, or None for a stack on one host."""
+        return next((name for name, host in self.hosts.items() if service in host.services), None)
+
+    def tcp_endpoint(self, service: str, kind: str) -> str:
+        """``tcp://ADDRESS:PORT`` of ``service``'s ``kind`` socket on its host (see the module docstring)."""
+        host = self.hosts[self.host_of(service)]
+        port = host.first_port + len(ENDPOINT_KINDS) * self.service_names().index(service) + ENDPOINT_KINDS.index(kind)
+        return f"tcp://{host.address}:{port}"
+
+    def on_host(self, host: str | None) -> StackConfig:
+        """This config as read on ``host`` (None: unchanged): ``host`` set, and that host's ``run_dir`` and secret
+        key file where it names its own. Raises ConfigError for a host the config does not name."""
+        if host is None:
+            return self
+        _require(host in self.hosts, "--host", f"no host {host!r}; the config's hosts are "
+                                               f"{', '.join(self.hosts) or 'none (no [hosts] tables)'}")
+        own = self.hosts[host]
+        curve = self.curve
+        if curve is not None and own.secret_key_file:
+            curve = msgspec.structs.replace(curve, secret_key_file=own.secret_key_file)
+        return msgspec.structs.replace(self, host=host, run_dir=own.run_dir or self.run_dir, curve=curve)
+
+    def local_services(self) -> list[str]:
+        """The services this process's host runs, in start order (all of them on a stack without hosts)."""
+        if self.host is None:
+            return self.service_names()
+        return [name for name in self.service_names() if self.host_of(name) == self.host]
+
+    def local_sources(self) -> frozenset[str] | None:
+        """The services that stamp with this process's clock (``Bus.local_sources``): None on a stack on one
+        host (all of them), this host's services on a split stack, none where this process names no host."""
+        if not self.hosts:
+            return None
+        return frozenset(self.local_services()) if self.host is not None else frozenset()
 
     def runtime(self, service: str) -> RuntimeConfig:
         """The runtime settings of ``service`` (the planner's heartbeat at ``planner.heartbeat_period_s``, its log
-        file in ``service_log_dir``)."""
+        file in ``service_log_dir``, its CURVE keys, and on a split stack its tcp endpoints bound beside the ipc
+        ones and the services of its host, whose stamps share its clock)."""
         heartbeat = {"heartbeat_period_s": self.planner.heartbeat_period_s} if service == "planner" else {}
+        also_bind = {} if not self.hosts or service not in self.service_names() else {
+            f"ipc://{self.run_dir}/{service}.{kind}": self.tcp_endpoint(service, kind) for kind in ENDPOINT_KINDS}
         return RuntimeConfig(status_endpoint=self.endpoint(service, "status"), log_level=self.log_level,
-                             log_file=str(self.service_log_dir() / f"{service}.log"), **heartbeat)
+                             log_file=str(self.service_log_dir() / f"{service}.log"), curve=self.curve_keys(),
+                             also_bind=also_bind, local_sources=self.local_sources(), **heartbeat)
 
     def service_log_dir(self) -> Path:
         """Where each service writes its own log file ``NAME.log``: ``log_dir``, or ``RUN_DIR/logs``."""
@@ -470,6 +584,16 @@ class StackConfig(Strict):
         ``run_dir``). Keep it off a folder that a restart empties (the lab's ``/run``): a lost tare leaves the F/T
         readings untared until a person tares again."""
         return Path(self.run_dir) / Path(self.state_dir).expanduser()
+
+    def curve_keys(self) -> CurveKeys | None:
+        """The CURVE keys every process of this stack gives its bus (``Bus(curve=...)``), or None."""
+        if self.curve is None:
+            return None
+        server_keys = {self.tcp_endpoint(service, kind): Path(host.public_key_file)
+                       for host in self.hosts.values() if host.public_key_file
+                       for service in host.services for kind in ENDPOINT_KINDS}
+        return CurveKeys(Path(self.curve.secret_key_file), Path(self.curve.authorized_keys_dir), server_keys,
+                         loopback=self.curve.loopback)
 
     def curve_server(self) -> CurveServer | None:
         """The CURVE server keys, or None."""
@@ -490,9 +614,14 @@ def parse_config(text: str | bytes, origin: str = "config") -> StackConfig:
         raise ConfigError(f"{origin} is not valid TOML: {err}") from err
 
 
-def load_config(path: str | Path) -> StackConfig:
-    """Read and validate a stack config file; raises ConfigError naming the file and the key."""
+def load_config(path: str | Path, host: str | None = None) -> StackConfig:
+    """Read and validate a stack config file as read on ``host`` (default ``$HYDROSOFT_HOST``, else the
+    config's ``host``; ``StackConfig.on_host``); raises ConfigError naming the file and the key."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist")
-    return parse_config(path.read_bytes(), origin=str(path))
+    config = parse_config(path.read_bytes(), origin=str(path))
+    try:
+        return config.on_host(host or os.environ.get(HOST_ENV) or None)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from err

@@ -33,7 +33,7 @@ EXIT_FAILED = 2
 async def request_tare(config: StackConfig, arm: str, timeout_s: float = REQUEST_TIMEOUT_S) -> msg.TareReply:
     """``arm``'s F/T reader's reply to ``Tare``. Raises TimeoutError when it does not answer within ``timeout_s``,
     or the ``MessageError`` of a malformed reply."""
-    with Bus() as bus:
+    with Bus(curve=config.curve_keys()) as bus:
         client = RequestClient(bus, config.endpoint(f"ft_reader-{arm}", "cmd"), source="ft tare", timeout_s=timeout_s)
         reply = await client.request(msg.Tare())
     if not isinstance(reply, msg.TareReply | msg.CommandReply):

@@ -34,6 +34,14 @@ Recording and live view. ``--record PATH.mcap`` and ``--view [--view-port P]`` a
 (``services/recorder.py``): it starts first and stops last, so the file holds every service's start and shutdown,
 and it is supervised like the others (a restarted recorder writes ``PATH.restartN.mcap``).
 
+A config with CURVE keys whose secret key file its group or others may read is refused before anything starts
+(exit 2, naming the file).
+
+Split across hosts. ``--host NAME`` starts only the services of the config's ``[hosts.NAME]`` (in start order),
+reads the config as that host (its run_dir; ``config.on_host``) and passes ``HYDROSOFT_HOST=NAME`` to every
+service, so that each reads its own host's services over ipc and the other host's over CURVE tcp. Run one
+launcher per host with the same config.
+
 Exit codes: 0 after a requested stop, 1 when the launch failed or no service was left running, 2 for a bad config
 or ``--only`` name.
 """
@@ -55,7 +63,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from hydrosoft.services.config import ConfigError, ServiceConfig, StackConfig, load_config
+from hydrosoft.services.bus import BusConfigError, check_secret_key_file
+from hydrosoft.services.config import HOST_ENV, ConfigError, ServiceConfig, StackConfig, load_config
 from hydrosoft.services.runtime import INSTANCE_ENV, RESTARTS_ENV, new_instance_id
 
 #: The package holding the service modules.
@@ -144,9 +153,9 @@ class RecorderLaunch:
 
 
 def select_services(config: StackConfig, only: str | None) -> list[str]:
-    """The services to run, in start order: all of ``config.service_names()``, or those named in ``only`` (comma
-    separated). Raises LaunchError naming an unknown name."""
-    names = config.service_names()
+    """The services to run, in start order: all of this host's ``config.local_services()``, or those named in
+    ``only`` (comma separated). Raises LaunchError naming an unknown name."""
+    names = config.local_services()
     if not only:
         return names
     wanted = [part.strip() for part in only.split(",") if part.strip()]
@@ -454,6 +463,8 @@ class Launcher:
 
     async def _start(self, name: str) -> ServiceProcess:
         env = {**os.environ, RESTARTS_ENV: str(self.restarts[name]), INSTANCE_ENV: self.instance}
+        if self.config.host is not None:
+            env[HOST_ENV] = self.config.host
         process = await ServiceProcess.start(name, self.command(name, self.config_path), env, self.sink)
         self.processes[name] = process
         return process
@@ -592,22 +603,26 @@ async def serve_stack(config: StackConfig, config_path: str, names: Sequence[str
 
 
 def launch(config_path: str | Path, *, only: str | None = None, log_dir: str | Path | None = None,
-           command: CommandFor = command_for, recorder: RecorderLaunch = RecorderLaunch()) -> int:
+           command: CommandFor = command_for, recorder: RecorderLaunch = RecorderLaunch(),
+           host: str | None = None) -> int:
     """Run the stack of the config file ``config_path`` until SIGINT/SIGTERM (see the module docstring); the exit
     code (0 stopped on request, 1 launch failed or nothing left running, 2 bad config or ``only``).
     ``only``: comma-separated service names to run instead of all. ``log_dir``: also write each service's output
     to ``LOG_DIR/NAME.log``. ``command``: the command line of a service (name, config path), for tests.
-    ``recorder``: add the recorder service (``--record``, ``--view``)."""
+    ``recorder``: add the recorder service (``--record``, ``--view``). ``host``: run that host's services only
+    (``--host``; default ``$HYDROSOFT_HOST``)."""
     sink = LogSink(Path(log_dir) if log_dir is not None else None)
     try:
-        config = load_config(config_path)
+        config = load_config(config_path, host)
+        if config.curve is not None:
+            check_secret_key_file(Path(config.curve.secret_key_file))
         names = select_services(config, only)
         if recorder.wanted:
             names = [RECORDER, *names]
             command = recorder.with_recorder(command)
         sockets = ipc_paths(config, names)
         check_ipc_paths(sockets)
-    except (ConfigError, LaunchError) as err:
+    except (ConfigError, LaunchError, BusConfigError) as err:
         print(f"hydrosoft-stack launch: {err}", file=sys.stderr, flush=True)
         return EXIT_USAGE
     try:
@@ -628,10 +643,12 @@ def launch(config_path: str | Path, *, only: str | None = None, log_dir: str | P
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--only NAMES] [--log-dir DIR] [--record PATH.mcap] [--view [--view-port P]]."""
+    """Arguments: CONFIG [--only NAMES] [--host NAME] [--log-dir DIR] [--record PATH.mcap] [--view [--view-port P]]."""
     parser.add_argument("config", help="the stack's TOML config (deploy/sim.toml, deploy/lab.toml)")
     parser.add_argument("--only", default=None, metavar="NAMES",
                         help="comma-separated services to run (e.g. sim_world,arm_commander-bubble); default all")
+    parser.add_argument("--host", default=None, metavar="NAME",
+                        help="run only the services of the config's [hosts.NAME] (a stack split across hosts)")
     parser.add_argument("--log-dir", default=None, metavar="DIR",
                         help="also append each service's output to DIR/NAME.log (and the launcher's to "
                         "DIR/launcher.log)")
@@ -646,7 +663,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``hydrosoft-stack launch``; the exit code."""
     recorder = RecorderLaunch(args.record.resolve() if args.record is not None else None, args.view, args.view_port)
-    return launch(args.config, only=args.only, log_dir=args.log_dir, recorder=recorder)
+    return launch(args.config, only=args.only, log_dir=args.log_dir, recorder=recorder, host=args.host)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -52,6 +52,7 @@ from hydrosoft.services.bus import (
     Bus,
     BusConfigError,
     Curve,
+    CurveKeys,
     ErrorCounter,
     Handler,
     Latest,
@@ -90,7 +91,10 @@ class RuntimeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     ``tcp://127.0.0.1:PORT``). status_period_s: seconds between status messages. heartbeat_period_s: seconds
     between heartbeats (readers should time out after more than twice this). shutdown_timeout_s: the longest the
     shutdown hooks may take, s. log_level: a ``logging`` level name. log_file: where the service also writes its
-    log (its directory is created), or None for stderr only.
+    log (its directory is created), or None for stderr only. curve: the CURVE keys of the service's sockets
+    (``bus.CurveKeys``), or None where every endpoint is local. also_bind: per ipc endpoint the service binds, a
+    tcp endpoint it binds beside it (a stack split across hosts: its peers on the other host read it there).
+    local_sources: the senders that share this host's clock (``Bus.local_sources``; None: all).
     """
 
     status_endpoint: str
@@ -99,6 +103,9 @@ class RuntimeConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     shutdown_timeout_s: float = 2.0
     log_level: str = "INFO"
     log_file: str | None = None
+    curve: CurveKeys | None = None
+    also_bind: dict[str, str] = {}
+    local_sources: frozenset[str] | None = None
 
     def __post_init__(self) -> None:
         for name in ("status_period_s", "heartbeat_period_s", "shutdown_timeout_s"):
@@ -216,14 +223,18 @@ class Service:
         await self.publish_status()
 
     def status(self) -> ServiceStatus:
-        """The current status, with the rates measured over the last status period."""
+        """The current status, with the rates measured over the last status period, and the peers its CURVE
+        servers refused counted as ``curve_refused`` errors."""
+        errors = dict(self.errors.counts)
+        if self.bus.curve_refused:
+            errors["curve_refused"] = self.bus.curve_refused
         return ServiceStatus(
             state=self.state,
             pid=self.pid,
             uptime_s=(time.monotonic_ns() - self._started_ns) * 1e-9,
             published_hz=self._published_hz,
             received_hz=self._received_hz,
-            errors=dict(self.errors.counts),
+            errors=errors,
             last_error=self.errors.last_error,
             restarts=self.restarts,
             note=self.note,
@@ -318,7 +329,7 @@ def run_service(name: str, config: RuntimeConfig, main: Callable[[Service], Awai
 
 
 async def _run(name: str, config: RuntimeConfig, main: Callable[[Service], Awaitable[None]]) -> int:
-    bus = Bus()
+    bus = Bus(curve=config.curve, also_bind=config.also_bind, local_sources=config.local_sources)
     try:
         service = Service(name, config, bus)
     except BusConfigError as error:

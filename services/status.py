@@ -14,8 +14,9 @@ errors, last_error, heartbeat_age_s, instance[, note]} | null}}`` (``note`` only
 Refused requests are error kinds like any other (``rate_limited``, ``busy``, ``reply_too_large``, ``request_failed``,
 ``other_instance``), as are the links a subscriber lost (``link_dropped``).
 
-A status endpoint that is not local (a ``tcp://`` address beyond loopback, which needs CURVE client keys the config
-does not hold) is not read; the service is reported as ``null`` and a note goes to stderr.
+Status endpoints on ``tcp://`` are read with the config's CURVE keys (``[curve]``), so ``status`` on either host
+of a split stack shows every service of both. A status endpoint that is not local while the config holds no CURVE
+keys is not read; the service is reported as ``null`` and a note goes to stderr.
 """
 
 from __future__ import annotations
@@ -103,16 +104,17 @@ def format_table(reports: dict[str, Report]) -> str:
 async def collect(config: StackConfig, names: Sequence[str], window_s: float) -> dict[str, Report]:
     """Listen to the status endpoints of ``names`` for up to ``window_s`` s (less once every one has reported)
     and return each one's report (None: no status)."""
-    local = [name for name in names if is_local_endpoint(config.endpoint(name, "status"))]
+    keys = config.curve_keys()
+    local = [name for name in names if keys is not None or is_local_endpoint(config.endpoint(name, "status"))]
     for name in names:
         if name not in local:
             print(f"status: {name}'s status endpoint {config.endpoint(name, 'status')} is not local; not read "
-                  "(it needs CURVE client keys)", file=sys.stderr)
+                  "(it needs the CURVE keys of a [curve] table)", file=sys.stderr)
     statuses: dict[str, ServiceStatus | None] = dict.fromkeys(names)
     heartbeat_ages: dict[str, float | None] = dict.fromkeys(names)
     if not local:
         return {name: None for name in names}
-    with Bus() as bus:
+    with Bus(curve=keys, local_sources=config.local_sources()) as bus:
         topics = [topic_for(kind, name) for name in local for kind in (ServiceStatus, Heartbeat)]
         subscriber = LatestSubscriber(bus, [config.endpoint(name, "status") for name in local], topics)
         deadline_s = time.monotonic() + window_s

@@ -8,6 +8,11 @@ publisher's ``stamp_ns`` (one host, one monotonic clock). The first ``WARMUP_S``
 (connection set-up, slow joiner). Rows report the median and 99th percentile age in microseconds and the
 messages per second the subscriber received. Targets: small messages p99 < 1 ms, depth frames p99 < 5 ms.
 
+``--tcp-peer ADDRESS`` measures the link between two hosts instead: the publisher binds ``tcp://ADDRESS:*`` (another
+127.0.0.N simulates the other host on one machine, a LAN address the real one), plain (``tcp-peer``) and with CURVE
+(``tcp-peer-curve``: a fresh key pair in a temporary folder, as ``hydrosoft-stack keys generate`` writes it, and the
+ZAP handshake the stack's services do). Both processes still run here, so their ages share one clock.
+
 Each row's two processes run ``python -m hydrosoft.services.benchmarks.bus publish|subscribe ...``; they are
 stopped by pid when they overrun their time limits.
 """
@@ -26,12 +31,17 @@ from pathlib import Path
 
 import numpy as np
 
-from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
+from hydrosoft.services.bus import Bus, CurveKeys, LatestSubscriber, Publisher, Stale
+from hydrosoft.services.keys import generate_key_pair
 from hydrosoft.services.messages import DepthFrame, Message, Wrench
 
 #: Publishing rate per payload, Hz: above an F/T sensor's stream rate we consume, and a depth camera's frame rate.
 RATES_HZ = {"wrench": 1000.0, "depth_640x480": 100.0}
 TRANSPORTS = ("tcp", "ipc")
+#: The transports of ``--tcp-peer``: the other host's address, without and with CURVE.
+PEER_TRANSPORTS = ("tcp-peer", "tcp-peer-curve")
+#: The key pair's name in a ``tcp-peer-curve`` row's key folder.
+BENCH_HOST = "bench"
 #: Messages of the first WARMUP_S seconds are sent but not measured.
 WARMUP_S = 0.3
 #: The subscriber ends after this long without a message (once messages have flowed), s.
@@ -71,15 +81,25 @@ class Row:
 # --- the two roles, each in its own process ---------------------------------------------------------------------
 
 
-async def publish(endpoint: str, payload: str, seconds: float) -> None:
-    """Bind ``endpoint``, print ``BOUND <endpoint>``, wait for a line on stdin, then publish ``payload`` at its rate
-    for ``WARMUP_S + seconds`` and print ``{"sent": N}`` (messages after the warm-up)."""
+def curve_keys(key_dir: str) -> CurveKeys | None:
+    """CURVE on every tcp endpoint with the pair in ``key_dir`` (its public key the only one admitted), or None for
+    an empty ``key_dir``."""
+    if not key_dir:
+        return None
+    folder = Path(key_dir)
+    return CurveKeys(folder / f"{BENCH_HOST}.key_secret", folder / "authorized", loopback=True)
+
+
+async def publish(endpoint: str, payload: str, seconds: float, key_dir: str = "") -> None:
+    """Bind ``endpoint`` (with CURVE when ``key_dir`` names a key folder), print ``BOUND <endpoint>``, wait for a
+    line on stdin, then publish ``payload`` at its rate for ``WARMUP_S + seconds`` and print ``{"sent": N}``
+    (messages after the warm-up)."""
     rate_hz = RATES_HZ[payload]
     period_ns = round(1e9 / rate_hz)
     warmup_count = round(WARMUP_S * rate_hz)
     total = warmup_count + round(seconds * rate_hz)
     message = make_message(payload)
-    with Bus() as bus:
+    with Bus(curve=curve_keys(key_dir)) as bus:
         publisher = Publisher(bus, endpoint, source="bench_publisher")
         print(f"BOUND {publisher.endpoint}", flush=True)
         await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
@@ -91,8 +111,8 @@ async def publish(endpoint: str, payload: str, seconds: float) -> None:
     print(json.dumps({"sent": total - warmup_count}), flush=True)
 
 
-async def subscribe(endpoint: str, payload: str, seconds: float) -> None:
-    """Connect to ``endpoint``, print ``READY``, then take the age of every message handed out (after the
+async def subscribe(endpoint: str, payload: str, seconds: float, key_dir: str = "") -> None:
+    """Connect to ``endpoint`` (with CURVE when ``key_dir`` names a key folder), print ``READY``, then take the age of every message handed out (after the
     warm-up's ``seq``) until ``SILENCE_END_S`` without messages; print the counts and percentiles as JSON."""
     rate_hz = RATES_HZ[payload]
     warmup_count = round(WARMUP_S * rate_hz)
@@ -100,7 +120,7 @@ async def subscribe(endpoint: str, payload: str, seconds: float) -> None:
     ages_ns: list[int] = []
     received = 0
     deadline_s = time.monotonic() + START_TIMEOUT_S + WARMUP_S + seconds
-    with Bus() as bus:
+    with Bus(curve=curve_keys(key_dir)) as bus:
         subscriber = LatestSubscriber(bus, endpoint, [topic])
         print("READY", flush=True)
         while time.monotonic() < deadline_s:
@@ -126,9 +146,9 @@ async def subscribe(endpoint: str, payload: str, seconds: float) -> None:
 # --- the orchestrator -------------------------------------------------------------------------------------------
 
 
-async def _start(role: str, endpoint: str, payload: str, seconds: float) -> asyncio.subprocess.Process:
+async def _start(role: str, endpoint: str, payload: str, seconds: float, key_dir: str) -> asyncio.subprocess.Process:
     return await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "hydrosoft.services.benchmarks.bus", role, endpoint, payload, str(seconds),
+        sys.executable, "-m", "hydrosoft.services.benchmarks.bus", role, endpoint, payload, str(seconds), key_dir,
         stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
     )
 
@@ -153,15 +173,25 @@ async def _result(process: asyncio.subprocess.Process, role: str, timeout_s: flo
     return json.loads(out.decode().strip().splitlines()[-1])
 
 
-async def measure(payload: str, transport: str, seconds: float, ipc_dir: Path) -> Row:
-    """Run one publisher and one subscriber process for ``payload`` over ``transport`` and return their row."""
-    endpoint = "tcp://127.0.0.1:*" if transport == "tcp" else f"ipc://{ipc_dir}/{payload}.ipc"
+async def measure(payload: str, transport: str, seconds: float, ipc_dir: Path, peer: str = "") -> Row:
+    """Run one publisher and one subscriber process for ``payload`` over ``transport`` (to ``peer``'s address for
+    the ``PEER_TRANSPORTS``; ``ipc_dir`` also holds a ``tcp-peer-curve`` row's keys) and return their row."""
+    endpoints = {"tcp": "tcp://127.0.0.1:*", "ipc": f"ipc://{ipc_dir}/{payload}.ipc", "tcp-peer": f"tcp://{peer}:*",
+                 "tcp-peer-curve": f"tcp://{peer}:*"}
+    endpoint = endpoints[transport]
+    key_dir = ""
+    if transport == "tcp-peer-curve":
+        key_dir = str(ipc_dir / "keys")
+        if not (ipc_dir / "keys").exists():
+            public, _ = generate_key_pair(ipc_dir / "keys", BENCH_HOST)
+            (ipc_dir / "keys" / "authorized").mkdir()
+            (ipc_dir / "keys" / "authorized" / public.name).write_bytes(public.read_bytes())
     processes: list[asyncio.subprocess.Process] = []
     try:
-        publisher = await _start("publish", endpoint, payload, seconds)
+        publisher = await _start("publish", endpoint, payload, seconds, key_dir)
         processes.append(publisher)
         bound = (await _first_line(publisher, "publisher")).removeprefix("BOUND ")
-        subscriber = await _start("subscribe", bound, payload, seconds)
+        subscriber = await _start("subscribe", bound, payload, seconds, key_dir)
         processes.append(subscriber)
         await _first_line(subscriber, "subscriber")
         publisher.stdin.write(b"go\n")  # type: ignore[union-attr]
@@ -179,18 +209,20 @@ async def measure(payload: str, transport: str, seconds: float, ipc_dir: Path) -
                received=int(got["received"]), samples=int(got["samples"]))
 
 
-async def measure_all(seconds: float) -> list[Row]:
-    """Every payload over every transport, one after the other."""
+async def measure_all(seconds: float, peer: str = "") -> list[Row]:
+    """Every payload over every transport (the ``PEER_TRANSPORTS`` to ``peer`` when one is given), one after the
+    other."""
+    transports = PEER_TRANSPORTS if peer else TRANSPORTS
     with tempfile.TemporaryDirectory(prefix="hs-bench-") as ipc_dir:
-        return [await measure(payload, transport, seconds, Path(ipc_dir))
-                for transport in TRANSPORTS for payload in RATES_HZ]
+        return [await measure(payload, transport, seconds, Path(ipc_dir), peer)
+                for transport in transports for payload in RATES_HZ]
 
 
 def format_table(rows: list[Row]) -> str:
     """The rows as a text table."""
-    lines = [f"{'payload':<14} {'transport':<9} {'p50 us':>8} {'p99 us':>8} {'msgs/s':>8} {'rate Hz':>8} "
+    lines = [f"{'payload':<14} {'transport':<14} {'p50 us':>8} {'p99 us':>8} {'msgs/s':>8} {'rate Hz':>8} "
              f"{'sent':>6} {'received':>8}"]
-    lines += [f"{r.payload:<14} {r.transport:<9} {r.p50_us:8.1f} {r.p99_us:8.1f} {r.msgs_per_s:8.1f} "
+    lines += [f"{r.payload:<14} {r.transport:<14} {r.p50_us:8.1f} {r.p99_us:8.1f} {r.msgs_per_s:8.1f} "
               f"{r.rate_hz:8.0f} {r.sent:6d} {r.received:8d}" for r in rows]
     return "\n".join(lines)
 
@@ -200,6 +232,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=2.0,
                         help="measured seconds per payload and transport, after a 0.3 s warm-up (default 2)")
     parser.add_argument("--json", action="store_true", help='print {"rows": [...]} as JSON instead of a table')
+    parser.add_argument("--tcp-peer", default="", metavar="ADDRESS",
+                        help="measure tcp to this address (another 127.0.0.N simulates a second host), without and "
+                        "with CURVE, instead of tcp and ipc on loopback")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -207,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.seconds > 0:
         print(f"--seconds must be > 0, got {args.seconds}", file=sys.stderr)
         return 2
-    rows = asyncio.run(measure_all(args.seconds))
+    rows = asyncio.run(measure_all(args.seconds, getattr(args, "tcp_peer", "")))
     if args.json:
         print(json.dumps({"rows": [asdict(row) for row in rows]}))
     else:
@@ -216,8 +251,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m hydrosoft.services.benchmarks.bus [--seconds S] [--json]``, or one process role
-    (``publish|subscribe ENDPOINT PAYLOAD SECONDS``, started by ``measure``)."""
+    """``python -m hydrosoft.services.benchmarks.bus [--seconds S] [--json] [--tcp-peer ADDRESS]``, or one process
+    role (``publish|subscribe ENDPOINT PAYLOAD SECONDS [KEY_DIR]``, started by ``measure``)."""
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] in ("publish", "subscribe"):
         role = argparse.ArgumentParser(prog="hydrosoft.services.benchmarks.bus ROLE")
@@ -225,8 +260,10 @@ def main(argv: list[str] | None = None) -> int:
         role.add_argument("endpoint")
         role.add_argument("payload", choices=sorted(RATES_HZ))
         role.add_argument("seconds", type=float)
+        role.add_argument("key_dir", nargs="?", default="")
         args = role.parse_args(argv)
-        asyncio.run((publish if args.role == "publish" else subscribe)(args.endpoint, args.payload, args.seconds))
+        asyncio.run((publish if args.role == "publish" else subscribe)(args.endpoint, args.payload, args.seconds,
+                                                                        args.key_dir))
         return 0
     parser = argparse.ArgumentParser(prog="hydrosoft-stack bench bus", description=__doc__.splitlines()[0])
     add_arguments(parser)

@@ -89,6 +89,7 @@ def keys(ipc_dir):
         folder = ipc_dir / name
         folder.mkdir()
         public, secret = zmq.auth.create_certificates(folder, name)
+        Path(secret).chmod(0o600)
         paths[name] = (Path(public), Path(secret))
     return paths
 
@@ -113,6 +114,68 @@ def test_curve_admits_the_authorized_client_only(keys):
             assert client.latest("wrench", 1.0, m.Wrench).value.sensor == "ft"
             for outsider in (intruder, wrong_server_key, plain):
                 assert not outsider.drain() and not outsider.received
+
+    run(scenario())
+
+
+def test_curve_keys_put_curve_on_tcp_beyond_loopback_and_on_loopback_only_when_forced(keys):
+    secret, authorized = keys["client"][1], keys["client"][0].parent
+    remote = "tcp://10.1.2.3:5600"
+    keys_of = b.CurveKeys(secret, authorized, server_key_files={remote: keys["server"][0]})
+    assert keys_of.for_endpoint("ipc:///tmp/x.data", bind=True) is None
+    assert keys_of.for_endpoint("tcp://127.0.0.21:5600", bind=False) is None
+    assert keys_of.for_endpoint(remote, bind=True) == b.CurveServer(secret, authorized)
+    assert keys_of.for_endpoint(remote, bind=False) == b.CurveClient(secret, keys["server"][0])
+    forced = b.CurveKeys(secret, authorized, loopback=True)
+    assert forced.for_endpoint("ipc:///tmp/x.data", bind=False) is None
+    assert forced.for_endpoint("tcp://127.0.0.21:5600", bind=False) == b.CurveClient(secret, secret)
+    assert forced.for_endpoint("tcp://127.0.0.21:5600", bind=True) == b.CurveServer(secret, authorized)
+
+
+def test_a_secret_key_file_others_may_read_is_refused_naming_the_file(keys):
+    secret = keys["server"][1]
+    secret.chmod(0o644)
+    with b.Bus() as bus:
+        with pytest.raises(b.BusConfigError, match=f"{secret}.*readable by its owner only"):
+            b.Publisher(bus, "tcp://127.0.0.1:*", source="t", curve=b.CurveServer(secret, keys["client"][0].parent))
+        assert bus._sockets == []
+    secret.chmod(0o600)
+    b.check_secret_key_file(secret)
+
+
+def test_forced_curve_on_loopback_admits_authorised_keys_and_counts_each_refused_peer(keys, ipc_dir):
+    """The bus's own CurveKeys decide per endpoint: the tcp publisher is a CURVE server, the ipc one plain, and
+    one subscriber reads both; a peer whose key is not authorised receives nothing and is counted."""
+    authorized = ipc_dir / "authorized"
+    authorized.mkdir()
+    for name in ("server", "client"):
+        (authorized / keys[name][0].name).write_bytes(keys[name][0].read_bytes())
+
+    async def scenario():
+        server_keys = b.CurveKeys(keys["server"][1], authorized, loopback=True)
+        with b.Bus(curve=server_keys) as server, b.Bus() as peers:
+            secure = b.Publisher(server, "tcp://127.0.0.1:*", source="secure")
+            plain = b.Publisher(server, f"ipc://{ipc_dir}/plain", source="plain")
+            endpoint = secure.endpoint
+
+            def client_keys(name: str) -> b.CurveKeys:
+                return b.CurveKeys(keys[name][1], authorized, {endpoint: keys["server"][0]}, loopback=True)
+
+            with b.Bus(curve=client_keys("client")) as client_bus, b.Bus(curve=client_keys("intruder")) as intruder_bus:
+                client = b.LatestSubscriber(client_bus, [endpoint, plain.endpoint])
+                intruder = b.LatestSubscriber(intruder_bus, endpoint)
+                no_keys = b.LatestSubscriber(peers, endpoint)
+                assert await connected(secure, client)
+                await plain.send(WRENCH)
+                for _ in range(round(SILENCE_S / 0.05)):
+                    await secure.send(WRENCH, "wrench/secure")
+                    await asyncio.sleep(0.05)
+                assert client.latest("wrench/secure", 1.0, m.Wrench).value.sensor == "ft"
+                assert client.latest("wrench", 1.0, m.Wrench).value.sensor == "ft"
+                assert not intruder.drain() and not intruder.received
+                assert not no_keys.drain() and not no_keys.received
+                assert server.curve_refused >= 1  # the intruder (libzmq retries, each try is counted)
+                assert client_bus.curve_refused == 0
 
     run(scenario())
 

@@ -105,3 +105,64 @@ def test_state_dir_lies_under_run_dir_unless_absolute_and_sim_ft_bias_is_checked
     for bad in ("[1, 2, 3]", "[1, 2, 3, 0, 0, nan]", "[101, 0, 0, 0, 0, 0]", "[0, 0, 0, 0, 0, -11]"):
         with pytest.raises(ConfigError, match="sim.ft_bias"):
             parse_config(base + f"[sim]\nft_bias = {bad}\n")
+
+
+TWO_HOSTS = ONE_ARM + '''
+[curve]
+secret_key_file = "/keys/shared.key_secret"
+authorized_keys_dir = "/keys/authorized"
+
+[hosts.robot]
+address = "10.0.0.2"
+services = ["sim_world", "arm_commander-bubble", "ft_reader-bubble", "bubble_camera-bubble", "tag_tracker"]
+public_key_file = "/keys/robot.key"
+secret_key_file = "/keys/robot.key_secret"
+run_dir = "/run/robot"
+
+[hosts.compute]
+address = "10.0.0.3"
+services = ["planner"]
+first_port = 7000
+public_key_file = "/keys/compute.key"
+'''
+
+
+def test_a_split_stack_reads_its_own_hosts_services_over_ipc_and_the_others_over_tcp_on_fixed_ports():
+    config = parse_config(TWO_HOSTS, "test.toml")
+    assert config.host_of("planner") == "compute" and config.host_of("tag_tracker") == "robot"
+    planner_index = config.service_names().index("planner")
+    assert config.endpoint("planner", "cmd") == f"tcp://10.0.0.3:{7000 + 3 * planner_index + 2}"
+    assert config.endpoint("sim_world", "data") == "tcp://10.0.0.2:5600"  # no host named: every service over tcp
+    robot = config.on_host("robot")
+    assert robot.run_dir == "/run/robot" and robot.curve.secret_key_file == "/keys/robot.key_secret"
+    assert robot.local_services() == config.hosts["robot"].services
+    assert robot.endpoint("sim_world", "status") == "ipc:///run/robot/sim_world.status"
+    assert robot.endpoint("planner", "data") == config.tcp_endpoint("planner", "data")
+    runtime = robot.runtime("sim_world")
+    assert runtime.also_bind["ipc:///run/robot/sim_world.status"] == "tcp://10.0.0.2:5601"
+    assert runtime.curve.server_key_files[config.tcp_endpoint("planner", "cmd")] == Path("/keys/compute.key")
+    compute = config.on_host("compute")
+    assert compute.run_dir == config.run_dir and compute.curve.secret_key_file == "/keys/shared.key_secret"
+    assert compute.local_services() == ["planner"] and compute.endpoint("planner").startswith("ipc://")
+    assert len({config.tcp_endpoint(name, kind) for name in config.service_names()
+                for kind in ("data", "status", "cmd")}) == 3 * len(config.service_names())
+    with pytest.raises(ConfigError, match=r"--host.*no host 'laptop'"):
+        config.on_host("laptop")
+
+
+@pytest.mark.parametrize("change, key", [
+    (('services = ["planner"]', 'services = ["planner", "tag_tracker"]'), r"hosts\.compute\.services.*also on"),
+    (('services = ["planner"]', 'services = []'), r"hosts: .*planner"),
+    (('services = ["planner"]', 'services = ["planer"]'), r"hosts\.compute\.services.*no service 'planer'"),
+    (('address = "10.0.0.3"', 'address = "compute.lab"'), r"hosts\.compute\.address"),
+    (("first_port = 7000", "first_port = 65530"), r"hosts\.compute\.first_port"),
+])
+def test_a_bad_host_table_is_named(change, key):
+    with pytest.raises(ConfigError, match=key):
+        parse_config(TWO_HOSTS.replace(*change), "test.toml")
+
+
+def test_hosts_beyond_loopback_need_curve_keys():
+    text = TWO_HOSTS.split("[curve]")[0] + "[hosts" + TWO_HOSTS.split("[hosts", 1)[1]
+    with pytest.raises(ConfigError, match=r"hosts\.robot: .*CURVE"):
+        parse_config(text, "test.toml")

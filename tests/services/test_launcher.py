@@ -28,7 +28,7 @@ from fakes.stack_run import (
     write_config,
 )
 
-from hydrosoft.services import launcher
+from hydrosoft.services import keys, launcher
 from hydrosoft.services.config import ServiceConfig, load_config
 from hydrosoft.services.recording import read_recording
 from hydrosoft.services.launcher import (
@@ -191,6 +191,19 @@ def test_bad_config_exits_2_naming_the_key(root, capsys):
 def test_unknown_only_name_exits_2(root, capsys):
     assert launcher.launch(write_config(root, ["a"]), only="planner,mapper") == 2
     assert "mapper" in capsys.readouterr().err
+
+
+def test_a_secret_key_others_may_read_or_an_unknown_host_exits_2_before_anything_starts(root, capsys):
+    public, secret = keys.generate_key_pair(root / "keys", "robot")
+    secret.chmod(0o640)
+    path = write_config(root, ["a"], f'[curve]\nsecret_key_file = "{secret}"\n'
+                                     f'authorized_keys_dir = "{public.parent}"\n')
+    assert launcher.launch(path) == 2
+    assert f"{secret} has mode 0640" in capsys.readouterr().err
+    secret.chmod(0o600)
+    assert launcher.launch(path, host="robot") == 2  # the config names no hosts
+    assert "--host: no host 'robot'" in capsys.readouterr().err
+    assert not (root / "run").exists()
 
 
 # --- the real launcher over fake services ------------------------------------------------------------------------

@@ -3,6 +3,8 @@
 import argparse
 import json
 
+from loopback import free_loopback_address
+
 from hydrosoft.services.benchmarks import bus as bench
 
 ROW_KEYS = {"payload", "transport", "p50_us", "p99_us", "msgs_per_s"}
@@ -20,6 +22,19 @@ def test_bench_prints_every_row_as_json(capsys):
         assert 0 < row["p50_us"] <= row["p99_us"] < 1e6  # under a second even on two busy cores
         assert row["received"] > 0.5 * row["sent"] > 0  # the subscriber kept up with the paced publisher
         assert row["msgs_per_s"] == round(row["received"] / 0.5, 1)
+
+
+def test_tcp_peer_measures_the_other_hosts_address_without_and_with_curve(capsys):
+    peer = free_loopback_address(21, 39, ())
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    assert bench.run(parser.parse_args(["--seconds", "0.5", "--json", "--tcp-peer", peer])) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    assert {(row["payload"], row["transport"]) for row in rows} == {
+        (payload, transport) for payload in bench.RATES_HZ for transport in bench.PEER_TRANSPORTS}
+    for row in rows:
+        assert 0 < row["p50_us"] <= row["p99_us"] < 1e6
+        assert row["received"] > 0.5 * row["sent"] > 0  # CURVE admitted the bench's own key
 
 
 def test_table_has_a_line_per_row():
