@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from hydrosoft.services.cli import main
+from hydrosoft.services.cli import COMMANDS, GROUPS, main
 
 
 def test_help_lists_every_command(capsys):
@@ -56,3 +56,13 @@ def test_every_service_refuses_a_missing_config_with_exit_code_2(module, tmp_pat
     service = importlib.import_module(f"hydrosoft.services.{module}")
     assert service.main([str(tmp_path / "missing.toml")]) == 2
     assert "missing.toml does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [[name] for name in COMMANDS] + [["demo"]] + [[group] for group in GROUPS]
+                         + [[group, name] for group, (_, names) in GROUPS.items() for name in names],
+                         ids=lambda command: " ".join(command))
+def test_every_commands_help_prints_and_exits_0(command, capsys):
+    """argparse formats help texts with %: a bare "95 %" in one breaks that command's --help."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([*command, "--help"])
+    assert exit_info.value.code == 0 and "usage: hydrosoft-stack" in capsys.readouterr().out
