@@ -52,7 +52,9 @@ SIM_TASKS = ("pushing", "rotation", "rolling")  # the tasks deploy/sim.toml serv
 
 
 def pushing_config():
-    return parse_config('[[arms]]\nname = "bubble"\n[scene]\ntask = "pushing"\n')
+    """The pushing scene seen by the camera at ``CAMERA_POSE`` (the search tests' poses were chosen for its view)."""
+    pose = ", ".join(repr(float(v)) for v in CAMERA_POSE)
+    return parse_config(f'[[arms]]\nname = "bubble"\n[scene]\ntask = "pushing"\n[camera]\npose = [{pose}]\n')
 
 
 def render(config, pose: np.ndarray) -> np.ndarray:
