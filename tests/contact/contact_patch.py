@@ -34,3 +34,15 @@ def drive(model, path, area=1e-4, mat=None, dtype=torch.float64):
         forces = model.step(patch_step(a, b, area, dtype), forces, mat)
         history.append(forces)
     return forces, history
+
+
+def grid(z, x=0.0, n=4):
+    """n*n points of a 1 cm patch at height z, shifted by x."""
+    xs = torch.linspace(-0.005, 0.005, n, dtype=torch.float64)
+    gx, gy = torch.meshgrid(xs + x, xs, indexing="ij")
+    return torch.stack([gx.flatten(), gy.flatten(), torch.full((n * n,), z, dtype=torch.float64)], -1)
+
+
+def press(z_start=0.002, depth=0.003, steps=7, x=0.0):
+    """The patch pressed from ``z_start`` to ``-depth`` (m) in ``steps`` positions, shifted by x."""
+    return [grid(z, x) for z in torch.linspace(z_start, -depth, steps, dtype=torch.float64).tolist()]

@@ -6,22 +6,11 @@ import math
 import pytest
 import torch
 
-from contact_patch import drive, material, patch_step
+from contact_patch import drive, grid, material, patch_step, press
 from hydrosoft.contact import NonHolonomic, NonHolonomicPressureNormal, PressureFieldFrictionless, make
 from hydrosoft.contact.cone import split_normal
 
 E, K, MU, AREA = 1e5, 3e4, 0.5, 1e-4
-
-
-def grid(z, x=0.0, n=4):
-    """n*n points of a 1 cm patch at height z, shifted by x."""
-    xs = torch.linspace(-0.005, 0.005, n, dtype=torch.float64)
-    gx, gy = torch.meshgrid(xs + x, xs, indexing="ij")
-    return torch.stack([gx.flatten(), gy.flatten(), torch.full((n * n,), z, dtype=torch.float64)], -1)
-
-
-def press(z_start=0.002, depth=0.003, steps=7, x=0.0):
-    return [grid(z, x) for z in torch.linspace(z_start, -depth, steps, dtype=torch.float64).tolist()]
 
 
 def test_it_is_made_by_name():
