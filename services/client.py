@@ -8,8 +8,8 @@ status, subscribe to any topic. ``StackClient`` is async; ``BlockingClient`` wra
         result = stack.wait(timeout_s=190.0)
         print(result.outcome, result.error_mm, result.solves)
 
-``hydrosoft-stack goal TASK [--dx M] [--dy M] [--dyaw DEG] [--droll DEG] [--wait S] [--json]`` is this from the
-command line; with ``--json`` it prints one document ``{"status", "error_mm", "elapsed_s", "solves",
+``hydrosoft-stack goal TASK [--dx M] [--dy M] [--dyaw DEG] [--droll DEG] [--dpitch DEG] [--wait S] [--json]`` is
+this from the command line; with ``--json`` it prints one document ``{"status", "error_mm", "elapsed_s", "solves",
 "mean_solve_ms"}`` (error by the stack's own tracked pose) and in sim mode ``"true_error_mm"`` from sim_world's
 ``eval/object_pose``, plus ``"resumes"`` when the goal was sent again to a restarted planner and
 ``"reapproaches"`` when the bubble was brought back onto a lost object (``services/reapproach.py``).
@@ -141,14 +141,14 @@ class StackClient:
         return reply
 
     async def set_goal(self, task: str, *, dx_m: float = 0.0, dy_m: float = 0.0, dyaw_rad: float = 0.0,
-                       droll_rad: float = 0.0, target_pose: np.ndarray | None = None, tolerance_mm: float = 5.0,
-                       timeout_s: float = 180.0) -> None:
+                       droll_rad: float = 0.0, dpitch_rad: float = 0.0, target_pose: np.ndarray | None = None,
+                       tolerance_mm: float = 5.0, timeout_s: float = 180.0) -> None:
         """Set the planner's goal (a displacement from the object's pose at ``start``, or an absolute pose; see
         ``messages.Goal``), for the stack launch this client talks to (a planner of another launch refuses it)."""
         if self.instance is None:
             await self.status()  # learns the launch the goal is for
         goal = msg.Goal(task=task, target_pose=target_pose, dx_m=dx_m, dy_m=dy_m, dyaw_rad=dyaw_rad,
-                        droll_rad=droll_rad, tolerance_mm=tolerance_mm, timeout_s=timeout_s,
+                        droll_rad=droll_rad, dpitch_rad=dpitch_rad, tolerance_mm=tolerance_mm, timeout_s=timeout_s,
                         instance=self.instance or "")
         await self._command(msg.SetGoal(goal=goal))
 
@@ -323,6 +323,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dyaw", type=float, default=0.0, help="object rotation about base z, degrees")
     parser.add_argument("--droll", type=float, default=0.0,
                         help="object rotation about base x, degrees (in_hand: about the grasp axis)")
+    parser.add_argument("--dpitch", type=float, default=0.0,
+                        help="object rotation about base y, degrees (rolling: a cylinder of radius r rolled by --dx d "
+                        "turns d / r rad; the sim cylinder's r is 0.025 m, so --dx 0.03 --dpitch 68.75)")
     parser.add_argument("--tolerance-mm", type=float, default=5.0, help="success when the ADD error is below (mm)")
     parser.add_argument("--timeout", type=float, default=None, help="the stack gives up after this long (s; default --wait or 180)")
     parser.add_argument("--wait", type=float, default=0.0, help="wait up to this long for the outcome (s); 0: start and return")
@@ -336,7 +339,7 @@ async def _goal(args: argparse.Namespace) -> dict:
     timeout_s = args.timeout if args.timeout is not None else (args.wait or 180.0)
     async with StackClient(args.config) as client:
         await client.set_goal(args.task, dx_m=args.dx, dy_m=args.dy, dyaw_rad=math.radians(args.dyaw),
-                              droll_rad=math.radians(args.droll),
+                              droll_rad=math.radians(args.droll), dpitch_rad=math.radians(args.dpitch),
                               tolerance_mm=args.tolerance_mm, timeout_s=timeout_s)
         await client.start()
         reply = await (client.wait(args.wait, resume=args.resume) if args.wait > 0 else client.status())

@@ -474,8 +474,10 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
 class Goal(Payload, frozen=True, kw_only=True):
     """What the planner should achieve. task: a task name of ``hydrosoft.tasks`` ("pushing", "rotation", ...).
     Either target_pose: ``(7,)`` float64 object pose in the robot base frame (m, wxyz), or (target_pose None) a
-    displacement of the object from its pose at Start: dx_m, dy_m (m, base frame), dyaw_rad (rad, about base z) and
-    droll_rad (rad, about base x: in-hand rotation's grasp axis), both turns about the object's centre. tolerance_mm, tolerance_deg: position and yaw tolerance for success. timeout_s: give up after this long.
+    displacement of the object from its pose at Start: dx_m, dy_m (m, base frame), dyaw_rad (rad, about base z),
+    droll_rad (rad, about base x: in-hand rotation's grasp axis) and dpitch_rad (rad, about base y: a cylinder
+    rolled by d along x turns d / radius), all turns about the object's centre. tolerance_mm, tolerance_deg: position
+    and yaw tolerance for success. timeout_s: give up after this long.
     instance: the stack launch (``ServiceStatus.instance``) the goal is meant for; a planner of another launch
     refuses it. "" = any (a script that sets goals on whatever stack runs)."""
 
@@ -487,14 +489,16 @@ class Goal(Payload, frozen=True, kw_only=True):
     dy_m: float = 0.0
     dyaw_rad: float = 0.0
     droll_rad: float = 0.0
+    dpitch_rad: float = 0.0
     tolerance_mm: float
     tolerance_deg: float = 5.0
     timeout_s: float
     instance: str = ""
 
     def check(self) -> None:
-        if self.target_pose is not None and (self.dx_m, self.dy_m, self.dyaw_rad, self.droll_rad) != (0.0,) * 4:
-            raise OutOfRange("Goal takes either target_pose or dx_m/dy_m/dyaw_rad/droll_rad, not both")
+        if self.target_pose is not None and (self.dx_m, self.dy_m, self.dyaw_rad, self.droll_rad,
+                                             self.dpitch_rad) != (0.0,) * 5:
+            raise OutOfRange("Goal takes either target_pose or dx_m/dy_m/dyaw_rad/droll_rad/dpitch_rad, not both")
         _positive(self, tolerance_mm=self.tolerance_mm, tolerance_deg=self.tolerance_deg, timeout_s=self.timeout_s)
         for name in ("task", "instance"):
             if len(getattr(self, name)) > MAX_TASK_CHARS:

@@ -77,11 +77,12 @@ def as_pose(values) -> torch.Tensor:
 
 def resolve_target(goal: msg.Goal, start_pose: torch.Tensor) -> torch.Tensor:
     """The object pose ``(7,)`` a goal asks for: its ``target_pose``, or the start pose moved by ``dx_m, dy_m`` (m,
-    base frame) and turned by the rotation vector ``(droll_rad, 0, dyaw_rad)`` (base axes) about the object's
-    centre."""
+    base frame) and turned by the rotation vector ``(droll_rad, dpitch_rad, dyaw_rad)`` (base axes) about the
+    object's centre."""
     if goal.target_pose is not None:
         return as_pose(goal.target_pose)
-    delta = torch.tensor([goal.dx_m, goal.dy_m, 0.0, goal.droll_rad, 0.0, goal.dyaw_rad], dtype=torch.float64)
+    delta = torch.tensor([goal.dx_m, goal.dy_m, 0.0, goal.droll_rad, goal.dpitch_rad, goal.dyaw_rad],
+                         dtype=torch.float64)
     return se3.retract(start_pose, delta)
 
 
@@ -333,7 +334,7 @@ class Planner:
         if episode is None:
             return msg.StatusReply(ok=True, goal=self.goal, status=self.service.status())
         goal = msgspec.structs.replace(episode.goal, target_pose=self.core.frame.to_base(episode.target).numpy(),
-                                       dx_m=0.0, dy_m=0.0, dyaw_rad=0.0, droll_rad=0.0)
+                                       dx_m=0.0, dy_m=0.0, dyaw_rad=0.0, droll_rad=0.0, dpitch_rad=0.0)
         solves = len(episode.solve_s)
         return msg.StatusReply(
             ok=True, running=episode.outcome == "running", goal=goal, status=self.service.status(),

@@ -50,6 +50,11 @@ def test_a_displacement_goal_moves_and_turns_the_start_pose():
     axis = se3.quat_to_matrix(se3.quat_multiply(rolled[3:], se3.quat_conjugate(start[3:])))
     assert torch.allclose(axis[:, 0], torch.tensor([1.0, 0, 0], dtype=torch.float64))  # about base x
     assert math.degrees(float(se3.angle_between(rolled[3:], start[3:]))) == pytest.approx(20.0)
+    roll = msg.Goal(task="rolling", dx_m=0.03, dpitch_rad=0.03 / 0.025, tolerance_mm=5, timeout_s=10)
+    rolling = resolve_target(roll, start)  # a 2.5 cm cylinder rolled 3 cm along x: moved 3 cm, turned 1.2 rad about y
+    assert torch.allclose(rolling, se3.retract(start, torch.tensor([0.03, 0, 0, 0, 1.2, 0], dtype=torch.float64)))
+    axis = se3.quat_to_matrix(se3.quat_multiply(rolling[3:], se3.quat_conjugate(start[3:])))
+    assert torch.allclose(axis[:, 1], torch.tensor([0, 1.0, 0], dtype=torch.float64))  # about base y
 
 
 def test_the_core_follows_the_config(core):
