@@ -4,7 +4,7 @@ speed-limited interpolation, the force limit's retreat rule, the watchdog.
 Poses are ``(7,)`` ``[x, y, z, qw, qx, qy, qz]`` (m, unit quaternion) of the TCP in the robot base frame (the
 hydrosoft world frame). Times are ``time.monotonic_ns()`` stamps, limits come from ``config.LimitsConfig``. Nothing
 here touches a socket, a driver or a clock, so every rule has a unit test that shows it firing
-(``tests/services/test_safety.py``).
+(``tests/services/arm/test_safety.py``).
 """
 
 from __future__ import annotations

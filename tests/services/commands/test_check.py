@@ -17,7 +17,7 @@ import pytest
 from hydrosoft.drivers.robotiq_ft300.simulator import SimulatedFT300
 from hydrosoft.services.commands import check
 
-SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+SIM_TOML = Path(__file__).parents[3] / "deploy" / "sim.toml"
 READY_TIMEOUT_S = 15.0
 HOST = f"127.0.0.{130 + os.getpid() % 60}"
 

@@ -14,7 +14,7 @@ from hydrosoft.services.bus.service_cli import CACHE_ENV
 from hydrosoft.tasks import evaluation
 from hydrosoft.tasks.base import compiled_cost_terms
 
-SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+SIM_TOML = Path(__file__).parents[3] / "deploy" / "sim.toml"
 
 
 @pytest.fixture

@@ -27,7 +27,7 @@ from hydrosoft.services.commands import cli
 from hydrosoft.services.bus.config import load_config
 from loopback import free_ur_host
 
-SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+SIM_TOML = Path(__file__).parents[3] / "deploy" / "sim.toml"
 COLLECT_TIMEOUT_S = 240.0  # two plant start-ups and 2 x 2 x 6 samples take ~25 s; a loaded machine is slower
 SIM_FT_BIAS = np.asarray(load_config(SIM_TOML).sim.ft_bias)  # the simulated FT 300's zero-load offset (N, N m)
 
@@ -147,7 +147,7 @@ def test_bad_options_are_refused_with_exit_status_2(tmp_path, capsys):
         assert cli.main([*command, *options]) == 2
         assert text in capsys.readouterr().err
     lab = tmp_path / "lab.toml"
-    lab.write_text((Path(__file__).parents[2] / "deploy" / "lab.toml").read_text())
+    lab.write_text((Path(__file__).parents[3] / "deploy" / "lab.toml").read_text())
     assert cli.main(["collect", "wrench", str(lab), "--out", str(tmp_path / "out"), "--objects", "cube,plate"]) == 2
     assert "one object per run" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
