@@ -113,7 +113,8 @@ def measure(config: Path, seconds: float, keep: Path | None = None) -> dict[str,
     try:
         config_path = private_config(config, root)
         stack_config = load_config(config_path)
-        stack = Child([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config_path)], root / "launcher.log")
+        stack = Child([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config_path)],
+                      root / "launcher.log")
         children.append(stack)
         stack.wait_for("stack ready", STACK_READY_S)
 

@@ -243,7 +243,8 @@ def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: 
         stack_config = load_config(config_path)
         if stack_config.scene.task not in SOAK_GOALS:
             raise ValueError(f"bench soak has goals for {sorted(SOAK_GOALS)}, not {stack_config.scene.task!r}")
-        stack = Child([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config_path)], root / "launcher.log")
+        stack = Child([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config_path)],
+                      root / "launcher.log")
         stack.wait_for("stack ready", STACK_READY_S)
         names = stack_config.service_names()
         reports = asyncio.run(collect(stack_config, names, STATUS_WINDOW_S))

@@ -88,9 +88,10 @@ def exit_process(code: int) -> NoReturn:
     """End a service process with exit status ``code`` once its ``main`` returned: flush the log and the standard
     streams, then leave at once (``os._exit``), skipping the interpreter's teardown. That teardown (torch's, ur_rtde's
     and zmq's modules) took 0.4-1.0 s per service on an idle machine and twice that on a loaded one, and the launcher
-    stops the services one phase after another within ``commands.launch.SHUTDOWN_BOUND_S``. Nothing is lost by skipping it:
-    everything a service must finish (the arm's stop, the bus's last messages, a recording's file) is done in its
-    shutdown hooks, before ``run_service`` returns; any process it started is swept by the launcher with its group."""
+    stops the services one phase after another within ``commands.launch.SHUTDOWN_BOUND_S``. Nothing is lost by
+    skipping it: everything a service must finish (the arm's stop, the bus's last messages, a recording's file) is
+    done in its shutdown hooks, before ``run_service`` returns; any process it started is swept by the launcher with
+    its group."""
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(OSError, ValueError):  # a killed launcher's pipe: the log file holds the lines
