@@ -1,6 +1,6 @@
 """Property tests of the step (issue 34, "still untested"): Newton's third law, no force without penetration, no
-yaw from a symmetric push, grazing contact at 1e-12 m, a cube's edge and corner on the table, and an object point
-at the bubble's centre."""
+yaw from a symmetric push, grazing contact at 1e-12 m, a cube's edge and corner on the table, two tangent cylinders,
+and an object point at the bubble's centre."""
 
 import math
 
@@ -15,7 +15,7 @@ from hydrosoft.contact.cone import split_normal
 from hydrosoft.dynamics import body_wrenches, step
 from hydrosoft.geometry import se3
 from hydrosoft.geometry.sdf import Ellipsoid
-from hydrosoft.scene import compile_scene
+from hydrosoft.scene import compile_scene, parse_scene
 from hydrosoft.tasks.scenes import task_scene
 
 replace = msgspec.structs.replace
@@ -121,6 +121,62 @@ def test_a_cube_on_its_edge_or_corner_steps_with_forces_inside_the_cone(corner):
         assert (f_n >= 0).all()
         assert (f_t.norm(dim=-1) <= model.material.mu.view(1, -1, 1) * f_n * (1 + 1e-9) + 1e-15).all()
     assert state.forces[..., 2].sum() > 0  # the table carries it
+
+
+RADIUS = 0.025  # m, both cylinders
+CONTACT_ANGLE = math.pi / 32  # rad: a row of the object's side points faces the other cylinder (cells of pi/16)
+
+
+def tangent_cylinders(contact, gap):
+    """A 25 mm cylinder (axis along y) and a compliant 25 mm cylinder parallel to it, ``gap`` (m) apart along the line
+    between their axes, in the xz plane at CONTACT_ANGLE from x; a negative gap overlaps. Returns the compiled scene
+    with its pressed-in start state."""
+    d, q = 2 * RADIUS + gap, [math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0]
+    return compile_scene(parse_scene(f"""
+contact = "{contact}"
+dt = 0.05
+epsilon = 50.0
+reach = 0.01
+[object]
+shape = "cylinder"
+params = {{ radius = {RADIUS}, length = 0.1 }}
+spacing = 0.005
+mass = 0.2
+pose = [0.0, 0.0, 0.0, {q[0]!r}, {q[1]!r}, 0.0, 0.0]
+[[bodies]]
+name = "roller"
+sdf = "cylinder"
+params = {{ radius = {RADIUS}, half_length = 0.06 }}
+pose = [{d * math.cos(CONTACT_ANGLE)!r}, 0.0, {d * math.sin(CONTACT_ANGLE)!r}, {q[0]!r}, {q[1]!r}, 0.0, 0.0]
+E = 1e5
+K = 3e4
+mu = 0.5
+actuated = false
+"""))
+
+
+@pytest.mark.parametrize("contact", ["nh", "nh_pressure_normal", "pf", "pff"])
+def test_tangent_cylinders_push_along_their_common_normal_and_not_at_all_1e_9_m_apart(contact):
+    """Two parallel cylinders touching along a line. Overlapping by 1.5 mm (three rows of points) or by 1e-9 m, the
+    force on the object is finite, along the line between the axes, with no torque about the object's axis and no
+    twist (the patch is symmetric about that line), and the roller gets minus it. Exactly tangent, or 1e-9 m apart,
+    no point carries any force."""
+    common_normal = -torch.tensor([math.cos(CONTACT_ANGLE), 0.0, math.sin(CONTACT_ANGLE)], dtype=torch.float64)
+    for gap in (-1.5e-3, -1e-9):
+        model, state, _ = tangent_cylinders(contact, gap)
+        assert torch.isfinite(state.forces).all()
+        force = state.forces[0].sum((0, 1))
+        along = force @ common_normal
+        assert along > 0
+        assert (force - along * common_normal).norm() <= 1e-9 * along
+        points = se3.transform_points(state.object_pose, model.points)[0]
+        torque = torch.linalg.cross(points, state.forces[0].sum(0)).sum(0)
+        assert torque.norm() <= 1e-9 * along * RADIUS
+        assert (body_wrenches(model, state)[0, 0, :3] + force).norm() <= 1e-12 * along
+    rows = torch.count_nonzero(tangent_cylinders(contact, -1.5e-3)[1].forces.norm(dim=-1))
+    assert rows > torch.count_nonzero(tangent_cylinders(contact, -1e-9)[1].forces.norm(dim=-1)) > 0
+    for gap in (0.0, 1e-9):
+        assert torch.count_nonzero(tangent_cylinders(contact, gap)[1].forces) == 0
 
 
 def test_a_point_at_the_ellipsoids_centre_is_deepest_with_a_finite_gradient():
