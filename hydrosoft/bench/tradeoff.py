@@ -42,7 +42,8 @@ SWEEP = {
     "sdf_solver_steps": [None, 2],
     "object_update": ["explicit", "linearly_implicit"],
 }
-QUICK_SWEEP = {"samples": [8, 16], "grad_steps": [0, 1], "dtype": ["float64", "float32"], "model": ["nh", "snh"]}
+QUICK_SWEEP = {"samples": [8, 16], "grad_steps": [0, 1], "dtype": ["float64", "float32"],
+               "model": ["nh", "snh", "nh_pressure_normal"]}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

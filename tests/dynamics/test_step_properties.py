@@ -1,6 +1,6 @@
 """Property tests of the step (issue 34, "still untested"): Newton's third law, no force without penetration, no
-yaw from a symmetric push, grazing contact at 1e-12 m, a cube's edge and corner on the table, two tangent cylinders,
-and an object point at the bubble's centre."""
+yaw from a symmetric push, grazing contact at 1e-12 m, a cube's edge and corner on the table and pressed into the
+bubble, two tangent cylinders, and an object point at the bubble's centre."""
 
 import math
 
@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from hydrosoft.contact import ContactStep, Material, make
 from hydrosoft.contact.cone import split_normal
-from hydrosoft.dynamics import body_wrenches, step
+from hydrosoft.dynamics import advance_forces, body_wrenches, step
 from hydrosoft.geometry import se3
 from hydrosoft.geometry.sdf import Ellipsoid
 from hydrosoft.scene import compile_scene, parse_scene
@@ -95,13 +95,21 @@ def test_a_cube_grazing_the_table_by_1e_12_m_slides_with_finite_forces_and_gradi
     assert torch.isfinite(state.forces).all() and torch.isfinite(g).all()
 
 
+CUBE_CORNERS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64)
+
+
+def cube_turn(tilt, corner):
+    """A cube's orientation (unit quaternion) with an edge (turned 45 deg about x) or, turned ``tilt`` more about y,
+    a corner lowest and highest."""
+    edge = se3.so3_exp(torch.tensor([math.pi / 4, 0.0, 0.0], dtype=torch.float64))
+    return se3.quat_multiply(se3.so3_exp(torch.tensor([0.0, tilt, 0.0], dtype=torch.float64)), edge) if corner else edge
+
+
 def tilted_cube(tilt, corner):
     """The rolling scene's table with a 5 cm cube standing on an edge (turned 45 deg about x) or a corner (also about
     y by atan(1/sqrt 2)), its lowest point 1 mm into the table; the bubble far above."""
-    edge = se3.so3_exp(torch.tensor([math.pi / 4, 0.0, 0.0], dtype=torch.float64))
-    q = se3.quat_multiply(se3.so3_exp(torch.tensor([0.0, tilt, 0.0], dtype=torch.float64)), edge) if corner else edge
-    lowest = se3.quat_rotate(q, torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
-                                             dtype=torch.float64) * 0.025)[:, 2].min().item()
+    q = cube_turn(tilt, corner)
+    lowest = se3.quat_rotate(q, CUBE_CORNERS * 0.025)[:, 2].min().item()
     scene = task_scene("rolling")
     bodies = [replace(b, pose=[0.0, 0.0, 0.2, 1.0, 0.0, 0.0, 0.0]) if b.actuated else b for b in scene.bodies]
     pose = [0.0, 0.0, -lowest - 1e-3, *q.tolist()]
@@ -121,6 +129,42 @@ def test_a_cube_on_its_edge_or_corner_steps_with_forces_inside_the_cone(corner):
         assert (f_n >= 0).all()
         assert (f_t.norm(dim=-1) <= model.material.mu.view(1, -1, 1) * f_n * (1 + 1e-9) + 1e-15).all()
     assert state.forces[..., 2].sum() > 0  # the table carries it
+
+
+def cube_under_the_bubble(corner):
+    """The rolling scene's bubble alone, 3 mm into a 5 cm cube held with an edge (turned 45 deg about x) or a corner
+    (also about y by atan(1/sqrt 2)) pointing up into it; no table."""
+    q = cube_turn(math.atan(1 / math.sqrt(2)), corner)
+    highest = se3.quat_rotate(q, CUBE_CORNERS * 0.025)[:, 2].max().item()
+    scene = task_scene("rolling")
+    bubble = next(replace(b, pose=[0.0, 0.0, highest + 0.03 - 3e-3, 1.0, 0.0, 0.0, 0.0]) for b in scene.bodies
+                  if b.name == "bubble")
+    return compile_scene(replace(scene, bodies=[bubble], object=replace(
+        scene.object, shape="cube", params={"side": 0.05}, spacing=0.005, pose=[0.0, 0.0, 0.0, *q.tolist()])))
+
+
+@pytest.mark.parametrize("corner", [False, True])
+def test_a_cube_edge_or_corner_pressed_into_the_bubble_and_dragged_keeps_forces_inside_the_cone(corner):
+    """The bubble pressed 1.5 mm further onto the held cube's edge or corner, then dragged 2 mm along x: every
+    point's force stays finite, pushes (f_n >= 0) and inside the cone. Pressed onto the edge, the net force is
+    straight down: the patch is symmetric about the edge."""
+    model, state, _ = cube_under_the_bubble(corner)
+    moves = [(0.0, -5e-4)] * 3 + [(1e-3, 0.0)] * 2
+    for k, (dx, dz) in enumerate(moves):
+        poses = state.body_poses.clone()
+        poses[..., 0] += dx
+        poses[..., 2] += dz
+        state = advance_forces(model, state, state.object_pose, poses)
+        assert torch.isfinite(state.forces).all()
+        normal = -se3.rotate_vectors(state.object_pose, model.normals).unsqueeze(1)
+        f_n, f_t = split_normal(state.forces, normal)
+        assert (f_n >= 0).all()
+        assert (f_t.norm(dim=-1) <= model.material.mu.view(1, -1, 1) * f_n * (1 + 1e-9) + 1e-15).all()
+        force = state.forces[0, 0].sum(0)
+        assert force[2] < 0  # the bubble pushes the cube down
+        if k == 2 and not corner:
+            assert force[:2].norm() <= 1e-12 * force.norm()
+    assert state.forces[0, 0, :, 0].sum() > 0  # dragged along +x, the bubble pulls the cube along
 
 
 RADIUS = 0.025  # m, both cylinders
