@@ -7,8 +7,9 @@ the same start. Reported per model and dtype: how far the object ends from its s
 and per model the largest float32-float64 gap over the rollout (``f32_gap_um``, ``f32_gap_rad``). A drift that both
 dtypes share is the model's (stick-slip under a quasi-dynamic update does not retrace its path), not rounding.
 
-Run time, eager, one thread, on the 2-core machine: about 0.1 s per step and rollout, so ``--drift-steps 1000`` with
-two models takes about 7 minutes (the default 100: under a minute).
+Run time, eager, one thread: about 50 s of CPU per 1000 steps and rollout, so ``--drift-steps 1000`` (four rollouts)
+takes about 4 minutes on an idle core; it took 38 minutes on the 2-core machine under heavy load (the default 100:
+under a minute idle).
 """
 
 from __future__ import annotations

@@ -73,8 +73,9 @@ Only with ``--compile`` (it compiles both variants: minutes); without it the sec
 
 ``drift``: float32 against float64 over a back-and-forth rollout of ``--drift-steps`` steps (default 100) in the
 rolling scene, for NH and ``nh_pressure_normal`` (``bench.drift``): how far the object ends from its start in each
-dtype, and the largest float32-float64 gap. About 0.1 s per step and rollout on the 2-core machine, so
-``--drift-steps 1000`` takes about 7 minutes. Run only when named in ``--sections``.
+dtype, and the largest float32-float64 gap. About 50 s of CPU per 1000 steps and rollout: ``--drift-steps 1000``
+takes about 4 minutes on an idle core (38 minutes on the 2-core machine under heavy load). Run only when named in
+``--sections``.
 """
 
 from __future__ import annotations
@@ -122,8 +123,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "--compile only), drift (float32 against float64 over a back-and-forth rollout, NH and "
                              "nh_pressure_normal); default all but drift")
     parser.add_argument("--drift-steps", type=int, default=None,
-                        help="steps of the drift section's rollout (default 100: under a minute; 1000: about 7 min "
-                             "on the 2-core machine)")
+                        help="steps of the drift section's rollout (default 100: under a minute; 1000: about 4 min "
+                             "on an idle core, 38 min on the 2-core machine under heavy load)")
 
 
 def run(args: argparse.Namespace) -> int:
