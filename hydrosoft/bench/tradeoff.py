@@ -52,8 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--settings", type=lambda text: [t.strip() for t in text.split(",") if t.strip()],
                         default=None, metavar="S1,S2",
                         help="only these rows: 'base' or KNOB=VALUE as labelled in the table, e.g. "
-                             "base,model=nh_pressure_normal (default: every row). Run time on the 2-core machine, "
-                             "one thread, goals 0-4 of pushing and rotation: about 1-2 min per row, 19 min for all")
+                             "base,model=nh_pressure_normal (default: every row). Run time, one thread, goals 0-4 of "
+                             "pushing and rotation: about 1-2 min per row and 19 min for all on the idle 2-core "
+                             "machine; under heavy load the base row alone took 45 min")
     parser.add_argument("--quick", action="store_true", help="planar rotation only and fewer values (CI)")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
     parser.add_argument("--out", type=Path, default=Path("out/bench-tradeoff"), help="folder for the PNG")
