@@ -41,7 +41,8 @@ def test_compile_option_compiles_every_setting():
 
 
 def test_settings_option_runs_only_the_named_rows_in_that_order(tmp_path, capsys):
-    args = parse("--quick", "--settings", "model=nh_pressure_normal,base", "--steps", "1", "--json", "--out", str(tmp_path))
+    args = parse("--quick", "--settings", "model=nh_pressure_normal,base", "--steps", "1", "--json",
+                 "--out", str(tmp_path))
     assert tradeoff.run(args) == 0
     points = json.loads(capsys.readouterr().out)["points"]
     assert [p["label"] for p in points] == ["model=nh_pressure_normal", "base"]
