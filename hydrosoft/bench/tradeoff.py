@@ -17,9 +17,10 @@ per setting is too noisy to rank settings: run several, and read differences sma
 as ties. Tasks can run as separate processes (``--tasks pushing`` ...) to use both cores. ``--settings`` runs only
 the named rows (``base``, or ``knob=value`` as the table labels them, e.g. ``model=nh_pressure_normal``). Output: a
 table (or ``--json``: one JSON document ``{"points": [...], "pareto": [...]}``), a PNG ``tradeoff.png`` in
-``--out``, progress on stderr. Runs single-threaded by default (``--threads``; see ``bench control``). ``--compile`` runs every setting's planner step through ``torch.compile``
-(``PlannerSettings.compile``); each setting is compiled by a one-step warm-up episode first (about a minute per
-setting on a CPU), so the reported solve times are steady-state ones.
+``--out``, progress on stderr. Runs single-threaded by default (``--threads``; see ``bench control``).
+``--compile`` runs every setting's planner step through ``torch.compile`` (``PlannerSettings.compile``); each
+setting is compiled by a one-step warm-up episode first (about a minute per setting on a CPU), so the reported solve
+times are steady-state ones.
 """
 
 from __future__ import annotations
