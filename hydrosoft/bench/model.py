@@ -1,8 +1,8 @@
 """``hydrosoft-stack bench model``: step speed, memory and force accuracy of the contact models.
 
-Seven sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
-"wrench": [...], "object_update": [...], "pruning": [...], "point_sets": [...], "loop_tails": [...]}``, otherwise
-as tables. Progress goes to stderr.
+Eight sections; ``--json`` prints them as one document ``{"config": {...}, "rows": [...], "accuracy": [...],
+"wrench": [...], "object_update": [...], "pruning": [...], "point_sets": [...], "loop_tails": [...], "drift":
+[...]}``, otherwise as tables. Progress goes to stderr. Every section but ``drift`` runs by default.
 
 ``rows``: one quasi-dynamic step (``dynamics.step``) of the planar pushing scene, a Soft Bubble (ellipsoid) pressed
 5 mm into a cube resting on the table (half-space): ``M = 2`` bodies, the cube's surface discretised to about
@@ -70,6 +70,12 @@ and the largest force difference between the two after the step (N).
 loop tails as scalar loops) against the same options with inductor's masked tail vectorisation
 (``cpp.enable_loop_tail_vec``, its default), timed and reported as ``point-sets`` is (``scalar`` / ``masked``).
 Only with ``--compile`` (it compiles both variants: minutes); without it the section is skipped with a note.
+
+``drift``: float32 against float64 over a back-and-forth rollout of ``--drift-steps`` steps (default 100) in the
+rolling scene, for NH and ``nh_pressure_normal`` (``bench.drift``): how far the object ends from its start in each
+dtype, and the largest float32-float64 gap. About 50 s of CPU per 1000 steps and rollout: ``--drift-steps 1000``
+takes about 4 minutes on an idle core (38 minutes on the 2-core machine under heavy load). Run only when named in
+``--sections``.
 """
 
 from __future__ import annotations
@@ -88,7 +94,8 @@ FULL_GRID = {"models": "nh,snh,pf,pff,nh_pressure_normal", "dtypes": "float32,fl
              "points": "100,500,2000"}
 QUICK_GRID = {"models": "nh,snh,pf,pff", "dtypes": "float32,float64", "batches": "1,64", "points": "100,500"}
 
-SECTIONS = ("rows", "accuracy", "wrench", "object-update", "pruning", "point-sets", "loop-tails")
+SECTIONS = ("rows", "accuracy", "wrench", "object-update", "pruning", "point-sets", "loop-tails", "drift")
+DEFAULT_SECTIONS = SECTIONS[:-1]  # drift runs only when named: minutes at its long lengths
 
 # Accuracy path (metres): gap above contact at the start and end, indentation, shear travel.
 GAP, DEPTH, SHEAR = 0.001, 0.003, 0.006
@@ -109,11 +116,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dtypes", default=None, help="comma list: float32,float64 (float64 is always timed)")
     parser.add_argument("--batches", default=None, help="comma list of batch sizes (default 1,16,64,256)")
     parser.add_argument("--points", default=None, help="comma list of surface point counts (default 100,500,2000)")
-    parser.add_argument("--sections", default=",".join(SECTIONS),
+    parser.add_argument("--sections", default=",".join(DEFAULT_SECTIONS),
                         help="comma list of sections to run: rows, accuracy, wrench (pose-to-wrench query), "
                              "object-update (explicit against linearly implicit), pruning, point-sets (slices against "
                              "gathers), loop-tails (compiled step: scalar against masked loop tails; runs with "
-                             "--compile only); default all seven")
+                             "--compile only), drift (float32 against float64 over a back-and-forth rollout, NH and "
+                             "nh_pressure_normal); default all but drift")
+    parser.add_argument("--drift-steps", type=int, default=None,
+                        help="steps of the drift section's rollout (default 100: under a minute; 1000: about 4 min "
+                             "on an idle core, 38 min on the 2-core machine under heavy load)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -136,9 +147,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"bench model: unknown section {', '.join(sorted(unknown))}; the sections are {', '.join(SECTIONS)}",
               file=sys.stderr)
         return 2
+    if args.drift_steps is not None and args.drift_steps < 1:
+        print(f"bench model: --drift-steps must be at least 1, got {args.drift_steps}", file=sys.stderr)
+        return 2
     doc: dict[str, Any] = {"config": bench.config(grid, args.compile), "rows": [], "accuracy": [], "wrench": [],
                            "object_update": [], "pruning": [], "point_sets": [],
-                           "loop_tails": []}
+                           "loop_tails": [], "drift": []}
     if "rows" in sections:
         doc["rows"] = bench.rows(
             models=grid["models"].split(","),
@@ -162,6 +176,10 @@ def run(args: argparse.Namespace) -> int:
             doc["loop_tails"] = bench.loop_tails()
         else:
             _progress("loop-tails: skipped, it times the compiled step only (add --compile)")
+    if "drift" in sections:
+        from hydrosoft.bench.drift import DRIFT_STEPS, drift
+
+        doc["drift"] = drift(steps=DRIFT_STEPS if args.drift_steps is None else args.drift_steps, progress=_progress)
     if args.json:
         print(json.dumps(doc, indent=1))
     else:
@@ -789,6 +807,15 @@ def _print_tables(doc: dict) -> None:
             print(f"{r['task']:>9} {r['batch']:>3} {r['points_full']:>6} {r['points_pruned']:>6} "
                   f"{r['bodies_pruned']}/{r['bodies_full']:<4} {r['step_ms_full']:>8.3f} {r['step_ms_pruned']:>9.3f} "
                   f"{r['speedup']:>7.2f} {r['net_force_max_diff_n']:>9.2e}")
+    if doc["drift"]:
+        r0 = doc["drift"][0]
+        print(f"\nfloat32 against float64: rolling scene, {r0['spacing_m'] * 1e3:g} mm spacing, bubble +-1 mm per step "
+              f"back and forth, {r0['steps']} steps")
+        print(f"{'model':>18} {'dtype':>7} {'drift mm':>9} {'drift rad':>9} {'f32 gap um':>10} {'f32 gap rad':>11} "
+              f"{'wall s':>7}")
+        for r in doc["drift"]:
+            print(f"{r['model']:>18} {r['dtype']:>7} {r['drift_mm']:>9.3f} {r['drift_rad']:>9.4f} "
+                  f"{r['f32_gap_um']:>10.3g} {r['f32_gap_rad']:>11.3g} {r['wall_s']:>7.0f}")
     for key, title, (first, second) in (
             ("point_sets", "point sets: the pushing planner's step (float32, linearly implicit), slices against "
              "gathers", ("slices", "gathers")),

@@ -14,11 +14,13 @@ plant (default planar pushing and planar rotation, ``--quick``: planar rotation,
 per setting: the mean solve time (ms) and the mean and standard error of the final ADD error (mm) over all its
 episodes; the Pareto front (no other setting is both faster and more accurate on the mean) is marked. One goal
 per setting is too noisy to rank settings: run several, and read differences smaller than the standard errors
-as ties. Tasks can run as separate processes (``--tasks pushing`` ...) to use both cores. Output: a table (or ``--json``: one JSON document ``{"points": [...],
-"pareto": [...]}``), a PNG ``tradeoff.png`` in ``--out``, progress on stderr. Runs single-threaded by default
-(``--threads``; see ``bench control``). ``--compile`` runs every setting's planner step through ``torch.compile``
-(``PlannerSettings.compile``); each setting is compiled by a one-step warm-up episode first (about a minute per
-setting on a CPU), so the reported solve times are steady-state ones.
+as ties. Tasks can run as separate processes (``--tasks pushing`` ...) to use both cores. ``--settings`` runs only
+the named rows (``base``, or ``knob=value`` as the table labels them, e.g. ``model=nh_pressure_normal``). Output: a
+table (or ``--json``: one JSON document ``{"points": [...], "pareto": [...]}``), a PNG ``tradeoff.png`` in
+``--out``, progress on stderr. Runs single-threaded by default (``--threads``; see ``bench control``).
+``--compile`` runs every setting's planner step through ``torch.compile`` (``PlannerSettings.compile``); each
+setting is compiled by a one-step warm-up episode first (about a minute per setting on a CPU), so the reported solve
+times are steady-state ones.
 """
 
 from __future__ import annotations
@@ -41,12 +43,19 @@ SWEEP = {
     "sdf_solver_steps": [None, 2],
     "object_update": ["explicit", "linearly_implicit"],
 }
-QUICK_SWEEP = {"samples": [8, 16], "grad_steps": [0, 1], "dtype": ["float64", "float32"], "model": ["nh", "snh"]}
+QUICK_SWEEP = {"samples": [8, 16], "grad_steps": [0, 1], "dtype": ["float64", "float32"],
+               "model": ["nh", "snh", "nh_pressure_normal"]}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the benchmark's options on ``parser``."""
     parser.add_argument("--tasks", default="pushing,rotation", help="task set (default pushing,rotation)")
+    parser.add_argument("--settings", type=lambda text: [t.strip() for t in text.split(",") if t.strip()],
+                        default=None, metavar="S1,S2",
+                        help="only these rows: 'base' or KNOB=VALUE as labelled in the table, e.g. "
+                             "base,model=nh_pressure_normal (default: every row). Run time, one thread, goals 0-4 of "
+                             "pushing and rotation: about 1-2 min per row and 19 min for all on the idle 2-core "
+                             "machine; under heavy load the base row alone took 45 min")
     parser.add_argument("--quick", action="store_true", help="planar rotation only and fewer values (CI)")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
     parser.add_argument("--out", type=Path, default=Path("out/bench-tradeoff"), help="folder for the PNG")
@@ -57,14 +66,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="planner step through torch.compile, compiled by an untimed one-step warm-up per setting")
 
 
+def rows(sweep: dict) -> list[tuple[str, object]]:
+    """The sweep's rows as ``(knob, value)``, the base planner first as ``("base", None)``."""
+    return [("base", None)] + [(knob, value) for knob, values in sweep.items() for value in values]
+
+
+def label(knob: str, value) -> str:
+    """A row's label in the table and for ``--settings``: ``base`` or ``knob=value``."""
+    return "base" if knob == "base" else f"{knob}={value}"
+
+
 def _settings(knob: str, value, compile: bool = False):
-    """PlannerSettings with ``knob`` set to ``value`` on top of BASE (and ``compile``)."""
+    """PlannerSettings with ``knob`` set to ``value`` on top of BASE (and ``compile``); knob ``base``: BASE."""
     import torch
 
     from hydrosoft.tasks.evaluation import PlannerSettings
 
     fields = dict(BASE, compile=compile)
-    if knob == "dt":
+    if knob == "base":
+        pass
+    elif knob == "dt":
         fields["substep_factor"] = value
     elif knob == "dtype":
         fields["dtype"] = getattr(torch, value)
@@ -118,7 +139,15 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     sweep = QUICK_SWEEP if args.quick else SWEEP
     goals = args.goals if args.goals is not None else (1 if args.quick else 5)
-    runs = [(knob, value) for knob, values in sweep.items() for value in values]
+    runs = rows(sweep)
+    if args.settings is not None:
+        known = {label(knob, value): (knob, value) for knob, value in runs}
+        unknown = [text for text in args.settings if text not in known]
+        if unknown or not args.settings:
+            print(f"bench tradeoff: unknown setting in {','.join(args.settings)!r}; known: {', '.join(known)}",
+                  file=sys.stderr)
+            return 2
+        runs = [known[text] for text in args.settings]
     seen, points = set(), []
     for i, (knob, value) in enumerate(runs, 1):
         settings = _settings(knob, value, args.compile)
@@ -136,11 +165,11 @@ def run(args: argparse.Namespace) -> int:
                 result = run_episode(setup, task.sample_goal(goal), "closed")
                 errors.append(result.error_mm)
                 solve.append(result.solve_s)
-            print(f"[{i}/{len(runs)}] {knob}={value} {name}: {sum(errors[-goals:]) / goals:.2f} mm over {goals} "
+            print(f"[{i}/{len(runs)}] {label(knob, value)} {name}: {sum(errors[-goals:]) / goals:.2f} mm over {goals} "
                   f"goal(s), {1e3 * sum(solve[-goals:]) / goals:.0f} ms per solve, {time.perf_counter() - tic:.1f} s",
                   file=sys.stderr, flush=True)
         mean, spread = mean_and_std(errors)
-        points.append({"knob": knob, "value": value, "label": f"{knob}={value}", "episodes": len(errors),
+        points.append({"knob": knob, "value": value, "label": label(knob, value), "episodes": len(errors),
                        "solve_ms": 1e3 * sum(solve) / len(solve), "error_mm": mean,
                        "error_mm_sem": spread / len(errors) ** 0.5})
     front = pareto(points)

@@ -34,7 +34,8 @@ def _run(args, capsys):
 def test_quick_bench_json_schema_and_values(quick_args, capsys):
     doc = _run(quick_args, capsys)
     assert set(doc) == {"config", "rows", "accuracy", "wrench", "object_update", "pruning", "point_sets",
-                        "loop_tails"}
+                        "loop_tails", "drift"}
+    assert doc["drift"] == []  # only when named
     assert doc["config"]["threads"] == 1 and doc["config"]["memory_method"]
 
     rows = doc["rows"]
@@ -110,6 +111,26 @@ def test_the_loop_tails_section_needs_compile_and_says_so(quick_args, capsys):
     captured = capsys.readouterr()
     assert json.loads(captured.out)["loop_tails"] == []
     assert "loop-tails: skipped" in captured.err and "--compile" in captured.err
+
+
+def test_the_drift_section_rolls_both_models_in_both_dtypes_and_float32_stays_on_float64(quick_args, capsys):
+    """A short rollout (the long one is ``--drift-steps 1000``): the cylinder moves millimetres, and float32 ends
+    within 1 um and 1e-5 rad of float64 for NH and nh_pressure_normal."""
+    doc = _run(argparse.Namespace(**{**vars(quick_args), "sections": "drift", "drift_steps": 8}), capsys)
+    assert {(r["model"], r["dtype"]) for r in doc["drift"]} == {
+        (m, d) for m in ("nh", "nh_pressure_normal") for d in ("float32", "float64")}
+    for r in doc["drift"]:
+        assert r["steps"] == 8 and 2 < r["drift_mm"] < 8 and 0 < r["drift_rad"] < 0.4
+        assert 0 <= r["f32_gap_um"] < 1 and 0 <= r["f32_gap_rad"] < 1e-5
+        single = next(o for o in doc["drift"] if o["model"] == r["model"] and o["dtype"] == "float32")
+        assert math.isclose(r["drift_mm"], single["drift_mm"], abs_tol=1e-3)
+
+
+def test_drift_steps_below_one_are_refused(capsys):
+    parser = argparse.ArgumentParser()
+    bench_model.add_arguments(parser)
+    assert bench_model.run(parser.parse_args(["--sections", "drift", "--drift-steps", "0"])) == 2
+    assert "--drift-steps must be at least 1" in capsys.readouterr().err
 
 
 def test_tables_without_json(capsys):

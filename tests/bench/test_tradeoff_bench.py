@@ -27,7 +27,7 @@ def test_quick_sweep_prints_one_json_document_and_a_png(tmp_path, capsys):
     out, err = capsys.readouterr()
     document = json.loads(out)
     labels = {p["label"] for p in document["points"]}
-    assert {"samples=8", "grad_steps=0", "dtype=float32", "model=snh"} <= labels
+    assert {"base", "samples=8", "grad_steps=0", "dtype=float32", "model=snh", "model=nh_pressure_normal"} <= labels
     assert len(labels) == len(document["points"])  # the base setting is run once
     assert set(document["pareto"]) <= labels and document["pareto"]
     assert all(p["solve_ms"] > 0 and p["error_mm"] > 0 for p in document["points"])
@@ -38,6 +38,21 @@ def test_quick_sweep_prints_one_json_document_and_a_png(tmp_path, capsys):
 def test_compile_option_compiles_every_setting():
     assert not parse().compile and tradeoff._settings("samples", 8, parse("--compile").compile).compile
     assert tradeoff._settings("dtype", "float32").compile is False
+
+
+def test_settings_option_runs_only_the_named_rows_in_that_order(tmp_path, capsys):
+    args = parse("--quick", "--settings", "model=nh_pressure_normal,base", "--steps", "1", "--json",
+                 "--out", str(tmp_path))
+    assert tradeoff.run(args) == 0
+    points = json.loads(capsys.readouterr().out)["points"]
+    assert [p["label"] for p in points] == ["model=nh_pressure_normal", "base"]
+    assert points[0]["knob"] == "model" and points[0]["value"] == "nh_pressure_normal" and points[1]["knob"] == "base"
+
+
+def test_an_unknown_setting_is_refused_with_the_known_ones(tmp_path, capsys):
+    assert tradeoff.run(parse("--quick", "--settings", "base,model=pff", "--out", str(tmp_path))) == 2
+    err = capsys.readouterr().err
+    assert "model=pff" in err and "model=nh_pressure_normal" in err
 
 
 def test_unknown_task_is_refused(tmp_path):
