@@ -60,9 +60,11 @@ def test_unknown_task_is_refused(tmp_path):
 
 
 def test_goals_option_averages_every_setting_over_that_many_goals(tmp_path, capsys):
-    assert tradeoff.run(parse("--quick", "--goals", "2", "--steps", "1", "--json", "--out", str(tmp_path))) == 0
+    args = parse("--quick", "--settings", "base,samples=8", "--goals", "2", "--steps", "1", "--json",
+                 "--out", str(tmp_path))
+    assert tradeoff.run(args) == 0
     document = json.loads(capsys.readouterr().out)
-    assert document["goals"] == 2
+    assert document["goals"] == 2 and len(document["points"]) == 2
     assert all(p["episodes"] == 2 and p["error_mm_sem"] >= 0 for p in document["points"])
 
 
