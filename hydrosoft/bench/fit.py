@@ -1,5 +1,5 @@
-"""``hydrosoft-stack fit RECORDINGS... --model nh|pf --params E,K,mu``: the Soft Bubble's material identified from
-``collect wrench`` recordings.
+"""``hydrosoft-stack fit RECORDINGS... --model nh|pf|nh_pressure_normal --params E,K,mu``: the Soft Bubble's
+material identified from ``collect wrench`` recordings.
 
 The recordings' trajectories are split into a fit set and a held-out set (``--holdout``, ``--seed``); the material
 is fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from
