@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from hydrosoft.services.config import SDF_SOLVER_STEPS_MAX, ConfigError, load_config, parse_config
-from hydrosoft.services.service_main import CACHE_ENV, use_compile_cache
+from hydrosoft.services.bus.config import SDF_SOLVER_STEPS_MAX, ConfigError, load_config, parse_config
+from hydrosoft.services.bus.service_cli import CACHE_ENV, use_compile_cache
 
 DEPLOY = Path(__file__).parents[2] / "deploy"
 ONE_ARM = 'arms = [{ name = "bubble" }]\n'
