@@ -5,8 +5,9 @@ The recordings' trajectories are split into a fit set and a held-out set (``--ho
 is fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from
 the Gauss-Newton covariance at the optimum); then the force, torque and tangential RMSE of both sets are printed
 before (start material) and after, in ``bench wrench``'s layout, with the fitted values, their uncertainty and
-which are not identified. ``--out PARAMS.toml`` writes the fitted material as TOML lines a scene's bubble
-``[[bodies]]`` table takes. The recordings are only read.
+which are not identified. ``--out PARAMS.toml`` writes the fitted material as an ``[arms.material]`` table for an
+arm of a stack config (``deploy/*.toml``); its E, K and mu lines also fit a scene's bubble ``[[bodies]]`` table. The
+recordings are only read.
 
 Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
 forward and backward; L-BFGS needs 20 to 70 of them); progress goes to stderr.
@@ -53,7 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"replay steps per recorded step (default {DEFAULT_SUBSTEPS})")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--out", type=Path, default=None, metavar="PARAMS.toml",
-                        help="write the fitted material as TOML lines for the bubble's [[bodies]] table of a scene")
+                        help="write the fitted material as an [arms.material] table for an arm of a stack config "
+                             "(its lines also fit a scene's bubble [[bodies]] table)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the tables")
 
 
@@ -186,9 +188,9 @@ def format_tables(document: dict) -> str:
 
 
 def params_toml(document: dict, today: datetime.date | None = None) -> str:
-    """TOML lines of the fitted, identified parameters, as a scene's ``[[bodies]]`` table takes them (``E``, ``K``
-    in Pa/m, ``mu``), with comments saying where they came from and how to use them; a parameter not identified
-    is left as a comment."""
+    """An ``[arms.material]`` table of the fitted, identified parameters (``E``, ``K`` in Pa/m, ``mu``), as a stack
+    config's arm takes it (``ArmConfig.material``), with comments saying where they came from and how to use them;
+    a parameter not identified is left as a comment (the arm then keeps the scene's value)."""
     today = today or datetime.date.today()
     settings = document["settings"]
     held = next(r for r in document["rows"] if r["set"] == "held_out" and r["when"] == "after")
@@ -196,9 +198,11 @@ def params_toml(document: dict, today: datetime.date | None = None) -> str:
              f"{document['model']}, objects {', '.join(settings['objects'])}, "
              f"{len(document['split']['fit'])} trajectories fitted, {held['trajectories']} held out"
              + (f" (held-out force RMSE {held['force_n_mean']:.3g} N)" if held["trajectories"] else "") + ".",
-             "# Use: put these lines in place of E, K and mu in the [[bodies]] table of the bubble of the scene",
-             "# the task runs (hydrosoft/tasks/TASK.toml) and of any scene you replay with this model. The",
-             "# comments give 1 sigma and the 95 % interval (Gauss-Newton at the optimum)."]
+             "# Use: paste this table into the stack config (deploy/*.toml) directly below the keys of the",
+             "# [[arms]] table of the arm whose bubble was recorded; the planner and the sim plant then use it",
+             "# for that arm's bubble. For a scene file, its E, K and mu lines go in the bubble's [[bodies]] table.",
+             "# The comments give 1 sigma and the 95 % interval (Gauss-Newton at the optimum).",
+             "[arms.material]"]
     for p in estimates_of(document):
         if not p["fitted"]:
             continue
@@ -236,6 +240,6 @@ def run(args: argparse.Namespace) -> int:
     print(json.dumps(document) if args.json else format_tables(document))
     if args.out is not None:
         args.out.write_text(params_toml(document))
-        print(f"[fit] wrote {args.out}: put its lines in place of E, K and mu in the bubble's [[bodies]] table "
-              "of a scene TOML", file=sys.stderr)
+        print(f"[fit] wrote {args.out}: paste its [arms.material] table below the arm's [[arms]] keys in the "
+              "stack config (deploy/*.toml)", file=sys.stderr)
     return 0
