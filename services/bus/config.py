@@ -14,7 +14,8 @@ Layout (see ``deploy/sim.toml`` for a commented example)::
     [scene]                           the task whose scene is on the table, where it lies (task_frame), the tags
     [camera]                          the tag camera: intrinsics, pose in the base frame, rate
     [[arms]]                          per arm: the scene body it carries (its TCP is that body's frame), the UR
-                                      controller's address, its bubble's depth camera, its F/T sensor's port
+                                      controller's address, its bubble's depth camera, its F/T sensor's port,
+                                      optionally its bubble's fitted material ([arms.material]: E, K, mu)
     [limits]                          the arm commander's safety limits and watchdog timeouts
     [planner]                         the MPC settings and the maximum age of each input
     [sim]                             sim_world: rate, plant resolution, noise
