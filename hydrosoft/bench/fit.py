@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from hydrosoft.bench.material_parameters import FIT_MODELS, PARAMETERS, UNITS
-from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, mean_and_std
+from hydrosoft.bench.wrench_replay import mean_and_std
 
 SETS = ("fit", "held_out")
 SET_TITLES = {"fit": "fit", "held_out": "held-out"}
@@ -50,8 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spacing", type=float, default=None,
                         help="object surface spacing of the model, m (default: the sim plant's, recorded in the "
                              "file; 0.005 for lab recordings)")
-    parser.add_argument("--substeps", type=int, default=DEFAULT_SUBSTEPS,
-                        help=f"replay steps per recorded step (default {DEFAULT_SUBSTEPS})")
+    parser.add_argument("--substeps", type=int, default=None,
+                        help="replay steps per recorded step (default: chosen, from 1 doubled while a replay twice as "
+                             "fine would move a fitted value by more than 0.1 sigma, at most 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--out", type=Path, default=None, metavar="PARAMS.toml",
                         help="write the fitted material as an [arms.material] table for an arm of a stack config "
@@ -74,7 +75,7 @@ def check_recording(path: Path) -> None:
 
 
 def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdout: float = 0.2, seed: int = 0,
-            spacing: float | None = None, substeps: int = DEFAULT_SUBSTEPS, progress=None) -> dict:
+            spacing: float | None = None, substeps: int | None = None, progress=None) -> dict:
     """The fit's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``).
 
     Returns ``{"model", "parameters": {name: {start, value, sigma, interval95, unit, fitted, identified}},
@@ -108,6 +109,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
             progress(f"evaluation {evaluation}: cost {cost:.5g} ({shown}) at {time.perf_counter() - tic:.1f} s")
 
     result = material_fit.fit_material(batches["fit"], model, params, START, substeps, progress=report)
+    substeps = result.substeps
     rows, per_trajectory = [], []
     for name in SETS:
         for when, values in (("before", START), ("after", result.values)):
@@ -131,6 +133,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
         "split": {"fit": [list(x) for x in fit_labels], "held_out": [list(x) for x in held_labels]},
         "fit": {"cost_start": result.cost_start, "cost": result.cost, "reduced_chi2": result.reduced_chi2,
                 "residuals": result.residual_count, "evaluations": result.iterations,
+                "substeps": result.substeps, "replay_shift_sigma": result.replay_shift_sigma,
                 "seconds": time.perf_counter() - tic},
         "settings": {"recordings": [str(p) for p in files], "objects": [g.object for g in groups],
                      "params": list(params), "holdout": holdout, "seed": seed, "substeps": substeps,
@@ -166,7 +169,8 @@ def format_tables(document: dict) -> str:
     from hydrosoft.bench.wrench import rmse_table
 
     lines = [f"Fitted material, model {document['model'].upper()} (uncertainty: Gauss-Newton at the optimum, "
-             f"reduced chi-square {document['fit']['reduced_chi2']:.3g}):"]
+             f"reduced chi-square {document['fit']['reduced_chi2']:.3g}, replay {document['fit']['substeps']} "
+             f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
     index = {(r["set"], r["when"]): r for r in document["rows"]}
 
@@ -223,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
     if args.spacing is not None and not (math.isfinite(args.spacing) and args.spacing > 0):
         print(f"fit: --spacing must be a positive number of metres, got {args.spacing}", file=sys.stderr)
         return 2
-    if args.substeps < 1:
+    if args.substeps is not None and args.substeps < 1:
         print(f"fit: --substeps must be at least 1, got {args.substeps}", file=sys.stderr)
         return 2
     if args.out is not None and args.out.suffix != ".toml":
