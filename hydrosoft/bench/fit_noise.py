@@ -10,8 +10,9 @@ lies in its reported 95 % interval. First the same without noise (the FT 300's r
 Prints one row per run (the recovered values, their relative error, 1 sigma and whether covered) and per
 parameter the count of seeds that cover it; ``--json`` prints one JSON document instead.
 
-Run time: about 6 s of CPU per seed on one core (recording, fit and the Gauss-Newton Jacobian): 66 s for the default
-10 seeds and the noise-free run, 3 min of wall time on the shared 2-core dev VM (2026-11-27).
+Run time: about 9 s of CPU per seed on one core (recording, fit, the replay-resolution check and the Gauss-Newton
+Jacobian): 101 s for the default 10 seeds and the noise-free run, 11 min 45 s of wall time on the loaded 2-core dev
+VM (2026-11-27).
 """
 
 from __future__ import annotations

@@ -22,10 +22,15 @@ stays inside its bounds). A parameter whose relative standard deviation exceeds 
 reported as unidentified: the recordings do not determine it (K from pure pressing on a flat face, for example,
 where no point moves tangentially).
 
+Replay resolution (``fit_material`` with ``substeps=None``): a replay too coarse for the recorded motion cuts
+twists and slips short, a bias the covariance does not cover; the sub-steps double while a replay twice as fine
+would move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``).
+
 Not covered by the covariance: correlated model error (on lab data the residuals are not independent noise; a
 bootstrap over trajectories would show it, at one fit per draw), the recorded poses' own errors, and mu's
 non-Gaussian tails (the stick/slip switches make the residuals piecewise smooth in mu). Under the FT 300's noise the
-95 % intervals held the truth in 91 % of parameters and seeds (``hydrosoft-stack bench fit``, docs/fit.md).
+95 % intervals held the truth in E 8, K 9, mu 10 of seeds 0-9 (``hydrosoft-stack bench fit``; docs/fit.md says why
+E's misses are chance).
 """
 
 from __future__ import annotations
