@@ -220,7 +220,8 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
     ``start``: the material to start from and to hold the other parameters at (default ``START``); ``substeps``:
     the replay's steps per recorded step, or None to choose them: from 1, doubled while a replay twice as fine would
     move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``), up to
-    ``MAX_AUTO_SUBSTEPS``; each doubling moves the optimum by that Gauss-Newton step; ``progress(evaluation, cost, values)`` is called after each cost evaluation.
+    ``MAX_AUTO_SUBSTEPS``; each doubling moves the optimum by that Gauss-Newton step. ``progress(evaluation, cost,
+    values)`` is called after each cost evaluation.
     ValueError for an unknown parameter or model, or no batch.
     """
     start = dict(START if start is None else start)
