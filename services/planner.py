@@ -54,12 +54,12 @@ from hydrosoft.scene import Scene, build_surface, compile_scene
 from hydrosoft.tactile import TactileObservation, carry_over, estimate_state, sensor_bodies
 from hydrosoft.tasks import Task, make_task
 from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, mean_point_distance
-from hydrosoft.tasks.evaluation import (METRIC_SPACING_M, PlannerSettings, planner_calls, with_contact,
-                                        with_solver_steps)
+from hydrosoft.tasks.evaluation import (METRIC_SPACING_M, PlannerSettings, planner_calls, with_body_materials,
+                                        with_contact, with_solver_steps)
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Stale, quote
 from hydrosoft.services.bus import service_cli
-from hydrosoft.services.bus.config import PlannerConfig, StackConfig
+from hydrosoft.services.bus.config import StackConfig
 from hydrosoft.services.arm.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
 from hydrosoft.services.arm.safety import check_target, outside_workspace
 from hydrosoft.services.bus.runtime import Service
@@ -86,9 +86,12 @@ def resolve_target(goal: msg.Goal, start_pose: torch.Tensor) -> torch.Tensor:
     return se3.retract(start_pose, delta)
 
 
-def planner_scene(task: Task, planner: PlannerConfig) -> Scene:
-    """``task``'s scene as the planner models it: its contact model, surface spacing and bubble SDF solve."""
-    return with_solver_steps(with_contact(task.scene, planner.model, planner.spacing), planner.sdf_solver_steps)
+def planner_scene(task: Task, config: StackConfig) -> Scene:
+    """``task``'s scene as the planner of ``config`` models it: its contact model, surface spacing, bubble SDF solve
+    and the arms' bubble materials (``[arms.material]``)."""
+    planner = config.planner
+    scene = with_body_materials(task.scene, config.bubble_materials())
+    return with_solver_steps(with_contact(scene, planner.model, planner.spacing), planner.sdf_solver_steps)
 
 
 @dataclass
@@ -128,7 +131,7 @@ class PlannerCore:
                                    horizon=pc.horizon, grad_steps=pc.grad_steps, dtype=getattr(torch, pc.dtype),
                                    seed=pc.seed, sdf_solver_steps=pc.sdf_solver_steps, compile=pc.compile,
                                    workers=pc.workers, object_update=pc.object_update)
-        model, state, _ = compile_scene(planner_scene(task, pc), dtype=settings.dtype)
+        model, state, _ = compile_scene(planner_scene(task, config), dtype=settings.dtype)
         model = with_object_update(model, pc.object_update)
         arms = {}
         for arm in config.arms:
@@ -555,7 +558,7 @@ def compile_step(core: PlannerCore) -> float:
     compiler's objects out of its way); the seconds it took. With torch's compile cache warm this loads the compiled
     code instead (seconds, not minutes)."""
     started = time.monotonic()
-    _, initial, _ = compile_scene(planner_scene(core.task, core.config.planner), dtype=core.model.dtype)
+    _, initial, _ = compile_scene(planner_scene(core.task, core.config), dtype=core.model.dtype)
     arm_poses = {name: initial.body_poses[0, index].double() for name, index in core.arms.items()}
     core.solver(core.task.initial_pose(), initial.object_pose[0].double(), arm_poses).solve(initial)
     settle_garbage_collector()

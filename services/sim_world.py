@@ -69,7 +69,7 @@ from hydrosoft.services.sim.render import BubbleDepthCamera, tag_camera
 from hydrosoft.services.arm.task_frame import TaskFrame
 from hydrosoft.services.tag_tracker import OBJECT, TAG_CAMERA
 from hydrosoft.tasks import make_task
-from hydrosoft.tasks.evaluation import PlantSettings, with_contact
+from hydrosoft.tasks.evaluation import PlantSettings, with_body_materials, with_contact
 
 SERVICE = "sim_world"
 PLANT = PlantSettings()  # the evaluation plant's contact model and sub-step factor, which sim_world shares
@@ -99,9 +99,10 @@ def plant_model(config: StackConfig, scene: Scene | None = None) -> tuple[Model,
     bubble may touch any point once it comes back to the object), one step per tick: ``dt = 1 / sim.rate_hz`` s,
     ``epsilon`` scaled by ``dt / scene.dt`` (the mobility ``dt / epsilon`` kept), and ``ceil(substeps *
     PLANT.substep_factor * dt / scene.dt)`` sub-steps (sub-steps no longer than the evaluation plant's; the step adds
-    more when the contacts need them).
+    more when the contacts need them). Each arm's ``[arms.material]`` replaces its bubble body's material.
     """
     scene = make_task(config.scene.task).scene if scene is None else scene
+    scene = with_body_materials(scene, config.bubble_materials())
     spacing_m = config.planner.spacing * config.sim.spacing_factor
     dx, dy = config.sim.object_offset_m
     moved = dx != 0.0 or dy != 0.0

@@ -1,12 +1,13 @@
-"""``hydrosoft-stack fit RECORDINGS... --model nh|pf --params E,K,mu``: the Soft Bubble's material identified from
-``collect wrench`` recordings.
+"""``hydrosoft-stack fit RECORDINGS... --model nh|pf|nh_pressure_normal --params E,K,mu``: the Soft Bubble's
+material identified from ``collect wrench`` recordings.
 
 The recordings' trajectories are split into a fit set and a held-out set (``--holdout``, ``--seed``); the material
 is fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from
 the Gauss-Newton covariance at the optimum); then the force, torque and tangential RMSE of both sets are printed
 before (start material) and after, in ``bench wrench``'s layout, with the fitted values, their uncertainty and
-which are not identified. ``--out PARAMS.toml`` writes the fitted material as TOML lines a scene's bubble
-``[[bodies]]`` table takes. The recordings are only read.
+which are not identified. ``--out PARAMS.toml`` writes the fitted material as an ``[arms.material]`` table for an
+arm of a stack config (``deploy/*.toml``); its E, K and mu lines also fit a scene's bubble ``[[bodies]]`` table. The
+recordings are only read.
 
 Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
 forward and backward; L-BFGS needs 20 to 70 of them); progress goes to stderr.
@@ -24,7 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from hydrosoft.bench.material_parameters import FIT_MODELS, PARAMETERS, UNITS
-from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, mean_and_std
+from hydrosoft.bench.wrench_replay import mean_and_std
 
 SETS = ("fit", "held_out")
 SET_TITLES = {"fit": "fit", "held_out": "held-out"}
@@ -49,11 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--spacing", type=float, default=None,
                         help="object surface spacing of the model, m (default: the sim plant's, recorded in the "
                              "file; 0.005 for lab recordings)")
-    parser.add_argument("--substeps", type=int, default=DEFAULT_SUBSTEPS,
-                        help=f"replay steps per recorded step (default {DEFAULT_SUBSTEPS})")
+    parser.add_argument("--substeps", type=int, default=None,
+                        help="replay steps per recorded step (default: chosen, from 1 doubled while a replay twice as "
+                             "fine would move a fitted value by more than 0.1 sigma, at most 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--out", type=Path, default=None, metavar="PARAMS.toml",
-                        help="write the fitted material as TOML lines for the bubble's [[bodies]] table of a scene")
+                        help="write the fitted material as an [arms.material] table for an arm of a stack config "
+                             "(its lines also fit a scene's bubble [[bodies]] table)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the tables")
 
 
@@ -72,7 +75,7 @@ def check_recording(path: Path) -> None:
 
 
 def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdout: float = 0.2, seed: int = 0,
-            spacing: float | None = None, substeps: int = DEFAULT_SUBSTEPS, progress=None) -> dict:
+            spacing: float | None = None, substeps: int | None = None, progress=None) -> dict:
     """The fit's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``).
 
     Returns ``{"model", "parameters": {name: {start, value, sigma, interval95, unit, fitted, identified}},
@@ -106,6 +109,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
             progress(f"evaluation {evaluation}: cost {cost:.5g} ({shown}) at {time.perf_counter() - tic:.1f} s")
 
     result = material_fit.fit_material(batches["fit"], model, params, START, substeps, progress=report)
+    substeps = result.substeps
     rows, per_trajectory = [], []
     for name in SETS:
         for when, values in (("before", START), ("after", result.values)):
@@ -129,6 +133,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
         "split": {"fit": [list(x) for x in fit_labels], "held_out": [list(x) for x in held_labels]},
         "fit": {"cost_start": result.cost_start, "cost": result.cost, "reduced_chi2": result.reduced_chi2,
                 "residuals": result.residual_count, "evaluations": result.iterations,
+                "substeps": result.substeps, "replay_shift_sigma": result.replay_shift_sigma,
                 "seconds": time.perf_counter() - tic},
         "settings": {"recordings": [str(p) for p in files], "objects": [g.object for g in groups],
                      "params": list(params), "holdout": holdout, "seed": seed, "substeps": substeps,
@@ -164,7 +169,8 @@ def format_tables(document: dict) -> str:
     from hydrosoft.bench.wrench import rmse_table
 
     lines = [f"Fitted material, model {document['model'].upper()} (uncertainty: Gauss-Newton at the optimum, "
-             f"reduced chi-square {document['fit']['reduced_chi2']:.3g}):"]
+             f"reduced chi-square {document['fit']['reduced_chi2']:.3g}, replay {document['fit']['substeps']} "
+             f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
     index = {(r["set"], r["when"]): r for r in document["rows"]}
 
@@ -186,9 +192,9 @@ def format_tables(document: dict) -> str:
 
 
 def params_toml(document: dict, today: datetime.date | None = None) -> str:
-    """TOML lines of the fitted, identified parameters, as a scene's ``[[bodies]]`` table takes them (``E``, ``K``
-    in Pa/m, ``mu``), with comments saying where they came from and how to use them; a parameter not identified
-    is left as a comment."""
+    """An ``[arms.material]`` table of the fitted, identified parameters (``E``, ``K`` in Pa/m, ``mu``), as a stack
+    config's arm takes it (``ArmConfig.material``), with comments saying where they came from and how to use them;
+    a parameter not identified is left as a comment (the arm then keeps the scene's value)."""
     today = today or datetime.date.today()
     settings = document["settings"]
     held = next(r for r in document["rows"] if r["set"] == "held_out" and r["when"] == "after")
@@ -196,9 +202,11 @@ def params_toml(document: dict, today: datetime.date | None = None) -> str:
              f"{document['model']}, objects {', '.join(settings['objects'])}, "
              f"{len(document['split']['fit'])} trajectories fitted, {held['trajectories']} held out"
              + (f" (held-out force RMSE {held['force_n_mean']:.3g} N)" if held["trajectories"] else "") + ".",
-             "# Use: put these lines in place of E, K and mu in the [[bodies]] table of the bubble of the scene",
-             "# the task runs (hydrosoft/tasks/TASK.toml) and of any scene you replay with this model. The",
-             "# comments give 1 sigma and the 95 % interval (Gauss-Newton at the optimum)."]
+             "# Use: paste this table into the stack config (deploy/*.toml) directly below the keys of the",
+             "# [[arms]] table of the arm whose bubble was recorded; the planner and the sim plant then use it",
+             "# for that arm's bubble. For a scene file, its E, K and mu lines go in the bubble's [[bodies]] table.",
+             "# The comments give 1 sigma and the 95 % interval (Gauss-Newton at the optimum).",
+             "[arms.material]"]
     for p in estimates_of(document):
         if not p["fitted"]:
             continue
@@ -219,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
     if args.spacing is not None and not (math.isfinite(args.spacing) and args.spacing > 0):
         print(f"fit: --spacing must be a positive number of metres, got {args.spacing}", file=sys.stderr)
         return 2
-    if args.substeps < 1:
+    if args.substeps is not None and args.substeps < 1:
         print(f"fit: --substeps must be at least 1, got {args.substeps}", file=sys.stderr)
         return 2
     if args.out is not None and args.out.suffix != ".toml":
@@ -236,6 +244,6 @@ def run(args: argparse.Namespace) -> int:
     print(json.dumps(document) if args.json else format_tables(document))
     if args.out is not None:
         args.out.write_text(params_toml(document))
-        print(f"[fit] wrote {args.out}: put its lines in place of E, K and mu in the bubble's [[bodies]] table "
-              "of a scene TOML", file=sys.stderr)
+        print(f"[fit] wrote {args.out}: paste its [arms.material] table below the arm's [[arms]] keys in the "
+              "stack config (deploy/*.toml)", file=sys.stderr)
     return 0

@@ -10,8 +10,9 @@ lies in its reported 95 % interval. First the same without noise (the FT 300's r
 Prints one row per run (the recovered values, their relative error, 1 sigma and whether covered) and per
 parameter the count of seeds that cover it; ``--json`` prints one JSON document instead.
 
-Run time: about 6 s of CPU per seed on one core (recording, fit and the Gauss-Newton Jacobian): 66 s for the default
-10 seeds and the noise-free run, 3 min of wall time on the shared 2-core dev VM (2026-11-27).
+Run time: about 9 s of CPU per seed on one core (recording, fit, the replay-resolution check and the Gauss-Newton
+Jacobian): 101 s for the default 10 seeds and the noise-free run, 11 min 45 s of wall time on the loaded 2-core dev
+VM (2026-11-27).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ def fit_one(folder: Path, seed: int, noise_scale: float) -> dict:
     groups = load_recordings([path])
     labels = {(g.object, t.index) for g in groups for t in g.trajectories}
     result = material_fit.fit_material(material_fit.replay_batches(groups, labels), "nh", list(TRUTH))
-    row = {"seed": seed, "noise_scale": noise_scale, "reduced_chi2": result.reduced_chi2,
+    row = {"seed": seed, "noise_scale": noise_scale, "reduced_chi2": result.reduced_chi2, "substeps": result.substeps,
            "seconds": time.perf_counter() - tic}
     for e in result.estimates:
         row[e.name] = {"value": e.value, "relative_error": e.value / TRUTH[e.name] - 1, "sigma": e.sigma,
@@ -79,7 +80,7 @@ def format_table(document: dict) -> str:
     """One line per run: per parameter the value, its relative error, 1 sigma and whether the 95 % interval holds
     the truth; then the coverage counts."""
     names = list(TRUTH)
-    head = f"{'run':<12}" + "".join(f"| {name:^34} " for name in names) + "| chi2/dof"
+    head = f"{'run':<12}" + "".join(f"| {name:^34} " for name in names) + "| chi2/dof | sub-steps"
     lines = [f"Material fit on synthetic {document['object']} recordings ({document['trajectories']} trajectories of "
              f"{document['steps']} steps), truth " + ", ".join(f"{n} {v:.4g}" for n, v in TRUTH.items()),
              head, "-" * len(head)]
@@ -87,7 +88,7 @@ def format_table(document: dict) -> str:
     def line(title: str, row: dict) -> str:
         cells = "".join(f"| {row[n]['value']:>10.4g} {100 * row[n]['relative_error']:>+6.2f}% "
                         f"s {row[n]['sigma']:>8.3g} {'in' if row[n]['covered'] else 'OUT':>3} " for n in names)
-        return f"{title:<12}{cells}| {row['reduced_chi2']:.3g}"
+        return f"{title:<12}{cells}| {row['reduced_chi2']:<8.3g} | {row['substeps']}"
 
     lines.append(line("no noise", document["recovery"]))
     lines += [line(f"noise s{r['seed']}", r) for r in document["noisy"]]

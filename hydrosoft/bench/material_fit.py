@@ -22,10 +22,14 @@ stays inside its bounds). A parameter whose relative standard deviation exceeds 
 reported as unidentified: the recordings do not determine it (K from pure pressing on a flat face, for example,
 where no point moves tangentially).
 
+Replay resolution (``fit_material`` with ``substeps=None``): a replay too coarse for the recorded motion cuts
+twists and slips short, a bias the covariance does not cover; the sub-steps double while a replay twice as fine
+would move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``).
+
 Not covered by the covariance: correlated model error (on lab data the residuals are not independent noise; a
 bootstrap over trajectories would show it, at one fit per draw), the recorded poses' own errors, and mu's
 non-Gaussian tails (the stick/slip switches make the residuals piecewise smooth in mu). Under the FT 300's noise the
-95 % intervals held the truth in 91 % of parameters and seeds (``hydrosoft-stack bench fit``, docs/fit.md).
+95 % intervals held the truth in E 17, K 17, mu 17 of seeds 0-19 (``hydrosoft-stack bench fit``, docs/fit.md).
 """
 
 from __future__ import annotations
@@ -50,6 +54,10 @@ Z95 = 1.959964  # two-sided 95 % quantile of the standard normal
 UNIDENTIFIED_RELATIVE_SIGMA = 0.25  # a parameter known only to +-25 % (1 sigma) or worse is not identified
 SINGULAR_RCOND = 1e-10  # eigenvalues of J^T J below this fraction of the largest count as zero (no information)
 DEFAULT_MAX_ITERATIONS = 60
+#: A replay twice as fine moving a fitted value by more than this many of its standard deviations is too coarse:
+#: its discretisation error would bias the fit (``fit_material`` with ``substeps=None``).
+REPLAY_SHIFT_SIGMA = 0.1
+MAX_AUTO_SUBSTEPS = 8
 
 
 @dataclass(frozen=True)
@@ -184,7 +192,8 @@ class ParameterEstimate:
 class MaterialFit:
     """The fit's outcome: ``estimates`` per parameter (``PARAMETERS`` order), the cost (mean squared whitened
     residual) at the start and at the optimum, ``reduced_chi2`` (``s2``), ``residual_count``, ``iterations`` (L-BFGS
-    cost evaluations), ``covariance`` ``(p, p)`` of the fitted theta coordinates (inf where undetermined)."""
+    cost evaluations), ``covariance`` ``(p, p)`` of the fitted theta coordinates (inf where undetermined),
+    ``substeps`` (the replay's, per recorded step) and ``replay_shift_sigma`` (``replay_shift`` at the optimum)."""
 
     estimates: tuple[ParameterEstimate, ...]
     cost_start: float
@@ -193,6 +202,8 @@ class MaterialFit:
     residual_count: int
     iterations: int
     covariance: np.ndarray
+    substeps: int
+    replay_shift_sigma: float
 
     @property
     def values(self) -> dict[str, float]:
@@ -200,14 +211,17 @@ class MaterialFit:
 
 
 def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[str],
-                 start: dict[str, float] | None = None, substeps: int = DEFAULT_SUBSTEPS,
+                 start: dict[str, float] | None = None, substeps: int | None = None,
                  max_iterations: int = DEFAULT_MAX_ITERATIONS,
                  progress: Callable[[int, float, dict[str, float]], None] | None = None) -> MaterialFit:
     """Fit ``params`` (a subset of ``PARAMETERS``) of the bubble's material to ``batches`` by L-BFGS.
 
-    ``start``: the material to start from and to hold the other parameters at (default ``START``);
-    ``progress(evaluation, cost, values)`` is called after each cost evaluation. ValueError for an unknown
-    parameter or model, or no batch.
+    ``start``: the material to start from and to hold the other parameters at (default ``START``); ``substeps``:
+    the replay's steps per recorded step, or None to choose them: from 1, doubled while a replay twice as fine would
+    move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``), up to
+    ``MAX_AUTO_SUBSTEPS``; each doubling moves the optimum by that Gauss-Newton step. ``progress(evaluation, cost,
+    values)`` is called after each cost evaluation.
+    ValueError for an unknown parameter or model, or no batch.
     """
     start = dict(START if start is None else start)
     unknown = [p for p in params if p not in PARAMETERS]
@@ -218,15 +232,37 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
     if not batches:
         raise ValueError("no trajectory to fit")
     mask = torch.tensor([name in params for name in PARAMETERS])
-    theta_start = to_theta(start, start)
-    free = theta_start[mask].clone().requires_grad_(True)
+    evaluations: list[float] = []
+    steps = substeps or 1
+    theta = _lbfgs(to_theta(start, start), mask, batches, contact, start, steps, max_iterations, evaluations, progress)
+    r, J = _residuals_and_jacobian(theta, mask, batches, contact, start, steps)
+    while True:
+        n, p = r.shape[0], int(mask.sum())
+        s2 = float(np.square(r).sum()) / max(n - p, 1)
+        covariance = s2 * _pseudo_inverse_with_infinity(J.T @ J)
+        shift, step = replay_shift(theta, J, r, covariance, batches, contact, start, steps)
+        if substeps is not None or shift <= REPLAY_SHIFT_SIGMA or steps >= MAX_AUTO_SUBSTEPS:
+            break
+        steps *= 2  # the optimum moves by the Gauss-Newton step to the finer replay's residuals
+        theta = theta.masked_scatter(mask, theta[mask] + torch.as_tensor(step))
+        r, J = _residuals_and_jacobian(theta, mask, batches, contact, start, steps)
+    estimates = _estimates(theta, start, mask, covariance)
+    return MaterialFit(estimates=estimates, cost_start=evaluations[0], cost=float(np.square(r).mean()),
+                       reduced_chi2=s2, residual_count=n, iterations=len(evaluations), covariance=covariance,
+                       substeps=steps, replay_shift_sigma=shift)
+
+
+def _lbfgs(theta: torch.Tensor, mask: torch.Tensor, batches, contact, start, substeps, max_iterations,
+           evaluations: list[float], progress) -> torch.Tensor:
+    """L-BFGS over the fitted coordinates of ``theta (3,)`` from there; the optimum ``(3,)``. Appends each cost
+    evaluation to ``evaluations``."""
+    free = theta[mask].clone().requires_grad_(True)
 
     def full(free_part: torch.Tensor) -> torch.Tensor:
-        return theta_start.masked_scatter(mask, free_part)
+        return theta.masked_scatter(mask, free_part)
 
     optimizer = torch.optim.LBFGS([free], lr=1.0, max_iter=max_iterations, tolerance_grad=1e-9,
                                   tolerance_change=1e-12, history_size=10, line_search_fn="strong_wolfe")
-    evaluations = []
 
     def closure() -> torch.Tensor:
         optimizer.zero_grad()
@@ -238,14 +274,21 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
         return cost
 
     optimizer.step(closure)
-    theta = full(free.detach())
-    r, J = _residuals_and_jacobian(theta, mask, batches, contact, start, substeps)
-    n, p = r.shape[0], int(mask.sum())
-    s2 = float(np.square(r).sum()) / max(n - p, 1)
-    covariance = s2 * _pseudo_inverse_with_infinity(J.T @ J)
-    estimates = _estimates(theta, start, mask, covariance)
-    return MaterialFit(estimates=estimates, cost_start=evaluations[0], cost=float(np.square(r).mean()),
-                       reduced_chi2=s2, residual_count=n, iterations=len(evaluations), covariance=covariance)
+    return full(free.detach())
+
+
+def replay_shift(theta: torch.Tensor, J: np.ndarray, r: np.ndarray, covariance: np.ndarray, batches, contact,
+                 start, substeps: int) -> tuple[float, np.ndarray]:
+    """How far a replay twice as fine would move the fitted values from ``theta (3,)``, an optimum at ``substeps``
+    with residuals ``r (n,)``, Jacobian ``J (n, p)`` and ``covariance (p, p)``. Returns the largest move in units of
+    each fitted parameter's standard deviation (0 where that is infinite: the data do not determine it) and the move
+    ``(p,)`` itself: the Gauss-Newton step ``-(J^T J)^-1 J^T r'`` to the residuals ``r'`` at ``2 substeps``."""
+    with torch.no_grad():
+        finer = residuals(theta, batches, contact, start, 2 * substeps).numpy()
+    step = -np.linalg.lstsq(J, finer, rcond=None)[0]
+    sigma = np.sqrt(np.diag(covariance))
+    ratio = np.where(np.isfinite(sigma) & (sigma > 0), np.abs(step) / np.where(np.isfinite(sigma), sigma, 1.0), 0.0)
+    return float(ratio.max()), step
 
 
 def _residuals_and_jacobian(theta: torch.Tensor, mask: torch.Tensor, batches, contact, start, substeps

@@ -5,4 +5,4 @@ PARAMETERS = ("E", "K", "mu")
 UNITS = {"E": "Pa/m", "K": "Pa/m", "mu": ""}
 MU_MAX = 3.0  # the fit keeps mu in (0, MU_MAX)
 #: Contact models the fit replays through; one entry per model (``hydrosoft.contact.MODELS`` names).
-FIT_MODELS = ("nh", "pf")
+FIT_MODELS = ("nh", "pf", "nh_pressure_normal")

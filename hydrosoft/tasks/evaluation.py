@@ -37,6 +37,7 @@ import math
 import pickle
 import time
 from dataclasses import dataclass, field, replace
+from collections.abc import Mapping
 from typing import Callable, Literal, NamedTuple
 
 import msgspec
@@ -146,6 +147,21 @@ def with_contact(scene: Scene, contact: str, spacing: float) -> Scene:
     return msgspec.structs.replace(
         scene, contact=contact, object=msgspec.structs.replace(scene.object, spacing=spacing)
     )
+
+
+def with_body_materials(scene: Scene, materials: Mapping[str, Mapping[str, float]]) -> Scene:
+    """The scene with the material of some bodies replaced: ``materials`` maps a body's name to the values it
+    changes (``E``, ``K`` in Pa/m, ``mu``), e.g. a fitted Soft Bubble's; ValueError naming a body the scene lacks
+    or a key that is not E, K or mu (``BodySpec`` checks the values and names the field)."""
+    names = [b.name for b in scene.bodies]
+    for name, values in materials.items():
+        if name not in names:
+            raise ValueError(f"no body {name!r} in the scene to give a material (bodies: {', '.join(names)})")
+        unknown = sorted(set(values) - {"E", "K", "mu"})
+        if unknown:
+            raise ValueError(f"bodies[{name}]: {', '.join(unknown)} is not a material value (E, K, mu)")
+    bodies = [msgspec.structs.replace(b, **materials[b.name]) if b.name in materials else b for b in scene.bodies]
+    return msgspec.structs.replace(scene, bodies=bodies)
 
 
 def with_solver_steps(scene: Scene, steps: int | None) -> Scene:

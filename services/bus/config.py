@@ -14,7 +14,8 @@ Layout (see ``deploy/sim.toml`` for a commented example)::
     [scene]                           the task whose scene is on the table, where it lies (task_frame), the tags
     [camera]                          the tag camera: intrinsics, pose in the base frame, rate
     [[arms]]                          per arm: the scene body it carries (its TCP is that body's frame), the UR
-                                      controller's address, its bubble's depth camera, its F/T sensor's port
+                                      controller's address, its bubble's depth camera, its F/T sensor's port,
+                                      optionally its bubble's fitted material ([arms.material]: E, K, mu)
     [limits]                          the arm commander's safety limits and watchdog timeouts
     [planner]                         the MPC settings and the maximum age of each input
     [sim]                             sim_world: rate, plant resolution, noise
@@ -165,24 +166,53 @@ class DepthConfig(Strict):
         return (0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0) if self.axis == "-z" else (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 
 
+MATERIAL_MU_MAX = 3.0
+"""The largest friction coefficient a bubble's material may have (``hydrosoft-stack fit`` keeps mu below it): a
+rubber membrane's mu lies near 1; a larger one is a typo."""
+
+
+class MaterialConfig(Strict):
+    """A bubble's material, ``[arms.material]`` (``hydrosoft-stack fit --out`` writes it): E, the normal pressure
+    gradient (Pa/m); K, the shear stiffness (Pa/m); mu, the friction coefficient. Each left out keeps the task
+    scene's value for that arm's bubble body."""
+
+    E: float | None = None
+    K: float | None = None
+    mu: float | None = None
+
+    def values(self) -> dict[str, float]:
+        """The values given, by name (``E``, ``K``, ``mu``)."""
+        return {name: getattr(self, name) for name in ("E", "K", "mu") if getattr(self, name) is not None}
+
+
 class ArmConfig(Strict):
     """One arm. name: the scene body it carries (its TCP frame is that body's frame). ur_host: the UR controller's
     address (sim: a 127.0.0.N loopback address for the simulated controller). ft_port: the FT 300's serial port
     (sim: a path under run_dir that sim_world links to its pseudo-terminal). depth: the bubble's depth camera.
     nominal_tcp: the TCP's nominal orientation [qw, qx, qy, qz] in the base frame (the scene body's, turned by
     scene.task_frame; identity: the membrane faces down), from which ``limits.max_tilt_deg`` and
-    ``limits.yaw_range_deg`` are measured."""
+    ``limits.yaw_range_deg`` are measured. material: its bubble's material, which the planner and the sim plant
+    give that scene body in place of the scene's (None: the scene's)."""
 
     name: str
     ur_host: str = "127.0.0.2"
     ft_port: str = ""
     depth: DepthConfig = DepthConfig()
     nominal_tcp: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    material: MaterialConfig | None = None
 
     def __post_init__(self) -> None:
         unit = abs(math.sqrt(sum(v * v for v in self.nominal_tcp)) - 1.0) <= 1e-6
         _require(all(math.isfinite(v) for v in self.nominal_tcp) and unit, f"arms.{self.name}.nominal_tcp",
                  f"must be a unit quaternion [qw, qx, qy, qz], got {self.nominal_tcp}")
+        values = self.material.values() if self.material is not None else {}
+        for name in ("E", "K"):
+            if name in values:
+                _require(math.isfinite(values[name]) and values[name] > 0, f"arms.{self.name}.material.{name}",
+                         f"must be a positive, finite number of Pa/m, got {values[name]}")
+        if "mu" in values:
+            _require(math.isfinite(values["mu"]) and 0 <= values["mu"] <= MATERIAL_MU_MAX,
+                     f"arms.{self.name}.material.mu", f"must be in [0, {MATERIAL_MU_MAX:g}], got {values['mu']}")
 
 
 #: Upper bounds of the arm commander's limits, each with its reason. A config past one is a typo or a wrong unit,
@@ -506,6 +536,11 @@ class StackConfig(Strict):
             if arm.name == name:
                 return arm
         raise ConfigError(f"arms: no arm named {name!r}; the arms are {[a.name for a in self.arms]}")
+
+    def bubble_materials(self) -> dict[str, dict[str, float]]:
+        """Per arm with an ``[arms.material]`` table, its bubble body's name and the material values it gives
+        (``with_body_materials`` takes this)."""
+        return {arm.name: arm.material.values() for arm in self.arms if arm.material is not None}
 
     def arm_service(self, module: str, name: str | None) -> tuple[str, str]:
         """``(service name, arm)`` of a per-arm service ``module`` run as ``name`` (``MODULE-ARM``; None: the

@@ -162,7 +162,7 @@ def test_worker_processes_plan_what_threads_plan_and_stop_with_the_core(tmp_path
     pids = processes.processes.pids
     try:
         assert threads.processes is None and len(pids) == 2
-        _, initial, _ = compile_scene(planner_scene(threads.task, threads.config.planner), dtype=threads.model.dtype)
+        _, initial, _ = compile_scene(planner_scene(threads.task, threads.config), dtype=threads.model.dtype)
         arms = {name: initial.body_poses[0, index].double() for name, index in threads.arms.items()}
         goal = threads.task.initial_pose().clone()
         goal[0] += 0.02

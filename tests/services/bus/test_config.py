@@ -41,6 +41,13 @@ def test_the_shipped_configs_load(name):
     (ONE_ARM + "[planner]\nsamples = 16\nworkers = 17\n", "planner.workers"),  # more workers than samples
     (ONE_ARM + "[planner]\nobject_update = \"implicit\"\n", "planner.object_update"),
     (ONE_ARM + "[planner]\nmodel = \"pf\"\nobject_update = \"linearly_implicit\"\n", "planner.object_update"),
+    ('[[arms]]\nname = "bubble"\n[arms.material]\nE = -3e5\n', "arms.bubble.material.E"),
+    ('[[arms]]\nname = "bubble"\n[arms.material]\nE = inf\n', "arms.bubble.material.E"),
+    ('[[arms]]\nname = "bubble"\n[arms.material]\nK = nan\n', "arms.bubble.material.K"),
+    ('[[arms]]\nname = "bubble"\n[arms.material]\nK = 0\n', "arms.bubble.material.K"),
+    ('[[arms]]\nname = "bubble"\n[arms.material]\nmu = 3.5\n', "arms.bubble.material.mu"),
+    ('[[arms]]\nname = "bubble"\n[arms.material]\nmu = -0.1\n', "arms.bubble.material.mu"),
+    ('[[arms]]\nname = "bubble"\n[arms.material]\nG = 1e5\n', "unknown field `G`"),
 ])
 def test_a_bad_key_is_named(text, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
@@ -166,3 +173,35 @@ def test_hosts_beyond_loopback_need_curve_keys():
     text = TWO_HOSTS.split("[curve]")[0] + "[hosts" + TWO_HOSTS.split("[hosts", 1)[1]
     with pytest.raises(ConfigError, match=r"hosts\.robot: .*CURVE"):
         parse_config(text, "test.toml")
+
+
+def test_a_fitted_material_pasted_below_an_arm_reaches_the_planners_and_the_plants_models(tmp_path):
+    from hydrosoft.bench.fit import params_toml
+    from hydrosoft.scene import compile_scene
+    from hydrosoft.services.planner import planner_scene
+    from hydrosoft.services.sim_world import plant_model
+    from hydrosoft.tasks import make_task
+
+    document = {"model": "nh", "settings": {"objects": ["cube"]}, "split": {"fit": [["cube", 0]], "held_out": []},
+                "rows": [{"set": "held_out", "when": "after", "trajectories": 0}],
+                "parameters": {"E": {"value": 5.1e5, "sigma": 700.0, "interval95": [5.08e5, 5.12e5], "unit": "Pa/m",
+                                     "fitted": True, "identified": True},
+                               "K": {"value": 6e4, "sigma": 9e4, "interval95": [1e3, 9e5], "unit": "Pa/m",
+                                     "fitted": True, "identified": False},
+                               "mu": {"value": 0.35, "sigma": 0.02, "interval95": [0.31, 0.39], "unit": "",
+                                      "fitted": True, "identified": True}}}
+    shipped = (DEPLOY / "sim.toml").read_text()
+    arm_keys_end = shipped.index("\n\n", shipped.index("[[arms]]"))  # the end of the arm's table
+    text = shipped[:arm_keys_end] + "\n" + params_toml(document) + shipped[arm_keys_end:]
+    (tmp_path / "fitted.toml").write_text(text)
+    config = load_config(tmp_path / "fitted.toml")
+    assert config.bubble_materials() == {"bubble": {"E": 5.1e5, "mu": 0.35}}  # K not identified: the scene's
+    task = make_task(config.scene.task)
+    planner, _, _ = compile_scene(planner_scene(task, config))
+    plant, _ = plant_model(config)
+    for model in (planner, plant):
+        bubble, table = model.body_names.index("bubble"), model.body_names.index("table")
+        assert float(model.material.E[bubble]) == 5.1e5 and float(model.material.mu[bubble]) == 0.35
+        assert float(model.material.K[bubble]) == 1e5 and float(model.material.E[table]) == 1e6
+    plain, _ = plant_model(load_config(DEPLOY / "sim.toml"))
+    assert float(plain.material.E[plain.body_names.index("bubble")]) == 3e5
