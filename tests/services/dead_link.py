@@ -21,8 +21,8 @@ import zmq
 import zmq.auth
 from zmq.utils.monitor import parse_monitor_message
 
-from hydrosoft.services import bus as b
-from hydrosoft.services import messages as m
+from hydrosoft.services.bus import sockets as b
+from hydrosoft.services.bus import messages as m
 
 WATCH_S = 8.0
 CONNECT_TIMEOUT_S = 5.0
