@@ -11,7 +11,8 @@ killed, and the stack's CPU use while idle.
    fuzzed (raw frames, unknown task, NaN and out-of-workspace goals, an unreachable goal) with the arm checked on
    sim_world's simulated controller; then SIGKILL of the tag tracker, bubble camera, F/T reader and sim_world in
    turn while a goal runs: the arm stops, the planner holds (same pid, stale inputs counted), the launcher
-   restarts the killed service and no other pid changes.
+   restarts the killed service and no other pid changes. A new sim_world is a new controller: the commander's
+   reconnect ends the goal, and the planner reports it ``interrupted``, naming the reconnect.
 
 Every process is stopped by its pid; every wait has a timeout. The counts of fuzzed messages are printed (``-s``).
 """
@@ -72,6 +73,8 @@ IDLE_WINDOW_S = 5.0
 KILL_STOP_BOUND_S = {"tag_tracker": 0.5 + 1.0 + 1.0, "bubble_camera-bubble": 0.5 + 1.0 + 1.0,
                      "ft_reader-bubble": 0.25 + 0.5, "sim_world": 0.5}
 RESTART_TIMEOUT_S = 90.0
+#: How long the planner may take to end a goal its commander no longer acts on, s: its next planning cycle.
+GOAL_END_TIMEOUT_S = 30.0
 #: sim_world hosts the arm (its UR controller) and the F/T sensor's pty: killing it takes them down too.
 KILLED = ("tag_tracker", "bubble_camera-bubble", "ft_reader-bubble", "sim_world")
 
@@ -583,6 +586,15 @@ async def arm_while_down(client: StackClient, stack: Stack, victim: str, pid: in
         assert time.monotonic() - killed_s < RESTART_TIMEOUT_S, f"{victim} was not restarted"
 
 
+async def goal_ended(client: StackClient) -> msg.StatusReply:
+    """Poll the planner's status until its goal no longer runs (at most ``GOAL_END_TIMEOUT_S``); that status."""
+    deadline_s = time.monotonic() + GOAL_END_TIMEOUT_S
+    while (reply := await client.status()).running:
+        assert time.monotonic() < deadline_s, f"the goal still runs after {GOAL_END_TIMEOUT_S} s: {reply}"
+        await asyncio.sleep(0.25)
+    return reply
+
+
 @pytest.mark.parametrize("victim", KILLED)
 def test_a_killed_service_stops_the_arm_and_is_restarted_while_the_rest_stays(launched, victim):
     client, config = launched.client, launched.config
@@ -593,6 +605,8 @@ def test_a_killed_service_stops_the_arm_and_is_restarted_while_the_rest_stays(la
         stale_before = (await client.status()).status.errors.get("stale_input", 0)
         last_servo_s, moved_m = await arm_while_down(client, launched.stack, victim, before[victim]["pid"])
         holding = await client.status()
+        if victim == "sim_world":
+            holding = await goal_ended(client)
         await client.stop("fault test")
         after = await asyncio.to_thread(launched.reports)
         return before, after, last_servo_s, moved_m, holding, stale_before
@@ -604,7 +618,11 @@ def test_a_killed_service_stops_the_arm_and_is_restarted_while_the_rest_stays(la
           f"(restart {after[victim]['restarts']})")
     assert last_servo_s < KILL_STOP_BOUND_S[victim], last_servo_s
     assert moved_m < HELD_M, moved_m
-    assert holding.running and holding.status.pid == before["planner"]["pid"], holding
+    assert holding.status.pid == before["planner"]["pid"], holding
+    if victim == "sim_world":  # the commander reconnected to a new controller: the goal is over, and says why
+        assert holding.outcome == "interrupted" and "reconnect" in holding.outcome_reason, holding
+    else:
+        assert holding.running, holding
     if victim != "ft_reader-bubble":  # without F/T only the commander's watchdog acts; the planner's inputs stay
         assert holding.status.errors.get("stale_input", 0) > stale_before, holding.status.errors
     assert after[victim]["restarts"] >= 1 and after[victim]["pid"] != before[victim]["pid"], after[victim]
