@@ -121,7 +121,9 @@ _LOOPBACK = ipaddress.ip_network("127.0.0.0/8")
 #: Socket options of every inter-host link (a CURVE tcp endpoint), set before its bind or connect. Keepalive
 #: probes start after 1 s without data from the peer and repeat every 1 s; 3 unanswered close the link (a receiver
 #: of a dead peer notices within ~4 s). ``TCP_MAXRT`` (Linux: ``TCP_USER_TIMEOUT``, ms) closes a sender's link whose
-#: data stays unacknowledged for 4 s, which keepalive does not cover.
+#: data stays unacknowledged for 4 s, which keepalive does not cover; it also closes the link to a reader that has
+#: read nothing for 4 s (its queue and socket buffer full): it reconnects when it reads again, having missed only
+#: stale messages.
 INTER_HOST_TCP_OPTIONS = ((zmq.TCP_KEEPALIVE, 1), (zmq.TCP_KEEPALIVE_IDLE, 1), (zmq.TCP_KEEPALIVE_INTVL, 1),
                           (zmq.TCP_KEEPALIVE_CNT, 3), (zmq.TCP_MAXRT, 4000))
 #: The message fields that hold the sender's ``time.monotonic_ns`` (a 0 means "none" and is kept): moved onto the

@@ -128,7 +128,7 @@ async def compute_host_freezes_mid_goal(client: StackClient, compute: HostStack,
     servoes, SIGCONT it ``FREEZE_S`` later, and read the simulated controller's TCP throughout and for
     ``WATCH_AFTER_S`` after: the seconds from the freeze to the last moving sample, the largest motion (m) from
     ``FREEZE_STOP_BOUND_S`` on, the goal's final status and the commander's last state."""
-    arm = await servoing(client, 0.02)
+    await servoing(client, 0.02)
     groups = [compute.process.pid, (await client.status()).status.pid]
     reader, writer = await asyncio.open_connection(ur_host, SIM_CONTROL_PORT)
     for group in groups:
@@ -154,10 +154,16 @@ async def compute_host_freezes_mid_goal(client: StackClient, compute: HostStack,
             for group in reversed(groups):
                 os.killpg(group, signal.SIGCONT)
     moved_m = max(float(np.linalg.norm(pose - held[0])) for pose in held)
-    reply = await client.wait(30.0)
-    arm.drain()  # what queued while the test read the controller; then the newest state
-    await arm.wait(1.0)
-    return last_moving_s, moved_m, reply, arm.latest("arm_state/bubble", 0.5, m.ArmState).value
+    return last_moving_s, moved_m, await client.wait(30.0), await arm_state_now(client)
+
+
+async def arm_state_now(client: StackClient) -> m.ArmState:
+    """The arm commander's newest state, read by a new subscriber (an idle one's queue holds old states)."""
+    arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
+    deadline = time.monotonic() + 10.0
+    while not await arm.wait(1.0):
+        assert time.monotonic() < deadline, "no arm state within 10 s"
+    return arm.latest("arm_state/bubble", 1.0, m.ArmState).value
 
 
 async def compute_host_dies_mid_goal(client: StackClient, compute: HostStack) -> tuple[float, bool]:
