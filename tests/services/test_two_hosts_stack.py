@@ -3,12 +3,8 @@ arm's services, the tag tracker) and ``launch --host compute`` (the planner) on 
 loopback, each host with its own key pair and run_dir. A client on the robot host pushes the cube to its goal
 (sim_world's true error within 5 mm) while a process with an unauthorised key connects to every inter-host
 endpoint: it receives nothing, its request is never answered, and the refusals are counted. Then the compute host
-freezes mid-goal (SIGSTOP of its launcher's and its planner's process groups) for longer than the planner heartbeat
-timeout and runs on (SIGCONT): the arm stops within that timeout plus a servo period and the stop's deceleration, as
-sim_world's simulated controller (the arm's ground truth) shows, it does not move again, and the goal reports that it
-ended. A new goal then servoes, and the compute host dies mid-goal (SIGKILL of its launcher and planner): the arm
-stops within the planner heartbeat timeout plus a servo period (as the robot host sees it: the commander's published
-state), and nothing moves it again by itself.
+dies mid-goal (SIGKILL of its launcher and planner): the arm stops within the planner heartbeat timeout plus a servo
+period (as the robot host sees it: the commander's published state), and nothing moves it again by itself.
 
 One two-host launch for the whole module (a launch takes minutes on a loaded 2-core machine). Every process is
 stopped by its pid (each launcher's process group, then a check that none is left)."""
@@ -23,13 +19,10 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import pytest
 from loopback import free_loopback_address
 from stack_process import Stack, children_left, stack_config
 
-from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT, URArmConfig
-from hydrosoft.services.arm_commander import PLANNER_LOST
 from hydrosoft.services.bus import sockets as b
 from hydrosoft.services.commands import keys
 from hydrosoft.services.bus import messages as m
@@ -45,16 +38,6 @@ GOAL_TIMEOUT_S = 240.0
 HOST_LOSS_STOP_BOUND_S = 0.5 + 0.008 + 0.008 + 0.2
 #: How long the arm is watched after the compute host died, to show that nothing moves it again, s.
 WATCH_AFTER_S = 3.0
-#: How long the compute host stays frozen (SIGSTOP to SIGCONT), s: well past the heartbeat timeout.
-FREEZE_S = 1.5
-#: From the freeze to the arm at rest on the simulated controller, s: the heartbeat timeout (0.5 s) and one servo
-#: period (8 ms), the stop's deceleration from deploy/sim.toml's max speed (0.05 m/s at the driver's stop
-#: deceleration) and the same scheduling slack as HOST_LOSS_STOP_BOUND_S.
-FREEZE_STOP_BOUND_S = 0.5 + 0.008 + 0.05 / URArmConfig(host="x").stop_decel_m_s2 + 0.2
-#: The simulated TCP moving slower than this (m/s) is at rest.
-AT_REST_M_S = 1e-4
-#: Largest TCP motion (m) once the arm is at rest after the freeze: the simulated controller's pose is exact.
-HELD_M = 1e-4
 FIRST_PORT = 5600
 ROBOT_SERVICES = ["sim_world", "arm_commander-bubble", "ft_reader-bubble", "bubble_camera-bubble", "tag_tracker"]
 
@@ -110,66 +93,18 @@ async def intruder_run(config, secret, authorized) -> tuple[int, bool]:
         return sum(subscriber.received.values()), answered
 
 
-async def servoing(client: StackClient, dy_m: float) -> b.LatestSubscriber:
-    """Start a goal of ``dy_m`` (m) and wait until the arm servoes towards its targets; the arm state's subscriber."""
-    arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
-    await client.set_goal("pushing", dy_m=dy_m, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
-    await client.start()
-    deadline = time.monotonic() + 30.0
-    while True:
-        await arm.wait(1.0)
-        if arm.latest("arm_state/bubble", 1.0, m.ArmState).value.servo_active:
-            return arm
-        assert time.monotonic() < deadline, "the arm never started servoing"
-
-
-async def compute_host_freezes_mid_goal(client: StackClient, compute: HostStack, ur_host: str):
-    """Start a goal, SIGSTOP the compute host (its launcher's process group, then its planner's) while the arm
-    servoes, SIGCONT it ``FREEZE_S`` later, and read the simulated controller's TCP throughout and for
-    ``WATCH_AFTER_S`` after: the seconds from the freeze to the last moving sample, the largest motion (m) from
-    ``FREEZE_STOP_BOUND_S`` on, the goal's final status and the commander's last state."""
-    await servoing(client, 0.02)
-    groups = [compute.process.pid, (await client.status()).status.pid]
-    reader, writer = await asyncio.open_connection(ur_host, SIM_CONTROL_PORT)
-    for group in groups:
-        os.killpg(group, signal.SIGSTOP)
-    frozen = time.monotonic()
-    thawed, last_moving_s, held = False, 0.0, []
-    try:
-        while (now_s := time.monotonic() - frozen) < FREEZE_S + WATCH_AFTER_S:
-            if not thawed and now_s >= FREEZE_S:
-                for group in reversed(groups):
-                    os.killpg(group, signal.SIGCONT)
-                thawed = True
-            writer.write(b'{"op": "state"}\n')
-            truth = json.loads(await asyncio.wait_for(reader.readline(), 2.0))
-            if np.linalg.norm(truth["twist"]) >= AT_REST_M_S:
-                last_moving_s = now_s
-            if now_s >= FREEZE_STOP_BOUND_S:
-                held.append(np.array(truth["pose"][:3]))
-            await asyncio.sleep(0.005)
-    finally:
-        writer.close()
-        if not thawed:
-            for group in reversed(groups):
-                os.killpg(group, signal.SIGCONT)
-    moved_m = max(float(np.linalg.norm(pose - held[0])) for pose in held)
-    return last_moving_s, moved_m, await client.wait(30.0), await arm_state_now(client)
-
-
-async def arm_state_now(client: StackClient) -> m.ArmState:
-    """The arm commander's newest state, read by a new subscriber (an idle one's queue holds old states)."""
-    arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
-    deadline = time.monotonic() + 10.0
-    while not await arm.wait(1.0):
-        assert time.monotonic() < deadline, "no arm state within 10 s"
-    return arm.latest("arm_state/bubble", 1.0, m.ArmState).value
-
-
 async def compute_host_dies_mid_goal(client: StackClient, compute: HostStack) -> tuple[float, bool]:
     """Start a goal, SIGKILL the compute host's launcher and planner while the arm servoes; the seconds until the
     commander reports the arm stopped, and whether it servoed again within ``WATCH_AFTER_S`` after that."""
-    arm = await servoing(client, -0.03)
+    arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
+    await client.set_goal("pushing", dy_m=-0.03, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
+    await client.start()
+    deadline = time.monotonic() + 30.0
+    while True:  # wait until the arm servoes towards a target
+        await arm.wait(1.0)
+        if arm.latest("arm_state/bubble", 1.0, m.ArmState).value.servo_active:
+            break
+        assert time.monotonic() < deadline, "the arm never started servoing"
     planner_pid = (await client.status()).status.pid
     os.kill(compute.process.pid, signal.SIGKILL)  # the launcher first: it must not restart the planner
     os.kill(planner_pid, signal.SIGKILL)
@@ -214,16 +149,6 @@ def test_two_hosts_push_the_cube_with_curve_while_an_unauthorised_peer_gets_noth
         services = json.loads(status.stdout)["services"]
         assert all(report is not None for report in services.values()), services
         assert services["planner"]["errors"].get("curve_refused", 0) >= 1, services["planner"]
-
-        ur_host = load_config(config_path).arm("bubble").ur_host
-        last_moving_s, moved_m, ended, arm_state = asyncio.run(compute_host_freezes_mid_goal(client, compute, ur_host))
-        print(f"compute host frozen {FREEZE_S} s: the simulated arm's last motion {last_moving_s:.3f} s after the "
-              f"freeze (bound {FREEZE_STOP_BOUND_S:.3f} s), then it moved {moved_m * 1e3:.4f} mm; the goal: "
-              f"{ended.outcome} ({ended.outcome_reason})")
-        assert last_moving_s < FREEZE_STOP_BOUND_S, last_moving_s
-        assert moved_m < HELD_M, moved_m
-        assert ended.outcome == "interrupted" and PLANNER_LOST in ended.outcome_reason, ended
-        assert arm_state.goal_floor_cause == PLANNER_LOST and not arm_state.servo_active, arm_state
 
         stop_s, servoed_again = asyncio.run(compute_host_dies_mid_goal(client, compute))
         print(f"arm stopped {stop_s:.3f} s after the compute host died")
