@@ -213,8 +213,8 @@ def ended_by_commander(started_ns: int, states: Iterable[msg.ArmState]) -> str |
     and that floor lies at or after the goal's start in one of ``states``."""
     for state in states:
         if state.goal_floor_ns >= started_ns:
-            return (f"arm {state.arm}'s commander acts only on goals started after {state.goal_floor_cause} "
-                    f"({state.stop_reason or 'servoing'}); start a new goal")
+            return (f"arm {state.arm}'s commander acts only on goals started after {state.goal_floor_cause}: "
+                    "start a new goal")
     return None
 
 

@@ -390,8 +390,9 @@ class Bus:
         """A socket of ``socket_type`` bound (``bind``) or connected to each of ``endpoints``.
 
         LINGER 0, ``options`` (``(zmq.SNDHWM, 16)``, ``(zmq.SUBSCRIBE, b"topic")``, ...) and the CURVE keys are
-        set before any bind or connect, and ``INTER_HOST_TCP_OPTIONS`` before a CURVE endpoint's. ``curve`` applies to every endpoint; None: the bus's ``CurveKeys`` decide
-        per endpoint (the endpoints without CURVE are joined first, as libzmq keeps a CURVE option once set).
+        set before any bind or connect, and ``INTER_HOST_TCP_OPTIONS`` before a CURVE endpoint's. ``curve`` applies
+        to every endpoint; None: the bus's ``CurveKeys`` decide per endpoint (the endpoints without CURVE are joined
+        first, as libzmq keeps a CURVE option once set).
         A bind also binds each endpoint's ``also_bind`` twin. Raises BusConfigError on a policy violation, bad keys
         or a failed bind.
         """

@@ -53,7 +53,8 @@ async def main() -> dict:
                 await asyncio.sleep(PERIOD_S)
             subprocess.run(["ip", "link", "set", "lo", "down"], check=True)
             cut_s = time.monotonic()
-            closed: dict[str, dict[str, float | None]] = {name: {"subscriber": None, "publisher": None} for name in links}
+            closed: dict[str, dict[str, float | None]] = {name: {"subscriber": None, "publisher": None}
+                                                          for name in links}
             while time.monotonic() - cut_s < WATCH_S:
                 for name, (publisher, subscriber, monitor) in links.items():
                     await publisher.send(WRENCH, "wrench")
