@@ -16,14 +16,17 @@ Every stop has a named cause (``ArmState.stop_reason``) and an owner (``ArmState
   still reports a safety stop or an unpowered arm; the program is restarted then if it is not running).
 - ``stack``: the commander's own rules. The transient ones clear on the next fresh target: the driver failing
   (Stale, NotConnected, DeviceFault), the target's deadline (clamped to ``limits.max_target_lead_s`` after its
-  arrival), the planner's heartbeat, the plan's age (``ArmTarget.plan_done_ns`` older than
+  arrival), no planner heartbeat seen yet, the plan's age (``ArmTarget.plan_done_ns`` older than
   ``limits.max_plan_age_s``: a hung solve), the state not advancing, no fresh F/T reading, the force limit. A
   refused target (``safety.check_target``: outside the workspace box or the orientation limits, malformed, another
   arm's; or a straight path that starts outside them) holds the arm for the rest of its goal.
 
 No motion the person did not start: a target is acted on only when its goal (``ArmTarget.goal_started_ns``) started
-after this commander's start, its last reconnect to the controller and its last ``arm enable``; the others are
-counted (``old_goal``) and the arm holds.
+after this commander's start, its last reconnect to the controller, its last ``arm enable`` and the last loss of the
+planner (a heartbeat that was fresh and went older than ``limits.heartbeat_timeout_s``: a dead, frozen or cut-off
+planner ends its goal, counted once as ``planner_lost``; one that runs on does not resume it); the others are
+counted (``old_goal``) and the arm holds. ``ArmState.goal_floor_ns`` and ``goal_floor_cause`` publish that floor, so
+the planner ends a goal the commander no longer acts on.
 
 Force limit: above ``limits.max_force_n`` only a retreat is servoed (``safety.retreat_refusal``: a move within 60
 deg of the contact force on the bubble, the F/T sensor's axes being the TCP's, with almost no turn); a push is
@@ -92,6 +95,8 @@ ENABLE_RUNNING_TIMEOUT_S = 1.0
 EXIT_STOP_UNCONFIRMED = 3
 #: The reason a fresh target is not servoed on while the previous stop is still in flight.
 STOPPING = "stopping"
+#: The goal floor's cause after the planner's heartbeat went stale (or gone) from fresh.
+PLANNER_LOST = "the loss of the planner's heartbeat"
 #: The loop skips ahead instead of bursting when it falls this many periods behind.
 MAX_LAG_PERIODS = 2
 #: Each servo step covers the time since the previous one at the speed limits, but at most this many periods (a
@@ -103,12 +108,14 @@ MAX_STEP_PERIODS = 2
 class Decision:
     """What to do this period. command: the servo pose ``(7,)`` [m, wxyz] to send, or None (hold stopped).
     stop: send ``driver.stop()`` now. reason: why the arm is stopped ("" while servoing). refusal: a target refused
-    this period for its path (to be counted), or ""."""
+    this period for its path (to be counted), or "". planner_lost: why the planner counts as lost this period and
+    every goal started before it ended (to be counted once), or ""."""
 
     command: np.ndarray | None
     stop: bool
     reason: str
     refusal: str = ""
+    planner_lost: str = ""
 
 
 class ServoLogic:
@@ -117,12 +124,13 @@ class ServoLogic:
     Stop authority: every stop has an owner. An ``external`` stop (the controller reports a stop of its own: a
     safety stop, a paused or stopped program, an unpowered arm) latches: nothing is servoed until ``enable``
     (a person's ``arm enable``), even once the controller runs again. A ``stack`` stop is one of the commander's
-    own rules; the transient ones (deadline, heartbeat, state, F/T, driver errors, the force limit) clear on the
-    next fresh target, a refused target holds the arm for the rest of its goal.
+    own rules; the transient ones (deadline, a heartbeat not seen yet, state, F/T, driver errors, the force limit)
+    clear on the next fresh target, a refused target holds the arm for the rest of its goal, a lost planner (its
+    heartbeat fresh at one decision, stale or gone at a later one) ends every goal started before the loss.
 
     No motion the person did not start: only targets of a goal started (``ArmTarget.goal_started_ns``) after the
-    commander's start, its last reconnect to the controller (``ArmState.link_since_ns``), its last ``enable`` and
-    the goal of its last refused target are servoed on.
+    commander's start, its last reconnect to the controller (``ArmState.link_since_ns``), its last ``enable``, the
+    goal of its last refused target and the last loss of the planner are servoed on.
 
     Args:
         limits: the workspace box, orientation, speed, force and timeout limits (``LimitsConfig``).
@@ -153,6 +161,7 @@ class ServoLogic:
         self._enabled_ns = 0  # the last enable: states read before it do not latch
         self._state_hw_ns: int | None = None
         self._state_advanced_ns: int | None = None
+        self._planner_alive = False  # the planner's heartbeat was fresh at the last decision
 
     def offer(self, target: msg.ArmTarget | None, now_ns: int) -> tuple[str, str] | None:
         """Consider the newest target message at ``now_ns``; returns ``(error kind, text)`` to count, or None.
@@ -200,6 +209,22 @@ class ServoLogic:
                 self.goal_floor_ns, self.goal_floor_cause = state.link_since_ns, "the reconnect to the controller"
                 self.target = None
 
+    def _planner_lost(self, now_ns: int, heartbeat_ns: int | None) -> str:
+        """Why the planner counts as lost at ``now_ns``, or "": its heartbeat (stamp ``heartbeat_ns``, ns; None:
+        none) was fresh at the last decision and is older than ``limits.heartbeat_timeout_s`` now (a dead or frozen
+        planner, a cut link). Then every goal started before ``now_ns`` has ended: a planner that runs on does not
+        resume it. A heartbeat never seen since the start ends nothing (the watchdog holds the arm)."""
+        alive = heartbeat_ns is not None and (now_ns - heartbeat_ns) * 1e-9 <= self.limits.heartbeat_timeout_s
+        was_alive, self._planner_alive = self._planner_alive, alive
+        if alive or not was_alive:
+            return ""
+        if now_ns > self.goal_floor_ns:
+            self.goal_floor_ns, self.goal_floor_cause = now_ns, PLANNER_LOST
+        self.target = None
+        seen = "gone" if heartbeat_ns is None else f"{(now_ns - heartbeat_ns) * 1e-9:.3f} s old"
+        return (f"planner lost: its heartbeat is {seen} (limit {self.limits.heartbeat_timeout_s} s); its goal ended, "
+                "a new goal must be started")
+
     @staticmethod
     def enable_refusal(state: ArmState | None) -> str | None:
         """Why a person's ``arm enable`` must be refused with the controller in ``state`` (None: unreadable), or
@@ -242,7 +267,9 @@ class ServoLogic:
             self.force_limited = False
         refusal = ""
         untared_reason = UNTARED_FT if untared else None
-        reason = self._external_reason() or driver_error or self._refusal or untared_reason or watchdog(
+        planner_lost = self._planner_lost(now_ns, heartbeat_ns)
+        reason = self._external_reason() or planner_lost or driver_error or self._refusal or untared_reason
+        reason = reason or watchdog(
             now_ns, None if self.target is None else self.deadline_ns, heartbeat_ns, self._state_advanced_ns,
             force_n, self.limits, None if self.target is None else self.target.plan_done_ns)
         if reason is None and stopping:
@@ -269,7 +296,8 @@ class ServoLogic:
         was_servoing = self.servoing
         self.halt(reason or "no arm state")
         moving = state is not None and is_moving(state.tcp_speed)
-        return Decision(None, stop=was_servoing or (moving and not stopping), reason=self.reason, refusal=refusal)
+        return Decision(None, stop=was_servoing or (moving and not stopping), reason=self.reason, refusal=refusal,
+                        planner_lost=planner_lost)
 
     def _external_reason(self) -> str | None:
         if self.external is None:
@@ -363,6 +391,8 @@ class Commander:
                                      untared=wrench is not None and not wrench.tared)
         if decision.refusal:
             self.service.count_error("target_refused", decision.refusal)
+        if decision.planner_lost:
+            self.service.count_error("planner_lost", decision.planner_lost)
         if decision.command is not None:
             try:
                 await self.driver.servo_to(decision.command)
@@ -380,7 +410,8 @@ class Commander:
                 protective_stop=state.protective_stop, emergency_stop=state.emergency_stop,
                 servo_active=self.logic.servoing, stop_reason=self.logic.reason, stop_owner=self.logic.owner,
                 controller_stop=state.controller_stop, safety_flags=state.safety_flags,
-                latched=self.logic.external is not None, hw_stamp_ns=state.hw_stamp_ns),
+                latched=self.logic.external is not None, hw_stamp_ns=state.hw_stamp_ns,
+                goal_floor_ns=self.logic.goal_floor_ns, goal_floor_cause=self.logic.goal_floor_cause),
                 f"arm_state/{self.arm}")
 
     async def _report_latch(self) -> None:

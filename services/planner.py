@@ -13,7 +13,9 @@ The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus`
 launch (``Goal.instance``, not this service's ``instance``) is refused. ``Start`` is refused without
 fresh inputs to start from (the drift cost is anchored at the object and TCP poses the goal starts at). A goal ends
 ``reached`` (the tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed``
-(with a reason: an unknown task, an unreachable goal, an object lost) or ``stopped``.
+(with a reason: an unknown task, an unreachable goal, an object lost), ``stopped``, or ``interrupted`` when an arm's
+commander acts on none of its targets any more (``ended_by_commander``: its goal floor passed the goal's start after
+its restart, a reconnect, an ``arm enable``, a refused target or the loss of this planner's heartbeat).
 
 In a one-arm scene the planner solves only while the bubble touches the object (``reapproach.in_contact``); an
 object out of contact for ``reapproach.LOST_AFTER_S`` is lost, and the planner drives the arm back onto it
@@ -36,7 +38,7 @@ import importlib
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import msgspec
@@ -208,6 +210,17 @@ class PlannerCore:
         return se3.transform_points(se3.inverse(arm_pose), world).numpy()
 
 
+def ended_by_commander(started_ns: int, states: Iterable[msg.ArmState]) -> str | None:
+    """Why a goal started at ``started_ns`` (this host's ``time.monotonic_ns()``) has ended, or None: an arm's
+    commander acts only on goals started after its goal floor (``ArmState.goal_floor_ns``, on this host's clock),
+    and that floor lies at or after the goal's start in one of ``states``."""
+    for state in states:
+        if state.goal_floor_ns >= started_ns:
+            return (f"arm {state.arm}'s commander acts only on goals started after {state.goal_floor_cause}: "
+                    "start a new goal")
+    return None
+
+
 def arm_end_positions(task, arm_poses: dict[str, torch.Tensor], start_pose: torch.Tensor,
                       target: torch.Tensor) -> dict[str, torch.Tensor]:
     """Where each arm's TCP ends ``(3,)`` (m, task frame) when the object goes from ``start_pose (7,)`` to ``target
@@ -365,6 +378,16 @@ class Planner:
 
     # --- the loop ---
 
+    def arm_states(self) -> list[msg.ArmState]:
+        """The newest state of each arm, at any age (an arm without one is left out)."""
+        states = []
+        for arm in self.config.arms:
+            try:
+                states.append(self.inputs.latest(f"arm_state/{arm.name}", math.inf, msg.ArmState).value)
+            except Stale:
+                continue
+        return states
+
     def fresh_inputs(self) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, msg.MembraneDeformation]]:
         """The newest object pose, TCP poses (task frame) and deformation images, each within its maximum age
         (else Stale). ``pose_stamps`` keeps the object pose's image and publish stamps (ns) for the Plan."""
@@ -401,6 +424,12 @@ class Planner:
             return
         if time.monotonic() - episode.started_s > episode.goal.timeout_s:
             episode.finish("timeout", f"not reached within {episode.goal.timeout_s} s")
+            self._end_episode()
+            return
+        ended = ended_by_commander(int(episode.started_s * 1e9), self.arm_states())
+        if ended is not None:
+            episode.finish("interrupted", ended)
+            self.service.count_error("goal_ended", ended)
             self._end_episode()
             return
         try:

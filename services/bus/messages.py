@@ -346,7 +346,9 @@ class ArmState(SensorMessage, frozen=True, kw_only=True):
     own rules), "external" (a person or the controller: pendant, dashboard, safety system; latched until ``arm
     enable``) or "" while servoing. controller_stop: the controller's own named stop ("" when it runs our program
     normally; e.g. "safeguard stop", "program paused"). safety_flags: every safety stop the controller reports.
-    latched: an external stop holds the arm until a person re-enables it (``hydrosoft-stack arm enable ARM``)."""
+    latched: an external stop holds the arm until a person re-enables it (``hydrosoft-stack arm enable ARM``).
+    goal_floor_ns: the commander acts only on targets of goals started after this (``time.monotonic_ns()``; its
+    start, its last reconnect, ``arm enable``, refused goal or loss of the planner), named by goal_floor_cause."""
 
     topic = "arm_state"
     ARRAYS = {"tcp_pose": POSE, "tcp_speed": TWIST}
@@ -363,6 +365,8 @@ class ArmState(SensorMessage, frozen=True, kw_only=True):
     controller_stop: str = ""
     safety_flags: tuple[str, ...] = ()
     latched: bool = False
+    goal_floor_ns: int = 0
+    goal_floor_cause: str = ""
 
 
 # --- planner outputs ---------------------------------------------------------------------------------------------

@@ -35,6 +35,13 @@ beyond loopback, and with ``loopback`` also those on 127.x (so that CI runs the 
 connected one a client of the server key the ``CurveKeys`` name for that endpoint. A bus's ``also_bind`` adds a
 second endpoint to a bind (an ipc endpoint's tcp twin, for the peers on another host).
 
+Dead peers. A CURVE tcp endpoint is an inter-host link, and its socket gets ``INTER_HOST_TCP_OPTIONS``: TCP
+keepalive and a retransmission limit, so that the link to a host that died or whose cable was pulled is closed
+within seconds (a subscriber counts it as ``link_dropped``, libzmq reconnects once the peer is back) instead of when
+the kernel gives up, after minutes. ZeroMQ's own heartbeats (``ZMQ_HEARTBEAT_IVL``) are not used: libzmq 4.3.5
+aborts a process whose subscriber holds unread messages when a heartbeat times out (docs/decisions.md). The stack's
+safety does not wait for either: the arm commander stops on the planner's heartbeat age.
+
 Every socket option (HWM, LINGER 0, MAXMSGSIZE, subscriptions, CURVE) is set before bind/connect, where libzmq
 applies it. Receive timeouts are asyncio's (``wait(timeout_s)``, the client's ``timeout_s``): ``RCVTIMEO`` does
 not govern ``zmq.asyncio`` sockets.
@@ -111,9 +118,17 @@ REQUEST_TIMEOUT_S = 2.0
 LOG_EVERY_N = 100
 
 _LOOPBACK = ipaddress.ip_network("127.0.0.0/8")
+#: Socket options of every inter-host link (a CURVE tcp endpoint), set before its bind or connect. Keepalive
+#: probes start after 1 s without data from the peer and repeat every 1 s; 3 unanswered close the link (a receiver
+#: of a dead peer notices within ~4 s). ``TCP_MAXRT`` (Linux: ``TCP_USER_TIMEOUT``, ms) closes a sender's link whose
+#: data stays unacknowledged for 4 s, which keepalive does not cover; it also closes the link to a reader that has
+#: read nothing for 4 s (its queue and socket buffer full): it reconnects when it reads again, having missed only
+#: stale messages.
+INTER_HOST_TCP_OPTIONS = ((zmq.TCP_KEEPALIVE, 1), (zmq.TCP_KEEPALIVE_IDLE, 1), (zmq.TCP_KEEPALIVE_INTVL, 1),
+                          (zmq.TCP_KEEPALIVE_CNT, 3), (zmq.TCP_MAXRT, 4000))
 #: The message fields that hold the sender's ``time.monotonic_ns`` (a 0 means "none" and is kept): moved onto the
 #: receiver's clock for a sender on another host.
-SENDER_CLOCK_FIELDS = ("stamp_ns", "deadline_ns", "goal_started_ns", "plan_done_ns")
+SENDER_CLOCK_FIELDS = ("stamp_ns", "deadline_ns", "goal_started_ns", "plan_done_ns", "goal_floor_ns")
 
 M = TypeVar("M", bound=Message)
 T = TypeVar("T")
@@ -375,8 +390,9 @@ class Bus:
         """A socket of ``socket_type`` bound (``bind``) or connected to each of ``endpoints``.
 
         LINGER 0, ``options`` (``(zmq.SNDHWM, 16)``, ``(zmq.SUBSCRIBE, b"topic")``, ...) and the CURVE keys are
-        set before any bind or connect. ``curve`` applies to every endpoint; None: the bus's ``CurveKeys`` decide
-        per endpoint (the endpoints without CURVE are joined first, as libzmq keeps a CURVE option once set).
+        set before any bind or connect, and ``INTER_HOST_TCP_OPTIONS`` before a CURVE endpoint's. ``curve`` applies
+        to every endpoint; None: the bus's ``CurveKeys`` decide per endpoint (the endpoints without CURVE are joined
+        first, as libzmq keeps a CURVE option once set).
         A bind also binds each endpoint's ``also_bind`` twin. Raises BusConfigError on a policy violation, bad keys
         or a failed bind.
         """
@@ -393,6 +409,9 @@ class Bus:
                 sock.setsockopt(option, value)
             for endpoint in sorted(endpoints, key=lambda endpoint: curves[endpoint] is not None):
                 endpoint_curve = curves[endpoint]
+                if endpoint_curve is not None:
+                    for option, value in INTER_HOST_TCP_OPTIONS:
+                        sock.setsockopt(option, value)
                 if isinstance(endpoint_curve, CurveServer):
                     self._make_curve_server(sock, endpoint_curve)
                 elif isinstance(endpoint_curve, CurveClient):
@@ -563,7 +582,8 @@ class LatestSubscriber:
         while self._monitor.getsockopt(zmq.EVENTS) & zmq.POLLIN:
             event = parse_monitor_message(self._monitor.recv_multipart(zmq.NOBLOCK).result())
             endpoint = event["endpoint"].decode(errors="replace")
-            self.errors.count("link_dropped", f"the link to {endpoint} dropped: its publisher exited, or it sent a "
+            self.errors.count("link_dropped", f"the link to {endpoint} dropped: its publisher exited, its host "
+                                              "stopped answering (an inter-host link's keepalive), or it sent a "
                                               f"frame over {MAX_RECEIVE_BYTES} bytes (then the link stays down)")
 
     def drain(self) -> set[str]:

@@ -28,8 +28,8 @@ from hydrosoft.drivers.base import ArmState
 from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SIM_CONTROL_PORT, URArmConfig
 from hydrosoft.services.commands import arm as arm_enable
 from hydrosoft.services.bus import messages as msg
-from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, MAX_STEP_PERIODS, NO_TARGET, UNTARED_FT,
-                                             ServoLogic, driver_config)
+from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, MAX_STEP_PERIODS, NO_TARGET, PLANNER_LOST,
+                                             UNTARED_FT, ServoLogic, driver_config)
 from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.bus.config import LimitsConfig, load_config
 from loopback import free_ur_host
@@ -107,16 +107,15 @@ def test_a_refused_target_stops_the_arm_and_drops_the_valid_one():
     assert "not 'bubble'" in logic.offer(target(HOME, T0 + 2, arm="other"), T0 + 2)[1]
 
 
-def test_a_stop_spends_the_target_and_only_a_fresh_target_with_a_fresh_heartbeat_resumes():
+def test_a_stop_spends_the_target_and_only_a_fresh_target_with_fresh_inputs_resumes():
     logic = servoing_logic()
-    stale_ns = T0 - int(0.31 * S)
-    decision = step(logic, T0 + PERIOD_NS, heartbeat_ns=stale_ns)
-    assert decision.stop and "heartbeat" in decision.reason
+    decision = step(logic, T0 + PERIOD_NS, force=None)
+    assert decision.stop and decision.reason == "no fresh F/T reading"
     assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0), T0) is None  # the same target again: ignored
-    assert step(logic, T0 + 2 * PERIOD_NS).command is None  # fresh heartbeat, no fresh target: hold
-    assert "heartbeat" in logic.reason and logic.owner == "stack"
+    assert step(logic, T0 + 2 * PERIOD_NS).command is None  # a fresh F/T reading, no fresh target: hold
+    assert logic.reason == "no fresh F/T reading" and logic.owner == "stack"
     logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 3 * PERIOD_NS), T0 + 3 * PERIOD_NS)  # fresh target,
-    assert step(logic, T0 + 3 * PERIOD_NS, heartbeat_ns=stale_ns).command is None  # stale heartbeat: spent
+    assert step(logic, T0 + 3 * PERIOD_NS, force=None).command is None  # the F/T silent again: spent
     assert step(logic, T0 + 4 * PERIOD_NS).command is None
     logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 + 5 * PERIOD_NS), T0 + 5 * PERIOD_NS)
     assert step(logic, T0 + 5 * PERIOD_NS).command is not None
@@ -246,6 +245,52 @@ def test_a_refused_target_holds_the_arm_for_the_rest_of_its_goal():
     assert step(logic, now).command is None
     now += PERIOD_NS
     assert logic.offer(target(HOME + [0.05, 0, 0, 0, 0, 0, 0], now, goal_ns=GOAL_NS + 1), now) is None
+    assert step(logic, now).command is not None
+
+
+def test_a_lost_planner_heartbeat_ends_the_goal_and_only_a_new_goal_moves_the_arm():
+    logic = servoing_logic()
+    now = T0 + PERIOD_NS
+    decision = step(logic, now, heartbeat_ns=T0 - int(0.31 * S))  # fresh at T0, stale now: the planner is lost
+    assert decision.stop and decision.command is None
+    assert "planner lost" in decision.reason and "heartbeat" in decision.planner_lost
+    assert logic.goal_floor_ns == now and logic.goal_floor_cause == PLANNER_LOST
+    for k in (2, 3):  # the planner runs on: fresh heartbeats and its goal's next targets
+        now = T0 + k * PERIOD_NS
+        kind, text = logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now), now)
+        assert kind == "old_goal" and PLANNER_LOST in text
+        held = step(logic, now)
+        assert held.command is None and not held.planner_lost and PLANNER_LOST in held.reason
+    now += PERIOD_NS
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now, goal_ns=now - 1), now) is None  # a new goal
+    assert step(logic, now).command is not None
+
+
+def test_a_planner_frozen_past_its_targets_deadline_still_ends_its_goal():
+    """A frozen planner's last target expires first (its lead under the heartbeat timeout): the stop for the
+    deadline drops the target, and the heartbeat going stale afterwards still ends the goal."""
+    logic = new_logic()
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0, lead_s=0.2), T0) is None
+    assert step(logic, T0, heartbeat_ns=T0).command is not None
+    expired = step(logic, T0 + int(0.25 * S), heartbeat_ns=T0)
+    assert expired.stop and "deadline passed" in expired.reason and not expired.planner_lost
+    lost = step(logic, T0 + int(0.35 * S), heartbeat_ns=T0)  # no target, and the heartbeat went stale
+    assert lost.planner_lost and "planner lost" in lost.reason and logic.owner == "stack"
+    thawed = T0 + int(0.5 * S)
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], thawed), thawed)[0] == "old_goal"
+    assert step(logic, thawed).command is None
+
+
+def test_a_heartbeat_not_seen_yet_holds_the_arm_without_ending_the_goal():
+    """A subscriber that has not heard the planner yet (it joined late) lost nothing: its goal moves once the
+    heartbeat arrives with a fresh target."""
+    logic = new_logic()
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0), T0) is None
+    logic.observe(state(T0))
+    held = logic.decide(T0, state(T0), None, None, np.zeros(3))
+    assert held.command is None and held.reason == "no planner heartbeat" and not held.planner_lost
+    now = T0 + PERIOD_NS
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now), now) is None
     assert step(logic, now).command is not None
 
 
@@ -577,8 +622,10 @@ async def start_at_home(planner: PlayedPlanner, tcp: SimTcp) -> None:
         assert time.monotonic() < deadline_s, "the TCP did not stay at HOME within 2 s"
     await until(lambda: np.allclose(planner.arm_state().tcp_pose, HOME, atol=1e-6), 2.0, "the ArmState at HOME")
     deadline_s = time.monotonic() + 5.0
-    while not planner.arm_state().servo_active:
+    while not (arm_state := planner.arm_state()).servo_active:
         assert time.monotonic() < deadline_s, "the commander did not take a target within 5 s"
+        if arm_state.goal_floor_ns >= planner.goal_started_ns:  # it lost the last scenario's planner after this
+            planner.new_goal()  # goal began: start another, as a person would
         await planner.send_target(HOME, PROBE_LEAD_S)
         await asyncio.sleep(PROBE_LEAD_S / 2)
     await until(lambda: not planner.arm_state().servo_active, 2.0, "the commander holding after the probe")
@@ -678,7 +725,7 @@ def test_the_arm_stops_when_the_target_deadline_passes(rig):
     assert not arm_state.servo_active and "deadline passed" in arm_state.stop_reason
 
 
-def test_the_arm_stops_in_bounded_time_when_heartbeats_stop_and_waits_for_a_fresh_target(rig):
+def test_the_arm_stops_in_bounded_time_when_heartbeats_stop_and_only_a_new_goal_moves_it_again(rig):
     bound_s = LIMITS.heartbeat_timeout_s + SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S
 
     async def run(planner: PlayedPlanner, tcp: SimTcp):
@@ -694,18 +741,26 @@ def test_the_arm_stops_in_bounded_time_when_heartbeats_stop_and_waits_for_a_fres
         await asyncio.sleep(4 * REPLAN_PERIOD_S + 0.2)
         planner.heartbeats = True
         await asyncio.sleep(0.5)
+        for _ in range(3):  # the planner runs on: its goal's fresh targets, with fresh heartbeats
+            await planner.send_target(HOME, TARGET_LEAD_S)
+            await asyncio.sleep(REPLAN_PERIOD_S)
         _, still, twist = await tcp.read()
         held = planner.arm_state()
+        status = await until(lambda: (s := planner.status()) and s.errors.get("old_goal", 0) and s, 3.0,
+                             "old_goal counted")
+        planner.new_goal()
         await planner.send_target(HOME, TARGET_LEAD_S)
         resumed = await until(lambda: (s := planner.arm_state()) and s.servo_active and s, 1.0, "servoing again")
-        return (rest_ns - last_heartbeat_ns) * 1e-9, reason, np.linalg.norm(still - rest), held, resumed
+        return (rest_ns - last_heartbeat_ns) * 1e-9, reason, np.linalg.norm(still - rest), held, status, resumed
 
-    latency_s, reason, drift_m, held, resumed = scenario(run, rig)
+    latency_s, reason, drift_m, held, status, resumed = scenario(run, rig)
     print(f"last heartbeat to the arm at rest: {latency_s:.3f} s (bound {bound_s:.3f} s)")
     assert LIMITS.heartbeat_timeout_s < latency_s < bound_s, latency_s
     assert "heartbeat" in reason
-    assert drift_m < 1e-6 and not held.servo_active  # a fresh heartbeat alone does not resume
-    assert resumed.stop_reason == ""
+    assert drift_m < 1e-6 and not held.servo_active  # neither a fresh heartbeat nor its goal's targets resume
+    assert held.goal_floor_cause == PLANNER_LOST and PLANNER_LOST in held.stop_reason, held
+    assert status.errors.get("planner_lost", 0) >= 1 and status.errors.get("old_goal", 0) >= 1, status.errors
+    assert resumed.stop_reason == ""  # a new goal moves the arm
 
 
 def test_the_arm_stops_when_the_force_exceeds_the_limit_or_the_ft_goes_silent(rig):

@@ -15,6 +15,7 @@ import torch
 
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
+from hydrosoft.services.arm_commander import PLANNER_LOST
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import load_config
 from hydrosoft.services.bus.sockets import ErrorCounter
@@ -22,6 +23,7 @@ from hydrosoft.services.planner import (
     Planner,
     PlannerCore,
     arm_end_positions,
+    ended_by_commander,
     planner_scene,
     resolve_target,
     targets_from_plan,
@@ -200,3 +202,19 @@ def test_a_goal_set_for_another_launch_is_refused_and_counted():
         goal = msgspec.structs.replace(other, instance=instance)
         assert asyncio.run(planner.handle(msg.SetGoal(goal=goal))).ok and planner.goal == goal
 
+
+
+def commander_state(arm: str, floor_ns: int, cause: str) -> msg.ArmState:
+    """An arm commander's state with its goal floor (``floor_ns``, named ``cause``)."""
+    return msg.ArmState(arm=arm, tcp_pose=np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]), tcp_speed=np.zeros(6),
+                        running=True, protective_stop=False, emergency_stop=False, servo_active=False,
+                        goal_floor_ns=floor_ns, goal_floor_cause=cause)
+
+
+def test_a_goal_ends_once_an_arm_commanders_goal_floor_reaches_its_start():
+    started_ns = 5_000_000_000
+    fine = commander_state("left", started_ns - 1, "the commander's start")
+    assert ended_by_commander(started_ns, []) is None and ended_by_commander(started_ns, [fine]) is None
+    lost = commander_state("right", started_ns + 1, PLANNER_LOST)
+    why = ended_by_commander(started_ns, [fine, lost])
+    assert why is not None and "arm right" in why and PLANNER_LOST in why and "start a new goal" in why

@@ -11,7 +11,11 @@ killed, and the stack's CPU use while idle.
    fuzzed (raw frames, unknown task, NaN and out-of-workspace goals, an unreachable goal) with the arm checked on
    sim_world's simulated controller; then SIGKILL of the tag tracker, bubble camera, F/T reader and sim_world in
    turn while a goal runs: the arm stops, the planner holds (same pid, stale inputs counted), the launcher
-   restarts the killed service and no other pid changes.
+   restarts the killed service and no other pid changes. A new sim_world is a new controller: the commander's
+   reconnect ends the goal, and the planner reports it ``interrupted``, naming the reconnect. Last, the planner
+   freezes mid-goal (SIGSTOP of its process group) past the heartbeat timeout and runs on (SIGCONT): the arm stops
+   within that timeout plus a servo period and its stop (the simulated controller's own TCP), does not move again,
+   the goal reports that it ended, and a new goal moves the arm.
 
 Every process is stopped by its pid; every wait has a timeout. The counts of fuzzed messages are printed (``-s``).
 """
@@ -38,7 +42,8 @@ from fuzz import MALFORMATIONS, frames_of, malformed, oversized_frame
 from service_process import ServiceProcess
 from stack_process import Stack, children_left, free_ur_host, sim_toml_text, stack_config
 
-from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT
+from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT, URArmConfig
+from hydrosoft.services.arm_commander import PLANNER_LOST
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import FUTURE_STAMP_TOLERANCE_NS, Bus, LatestSubscriber, Stale, StaleStamp
 from hydrosoft.services.client import ClientError, StackClient
@@ -72,6 +77,21 @@ IDLE_WINDOW_S = 5.0
 KILL_STOP_BOUND_S = {"tag_tracker": 0.5 + 1.0 + 1.0, "bubble_camera-bubble": 0.5 + 1.0 + 1.0,
                      "ft_reader-bubble": 0.25 + 0.5, "sim_world": 0.5}
 RESTART_TIMEOUT_S = 90.0
+#: How long the planner may take to end a goal its commander no longer acts on, s: the commander's reconnect to a
+#: new controller (retried every 5 s; several tries on a busy machine), then the planner's next planning cycle.
+GOAL_END_TIMEOUT_S = RESTART_TIMEOUT_S
+#: How long the planner stays frozen (SIGSTOP to SIGCONT), s: well past the heartbeat timeout.
+FREEZE_S = 1.5
+#: From the freeze to the arm at rest on the simulated controller, s: the heartbeat timeout (deploy/sim.toml: 0.5 s)
+#: and one servo period (8 ms), the stop's deceleration from the max speed (0.05 m/s at the driver's stop
+#: deceleration) and scheduling slack on a busy machine (0.2 s, as test_two_hosts_stack.py's bound).
+FREEZE_STOP_BOUND_S = 0.5 + 0.008 + 0.05 / URArmConfig(host="x").stop_decel_m_s2 + 0.2
+#: How long the arm is watched after the thaw, s: the planner solves and sends its goal's targets meanwhile.
+WATCH_AFTER_THAW_S = 3.0
+#: The simulated TCP moving slower than this (m/s) is at rest.
+AT_REST_M_S = 1e-4
+#: Longest wait for one answer of the simulated controller's inspection port, s.
+CONTROL_READ_TIMEOUT_S = 2.0
 #: sim_world hosts the arm (its UR controller) and the F/T sensor's pty: killing it takes them down too.
 KILLED = ("tag_tracker", "bubble_camera-bubble", "ft_reader-bubble", "sim_world")
 
@@ -550,6 +570,61 @@ async def servoing(client: StackClient) -> msg.ArmState:
         assert time.monotonic() < deadline_s, "the arm never started servoing"
 
 
+async def planner_frozen_mid_goal(client: StackClient, ur_host: str, planner_pid: int):
+    """SIGSTOP the planner's process group while the arm servoes, SIGCONT it ``FREEZE_S`` later, and read the
+    simulated controller's TCP throughout and for ``WATCH_AFTER_THAW_S`` after: the seconds from the freeze to the
+    last moving sample, the largest motion (m) from ``FREEZE_STOP_BOUND_S`` on, and the goal's status once it
+    ended."""
+    await servoing(client)
+    reader, writer = await asyncio.open_connection(ur_host, SIM_CONTROL_PORT)
+    os.killpg(planner_pid, signal.SIGSTOP)
+    frozen_s = time.monotonic()
+    thawed, last_moving_s, held = False, 0.0, []
+    try:
+        while (now_s := time.monotonic() - frozen_s) < FREEZE_S + WATCH_AFTER_THAW_S:
+            if not thawed and now_s >= FREEZE_S:
+                os.killpg(planner_pid, signal.SIGCONT)
+                thawed = True
+            writer.write(b'{"op": "state"}\n')
+            truth = json.loads(await asyncio.wait_for(reader.readline(), CONTROL_READ_TIMEOUT_S))
+            if np.linalg.norm(truth["twist"]) >= AT_REST_M_S:
+                last_moving_s = now_s
+            if now_s >= FREEZE_STOP_BOUND_S:
+                held.append(np.array(truth["pose"][:3]))
+            await asyncio.sleep(0.005)
+    finally:
+        writer.close()
+        if not thawed:
+            os.killpg(planner_pid, signal.SIGCONT)
+    moved_m = max(float(np.linalg.norm(pose - held[0])) for pose in held)
+    return last_moving_s, moved_m, await goal_ended(client)
+
+
+def test_a_frozen_planner_that_runs_on_does_not_resume_its_goal_and_a_new_goal_moves_the_arm(launched):
+    client = launched.client
+
+    async def scenario():
+        planner_pid = (await client.status()).status.pid
+        last_moving_s, moved_m, ended = await planner_frozen_mid_goal(client, launched.ur_host, planner_pid)
+        arm = client.subscribe(f"arm_commander-{ARM}", (f"arm_state/{ARM}",))  # new: an idle one holds old states
+        assert await arm.wait(5.0), "no arm state within 5 s"
+        held = arm.latest(f"arm_state/{ARM}", 1.0, msg.ArmState).value
+        resumed = await servoing(client)  # a new goal
+        await client.stop("fault test")
+        return last_moving_s, moved_m, ended, held, resumed, planner_pid
+
+    last_moving_s, moved_m, ended, held, resumed, planner_pid = asyncio.run(asyncio.wait_for(scenario(), 180.0))
+    print(f"planner frozen {FREEZE_S} s mid-goal: the simulated arm's last motion {last_moving_s:.3f} s after the "
+          f"freeze (bound {FREEZE_STOP_BOUND_S:.3f} s), then it moved {moved_m * 1e3:.4f} mm; the goal: "
+          f"{ended.outcome} ({ended.outcome_reason})")
+    assert last_moving_s < FREEZE_STOP_BOUND_S, last_moving_s
+    assert moved_m < HELD_M, moved_m
+    assert ended.outcome == "interrupted" and PLANNER_LOST in ended.outcome_reason, ended
+    assert ended.status.pid == planner_pid, ended  # the same planner ran on, and ended its goal itself
+    assert held.goal_floor_cause == PLANNER_LOST and not held.servo_active, held
+    assert resumed.servo_active
+
+
 async def arm_while_down(client: StackClient, stack: Stack, victim: str, pid: int) -> tuple[float, float]:
     """SIGKILL ``pid`` (the service ``victim``) and watch the arm until the launcher reports the new run of it
     ready: the seconds from the kill to the arm's last servoing state, and the TCP motion (m) once it was stopped
@@ -583,6 +658,15 @@ async def arm_while_down(client: StackClient, stack: Stack, victim: str, pid: in
         assert time.monotonic() - killed_s < RESTART_TIMEOUT_S, f"{victim} was not restarted"
 
 
+async def goal_ended(client: StackClient) -> msg.StatusReply:
+    """Poll the planner's status until its goal no longer runs (at most ``GOAL_END_TIMEOUT_S``); that status."""
+    deadline_s = time.monotonic() + GOAL_END_TIMEOUT_S
+    while (reply := await client.status()).running:
+        assert time.monotonic() < deadline_s, f"the goal still runs after {GOAL_END_TIMEOUT_S} s: {reply}"
+        await asyncio.sleep(0.25)
+    return reply
+
+
 @pytest.mark.parametrize("victim", KILLED)
 def test_a_killed_service_stops_the_arm_and_is_restarted_while_the_rest_stays(launched, victim):
     client, config = launched.client, launched.config
@@ -593,6 +677,8 @@ def test_a_killed_service_stops_the_arm_and_is_restarted_while_the_rest_stays(la
         stale_before = (await client.status()).status.errors.get("stale_input", 0)
         last_servo_s, moved_m = await arm_while_down(client, launched.stack, victim, before[victim]["pid"])
         holding = await client.status()
+        if victim == "sim_world":
+            holding = await goal_ended(client)
         await client.stop("fault test")
         after = await asyncio.to_thread(launched.reports)
         return before, after, last_servo_s, moved_m, holding, stale_before
@@ -604,9 +690,14 @@ def test_a_killed_service_stops_the_arm_and_is_restarted_while_the_rest_stays(la
           f"(restart {after[victim]['restarts']})")
     assert last_servo_s < KILL_STOP_BOUND_S[victim], last_servo_s
     assert moved_m < HELD_M, moved_m
-    assert holding.running and holding.status.pid == before["planner"]["pid"], holding
+    assert holding.status.pid == before["planner"]["pid"], holding
+    if victim == "sim_world":  # the commander reconnected to a new controller: the goal is over, and says why
+        assert holding.outcome == "interrupted" and "reconnect" in holding.outcome_reason, holding
+    else:
+        assert holding.running, holding
     if victim != "ft_reader-bubble":  # without F/T only the commander's watchdog acts; the planner's inputs stay
         assert holding.status.errors.get("stale_input", 0) > stale_before, holding.status.errors
     assert after[victim]["restarts"] >= 1 and after[victim]["pid"] != before[victim]["pid"], after[victim]
     others = {name: (before[name]["pid"], after[name]["pid"]) for name in config.service_names() if name != victim}
     assert all(old == new for old, new in others.values()), others
+

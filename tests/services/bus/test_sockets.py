@@ -2,8 +2,12 @@
 malformed traffic and the request/reply pair. Every test runs under a deadline."""
 
 import asyncio
+import json
 import logging
 import math
+import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from collections import Counter
@@ -130,6 +134,47 @@ def test_curve_keys_put_curve_on_tcp_beyond_loopback_and_on_loopback_only_when_f
     assert forced.for_endpoint("ipc:///tmp/x.data", bind=False) is None
     assert forced.for_endpoint("tcp://127.0.0.21:5600", bind=False) == b.CurveClient(secret, secret)
     assert forced.for_endpoint("tcp://127.0.0.21:5600", bind=True) == b.CurveServer(secret, authorized)
+
+
+def test_only_inter_host_tcp_links_get_keepalive_and_a_retransmission_limit(keys, ipc_dir):
+    """A CURVE tcp endpoint (another host's; here loopback with CURVE forced) gets INTER_HOST_TCP_OPTIONS, on the
+    binding and the connecting side; an ipc endpoint and a plain loopback tcp one keep libzmq's defaults."""
+    secret, authorized = keys["server"][1], keys["server"][0].parent
+
+    def tcp_options(sock: zmq.Socket) -> tuple[tuple[int, int], ...]:
+        return tuple((option, sock.getsockopt(option)) for option, _ in b.INTER_HOST_TCP_OPTIONS)
+
+    with zmq.Context() as context, context.socket(zmq.PUB) as fresh:
+        defaults = tcp_options(fresh)
+    assert defaults != b.INTER_HOST_TCP_OPTIONS
+    with b.Bus(curve=b.CurveKeys(secret, authorized, loopback=True)) as bus:
+        server = bus.socket(zmq.PUB, "tcp://127.0.0.1:*", bind=True)
+        client = bus.socket(zmq.SUB, server.getsockopt_string(zmq.LAST_ENDPOINT), bind=False)
+        assert tcp_options(server) == tcp_options(client) == b.INTER_HOST_TCP_OPTIONS
+        assert tcp_options(bus.socket(zmq.PUB, f"ipc://{ipc_dir}/local.data", bind=True)) == defaults
+    with b.Bus() as bus:  # no CURVE keys: loopback tcp stays on this host
+        assert tcp_options(bus.socket(zmq.PUB, "tcp://127.0.0.1:*", bind=True)) == defaults
+
+
+#: From a dead link (every packet lost) to both ends closing it, s: keepalive's 1 s idle and 3 probes 1 s apart
+#: (the subscriber), the 4 s retransmission limit (the publisher), and scheduling slack on a busy machine.
+DEAD_LINK_BOUND_S = 1.0 + 3 * 1.0 + 2.0
+
+
+def test_a_dead_inter_host_link_is_closed_within_seconds_and_counted_and_a_plain_one_is_not():
+    """In a private network namespace (``dead_link.py``), the loopback interface going down cuts an inter-host link
+    and a plain one: both ends of the inter-host link close it (the subscriber counts ``link_dropped``) within
+    ``DEAD_LINK_BOUND_S``; the plain link, on the kernel's defaults, is still open when the watch ends."""
+    if shutil.which("unshare") is None or shutil.which("ip") is None or subprocess.run(
+            ["unshare", "-n", "true"], capture_output=True).returncode != 0:
+        pytest.skip("needs a private network namespace: unshare -n (root or user namespaces) and ip")
+    done = subprocess.run(["unshare", "-n", sys.executable, str(Path(__file__).parent / "dead_link.py")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    closed = json.loads(done.stdout)
+    print(f"a dead link closed after (s): {closed}")
+    assert all(seconds is not None and seconds < DEAD_LINK_BOUND_S for seconds in closed["inter_host"].values()), closed
+    assert closed["plain"] == {"subscriber": None, "publisher": None}, closed
 
 
 def test_a_secret_key_file_others_may_read_is_refused_naming_the_file(keys):
