@@ -168,7 +168,7 @@ def test_a_dead_inter_host_link_is_closed_within_seconds_and_counted_and_a_plain
     if shutil.which("unshare") is None or shutil.which("ip") is None or subprocess.run(
             ["unshare", "-n", "true"], capture_output=True).returncode != 0:
         pytest.skip("needs a private network namespace: unshare -n (root or user namespaces) and ip")
-    done = subprocess.run(["unshare", "-n", sys.executable, str(Path(__file__).parent / "dead_link.py")],
+    done = subprocess.run(["unshare", "-n", sys.executable, str(Path(__file__).parents[1] / "dead_link.py")],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     closed = json.loads(done.stdout)
