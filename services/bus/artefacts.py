@@ -189,9 +189,9 @@ class PartBuild:
         part = self.key.part
         what = "loading its artefact" if self.ready else "building its artefact (minutes on a small machine)"
         say(f"{part}: {self.status}: {what}; compile cache {self.cache}")
-        started = time.monotonic()
+        started, before = time.monotonic(), _graph_counts()
         with _progress(lambda: say(f"{part}: still compiling, {time.monotonic() - started:.0f} s, "
-                                   f"{_graphs()}"), period_s):
+                                   f"{_graphs(before)}"), period_s):
             fallback = compile()
         seconds = time.monotonic() - started
         if fallback is not None:
@@ -201,7 +201,7 @@ class PartBuild:
         if not self.ready:
             record(self.cache, self.key, seconds)
         self.seconds = seconds
-        say(f"{part}: {self.status} in {seconds:.1f} s ({_graphs()})")
+        say(f"{part}: {self.status} in {seconds:.1f} s ({_graphs(before)})")
         return True
 
 
@@ -223,9 +223,14 @@ def _progress(tick: Callable[[], None], period_s: float) -> Iterator[None]:
         thread.join()
 
 
-def _graphs() -> str:
-    """Inductor's graphs so far in this process: compiled, and loaded from the compile cache."""
+def _graph_counts() -> tuple[int, int]:
+    """Inductor's graphs so far in this process: (compiled, loaded from the compile cache)."""
     from torch._dynamo.utils import counters
     inductor = counters["inductor"]
-    return (f"{inductor['fxgraph_cache_miss'] + inductor['fxgraph_cache_bypass']} graphs compiled, "
-            f"{inductor['fxgraph_cache_hit']} loaded from the cache")
+    return inductor["fxgraph_cache_miss"] + inductor["fxgraph_cache_bypass"], inductor["fxgraph_cache_hit"]
+
+
+def _graphs(before: tuple[int, int]) -> str:
+    """Inductor's graphs since ``before`` (``_graph_counts``), in words."""
+    compiled, loaded = (now - then for now, then in zip(_graph_counts(), before))
+    return f"{compiled} graphs compiled, {loaded} loaded from the cache"
