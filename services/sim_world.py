@@ -144,7 +144,7 @@ class SimPlant:
     Args:
         model, state: from ``plant_model`` (or any compiled scene with ``B = 1``).
         arms: the scene bodies the arms carry; each must be an actuated body of ``model``.
-        compiled: step through ``CompiledStep`` (``compiled_step``; its first step compiles, 30-60 s).
+        compiled: step through ``CompiledStep`` (``compiled_step``; ``compile`` compiles it, or loads its artefact).
         frame: where the scene lies in the base frame (identity when None); ``state`` is in the scene's frame, what
             goes in and out (``step_to``, ``snapshot``, ``contact_forces``) in the base frame.
 

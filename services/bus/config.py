@@ -341,7 +341,8 @@ class SimConfig(Strict):
     planner's, camera noise (grey levels) and blur (px), depth noise (m). compile: run the plant's step compiled
     (``hydrosoft.dynamics.CompiledStep``): a tick (step and snapshot) takes a sixth of the eager
     one's CPU (1.4 against 9.2 ms, one thread, deploy/sim.toml's pushing plant: ``hydrosoft-stack bench plant``)
-    for 30-60 s of compilation before READY. On a small machine the
+    for compiling before READY: minutes when its artefact is missing or stale, loaded from the compile cache after
+    that (``services/bus/artefacts.py``; loop-free only with ``sdf_solver_steps``). On a small machine the
     eager plant, sharing two cores with the planner's solves, falls behind real time while the simulated arm does
     not, and the cube then lags the bubble. ur_tick_hz: the simulated UR controllers' cycle, which also caps their
     RTDE streams: a CB3's 125 Hz by default, not an e-Series' 500 Hz, as the commander servoes and reads at 125 Hz
