@@ -13,7 +13,7 @@ import pytest
 from hydrosoft.services.bus import artefacts
 from hydrosoft.services.bus.config import load_config
 
-SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+SIM_TOML = Path(__file__).parents[3] / "deploy" / "sim.toml"
 
 
 @pytest.fixture
