@@ -34,9 +34,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import importlib
 import math
-import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -58,6 +58,7 @@ from hydrosoft.tasks import Task, make_task
 from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, mean_point_distance
 from hydrosoft.tasks.evaluation import (METRIC_SPACING_M, PlannerSettings, planner_calls, with_body_materials,
                                         with_contact, with_solver_steps)
+from hydrosoft.services.bus import artefacts
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Stale, quote
 from hydrosoft.services.bus import service_cli
@@ -594,16 +595,28 @@ def compile_step(core: PlannerCore) -> float:
     return time.monotonic() - started
 
 
+def compile_planner(core: PlannerCore) -> str | None:
+    """Compile the planner's step and costs (``compile_step``); None when all of them run compiled, else each that
+    fell back to eager with its reason."""
+    compile_step(core)
+    parts = {"step": core.dynamics, "stage cost": core.cost_terms.stage, "terminal cost": core.cost_terms.terminal}
+    failed = [f"{name}: {part.fallback_reason}" for name, part in parts.items() if not part.compiled]
+    return "; ".join(failed) if failed else None
+
+
 async def run(service: Service, config: StackConfig) -> None:
     """The planner's loop: build (and compile) the model, serve the client API, plan while a goal runs."""
     loop = asyncio.get_running_loop()
     torch.set_num_threads(config.planner.threads)
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
-        service.log.info("compiling the planner step (the first solve; compile cache %s)",
-                         os.environ.get(service_cli.CACHE_ENV, "torch's default"))
-        seconds = await loop.run_in_executor(None, compile_step, core)
-        service.log.info("planner step compiled in %.1f s", seconds)
+        build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
+        service.compilation = build.status
+        if not await loop.run_in_executor(None, build.run, functools.partial(compile_planner, core), service.log.info):
+            service.log.warning("the planner runs eager: %s", build.fallback)
+        service.compilation = build.status
+    else:
+        service.compilation = "eager (planner.compile = false)"
     planner = Planner(service, config, core)
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
     serving = service.supervise(asyncio.create_task(server.serve(), name="planner.serve"))

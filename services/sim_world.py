@@ -58,6 +58,7 @@ from hydrosoft.drivers.ur.simulator import SimulatedURController
 from hydrosoft.dynamics import CompiledStep, Model, State, UnstableStepError, body_wrenches, step
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, compile_scene
+from hydrosoft.services.bus import artefacts
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Publisher
 from hydrosoft.services.bus import service_cli
@@ -69,7 +70,7 @@ from hydrosoft.services.sim.render import BubbleDepthCamera, tag_camera
 from hydrosoft.services.arm.task_frame import TaskFrame
 from hydrosoft.services.tag_tracker import OBJECT, TAG_CAMERA
 from hydrosoft.tasks import make_task
-from hydrosoft.tasks.evaluation import PlantSettings, with_body_materials, with_contact
+from hydrosoft.tasks.evaluation import PlantSettings, with_body_materials, with_contact, with_solver_steps
 
 SERVICE = "sim_world"
 PLANT = PlantSettings()  # the evaluation plant's contact model and sub-step factor, which sim_world shares
@@ -99,7 +100,8 @@ def plant_model(config: StackConfig, scene: Scene | None = None) -> tuple[Model,
     bubble may touch any point once it comes back to the object), one step per tick: ``dt = 1 / sim.rate_hz`` s,
     ``epsilon`` scaled by ``dt / scene.dt`` (the mobility ``dt / epsilon`` kept), and ``ceil(substeps *
     PLANT.substep_factor * dt / scene.dt)`` sub-steps (sub-steps no longer than the evaluation plant's; the step adds
-    more when the contacts need them). Each arm's ``[arms.material]`` replaces its bubble body's material.
+    more when the contacts need them), the bubble's closest points solved in ``sim.sdf_solver_steps`` fixed steps
+    (None: to convergence). Each arm's ``[arms.material]`` replaces its bubble body's material.
     """
     scene = make_task(config.scene.task).scene if scene is None else scene
     scene = with_body_materials(scene, config.bubble_materials())
@@ -109,7 +111,8 @@ def plant_model(config: StackConfig, scene: Scene | None = None) -> tuple[Model,
     if moved:
         pose = [scene.object.pose[0] + dx, scene.object.pose[1] + dy, *scene.object.pose[2:]]
         scene = msgspec.structs.replace(scene, object=msgspec.structs.replace(scene.object, pose=pose))
-    model, state, _ = compile_scene(with_contact(scene, PLANT.model, spacing_m), prune=not moved)
+    scene = with_solver_steps(with_contact(scene, PLANT.model, spacing_m), config.sim.sdf_solver_steps)
+    model, state, _ = compile_scene(scene, prune=not moved)
     dt_s = 1.0 / config.sim.rate_hz
     substeps = max(1, math.ceil(model.substeps * PLANT.substep_factor * dt_s / model.dt - 1e-9))
     return replace(model, dt=dt_s, epsilon=model.epsilon * dt_s / model.dt, substeps=substeps), state
@@ -142,7 +145,7 @@ class SimPlant:
     Args:
         model, state: from ``plant_model`` (or any compiled scene with ``B = 1``).
         arms: the scene bodies the arms carry; each must be an actuated body of ``model``.
-        compiled: step through ``CompiledStep`` (``compiled_step``; its first step compiles, 30-60 s).
+        compiled: step through ``CompiledStep`` (``compiled_step``; ``compile`` compiles it, or loads its artefact).
         frame: where the scene lies in the base frame (identity when None); ``state`` is in the scene's frame, what
             goes in and out (``step_to``, ``snapshot``, ``contact_forces``) in the base frame.
 
@@ -255,6 +258,11 @@ class SimPlant:
         u = torch.zeros(1, self.model.n_bodies, 6, dtype=self.model.dtype)
         with torch.no_grad():
             self._step(self._step(State(*self.state[:3]), u), u)
+
+    def compile(self) -> str | None:
+        """Compile the step (``warm_up``): None when it runs compiled, else why it fell back to eager."""
+        self.warm_up()
+        return None if self.compiled_step is None else self.compiled_step.fallback_reason
 
     def tcp_wrench(self, arm: str) -> np.ndarray:
         """The newest wrench ``(6,)`` [N, N m] on ``arm``'s body, TCP frame (``snapshot``; any thread)."""
@@ -460,11 +468,15 @@ async def serve(service: Service, config: StackConfig) -> None:
     physics_stats = DurationStats("physics")
     image_stats = DurationStats("tag camera (exposure to image)")
     depth_stats = [DurationStats(f"depth {c.arm}") for c in depth_cameras]
-    if plant.compiled_step is not None:
-        service.log.info("compiling the plant step (sim.compile; 30-60 s)")
+    if plant.compiled_step is None:
+        service.compilation = "eager (sim.compile = false)"
+    else:
+        build = artefacts.PartBuild(artefacts.plant_key(config), artefacts.cache_dir(config))
+        service.compilation = build.status
+        if not await loop.run_in_executor(None, build.run, plant.compile, service.log.info):
+            service.log.warning("the plant step runs eager: %s", build.fallback)
+        service.compilation = build.status
     await loop.run_in_executor(None, _warm_up, plant, camera, depth_cameras)
-    if plant.compiled_step is not None and not plant.compiled_step.compiled:
-        service.log.warning("the plant step runs eager: %s", plant.compiled_step.fallback_reason)
     await service.ready()
     async with asyncio.TaskGroup() as tasks:
         tasks.create_task(physics_forever(service, plant, controllers, physics_stats))

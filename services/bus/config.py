@@ -371,7 +371,8 @@ class SimConfig(Strict):
     planner's, camera noise (grey levels) and blur (px), depth noise (m). compile: run the plant's step compiled
     (``hydrosoft.dynamics.CompiledStep``): a tick (step and snapshot) takes a sixth of the eager
     one's CPU (1.4 against 9.2 ms, one thread, deploy/sim.toml's pushing plant: ``hydrosoft-stack bench plant``)
-    for 30-60 s of compilation before READY. On a small machine the
+    for compiling before READY: minutes when its artefact is missing or stale, loaded from the compile cache after
+    that (``services/bus/artefacts.py``; loop-free only with ``sdf_solver_steps``). On a small machine the
     eager plant, sharing two cores with the planner's solves, falls behind real time while the simulated arm does
     not, and the cube then lags the bubble. ur_tick_hz: the simulated UR controllers' cycle, which also caps their
     RTDE streams: a CB3's 125 Hz by default, not an e-Series' 500 Hz, as the commander servoes and reads at 125 Hz
@@ -380,7 +381,9 @@ class SimConfig(Strict):
     a lost object for the planner to re-approach (``services/arm/reapproach.py``). ft_bias: the simulated FT 300's
     zero-load reading ``[Fx, Fy, Fz, Mx, My, Mz]`` (N, N m), which it adds to every frame as a real sensor's offset;
     sim_world stores it as the arm's tare (``services/arm/ft_bias.py``) at its start, a tare taken before the membrane
-    touched anything."""
+    touched anything. sdf_solver_steps: the plant's bubble closest points, as ``planner.sdf_solver_steps`` (None:
+    solved to convergence, a ``torch.while_loop`` that torch's compile cache cannot keep, so a compiled plant
+    compiles at every launch; 3 fixed steps: within 1e-7 m up to 2 cm deep, kept by the cache)."""
 
     rate_hz: float = 50.0
     ur_tick_hz: float = 125.0
@@ -390,9 +393,13 @@ class SimConfig(Strict):
     image_blur_px: float = 0.6
     depth_noise_m: float = 0.0002
     object_offset_m: tuple[float, float] = (0.0, 0.0)
+    sdf_solver_steps: int | None = None
     ft_bias: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
+        _require(self.sdf_solver_steps is None or 0 <= self.sdf_solver_steps <= SDF_SOLVER_STEPS_MAX,
+                 "sim.sdf_solver_steps", f"must be 0..{SDF_SOLVER_STEPS_MAX} (or left out: solve to convergence), "
+                 f"got {self.sdf_solver_steps}")
         _positive(self, "sim", "rate_hz", "spacing_factor", "ur_tick_hz")
         _require(all(math.isfinite(v) for v in self.ft_bias)
                  and max(abs(v) for v in self.ft_bias[:3]) <= MAX_SIM_FT_BIAS_N

@@ -456,7 +456,10 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
     count per error kind since start. last_error: text of the newest error ("" if none). restarts: how often the
     launcher restarted it. note: the service's own one-line account of a state worth knowing ("" if none; the F/T
     reader's bias and its age, or why it publishes untared readings). instance: the id of the stack launch it
-    belongs to (the launcher's, passed to all its services; a service started alone makes its own)."""
+    belongs to (the launcher's, passed to all its services; a service started alone makes its own). compilation:
+    a service with a compiled part (the planner, sim_world): ``compiling: ...`` (loading its artefact, or building
+    a missing or stale one), ``compiled (artefact KEY)`` or ``eager...`` with the reason; "" for the others
+    (``services/bus/artefacts.py``)."""
 
     topic = "status"
 
@@ -470,6 +473,7 @@ class ServiceStatus(Message, frozen=True, kw_only=True):
     restarts: int = 0
     note: str = ""
     instance: str = ""
+    compilation: str = ""
 
 
 # --- client API: requests and replies ----------------------------------------------------------------------------

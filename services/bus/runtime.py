@@ -135,6 +135,7 @@ class Service:
         self.state: ServiceState = "starting"
         self.restarts = _restarts_from_environment(self.log)
         self.note = ""  # a line for the status on a state worth knowing (ServiceStatus.note); set it any time
+        self.compilation = ""  # its compiled part: compiling, compiled or eager (ServiceStatus.compilation)
         self.instance = new_instance_id() if not os.environ.get(INSTANCE_ENV) else os.environ[INSTANCE_ENV][:64]
         self._started_ns = time.monotonic_ns()
         self._publishers: list[Publisher] = []
@@ -238,6 +239,7 @@ class Service:
             last_error=self.errors.last_error,
             restarts=self.restarts,
             note=self.note,
+            compilation=self.compilation,
             instance=self.instance,
         )
 

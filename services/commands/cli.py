@@ -52,7 +52,7 @@ COMMANDS = {
     "goal": ("hydrosoft.services.client", "set a goal on a running stack, start it and (with --wait) wait for the outcome"),
     "launch": ("hydrosoft.services.commands.launch", "start the stack's services from a config, keep them up, stop them safely on Ctrl-C"),
     "status": ("hydrosoft.services.commands.status", "show each running service's state, pid, uptime, message rates, restarts and errors"),
-    "compile": ("hydrosoft.services.commands.compile", "compile a config's planner step into torch's compile cache once, so that every launch after it is ready in seconds"),
+    "compile": ("hydrosoft.services.commands.compile", "build the artefacts of a config's compiled plant and planner once (torch's compile cache), so that every launch after it loads them"),
     "check": ("hydrosoft.services.commands.check", "probe every device a stack config names and say what answers, without moving the arm"),
     "replay": ("hydrosoft.services.commands.replay", "publish an MCAP recording back onto the bus with its original timing (stands in for the services that sent it)"),
     "view": ("hydrosoft.services.commands.view", "serve a running stack's scene and topics live to Foxglove over WebSocket on 127.0.0.1"),

@@ -1,53 +1,72 @@
-"""``hydrosoft-stack compile CONFIG``: fill torch's compile cache with the config's compiled planner step and costs,
-so that the stack's first launch reports ready in seconds instead of minutes.
+"""``hydrosoft-stack compile CONFIG``: build the artefacts of a config's compiled parts (sim_world's plant with
+``sim.compile``, the planner's step and costs with ``planner.compile``) into torch's compile cache, so that every
+launch after it loads them instead of compiling them.
 
-With ``planner.compile`` the planner compiles its step before it reports ready: 2.5-6.5 minutes on a 2-core
-machine the first time, 6-15 s once torch's compile cache (``compile_cache_dir``, or ``TORCHINDUCTOR_CACHE_DIR``)
-holds it. Run this once after an install or a torch upgrade, as the user the stack runs as (the cache is per
-directory), and before the first ``launch``. It opens no device and no socket. sim_world's plant is not compiled
-here: it solves the bubble to convergence (a ``torch.while_loop``), which torch cannot cache, so it compiles at
-every launch (20-60 s). Exit codes: 0 compiled (or nothing to compile: ``planner.compile`` is false), 1 the step
-or a cost fell back to eager (each named with its reason), 2 a config that cannot be used.
+Each part says what it does: it loads an artefact built for this config and torch, or builds a missing or stale one
+(``services/bus/artefacts.py``), with a progress line every 15 s, and records it when done. Building from cold takes
+minutes on a 2-core machine; a launch then starts each part from the cache. Run it once after an install, a torch
+upgrade or a config change, as the user the stack runs as (the cache is per directory), before the first
+``launch``; a launch that finds an artefact missing or stale builds it itself, saying so in its log and status. It
+opens no device and no socket. Exit codes: 0 every part compiled (or nothing to compile), 1 a part fell back to
+eager (named with its reason), 2 a config that cannot be used.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
+import functools
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
-from hydrosoft.services.bus.config import ConfigError, load_config
-from hydrosoft.services.planner import PlannerCore, compile_step
-from hydrosoft.services.bus.service_cli import CACHE_ENV, use_compile_cache
+from hydrosoft.services.bus import artefacts
+from hydrosoft.services.bus.config import ConfigError, StackConfig, load_config
+from hydrosoft.services.planner import PlannerCore, compile_planner
+from hydrosoft.services.bus.service_cli import use_compile_cache
+from hydrosoft.services.sim_world import TORCH_THREADS, SimPlant
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("config", type=Path, help="the stack's TOML config (deploy/lab.toml, deploy/sim.toml)")
 
 
+def compiled_parts(config: StackConfig) -> list[tuple[artefacts.ArtefactKey, int, Callable[[], str | None]]]:
+    """The config's compiled parts, in launch order: each part's key, its torch threads and what compiles it (None
+    once compiled, or why it fell back to eager). Building a part's model here raises ValueError for a config whose
+    arms the scene lacks."""
+    parts = []
+    if config.mode == "sim" and config.sim.compile:
+        plant = SimPlant.from_config(config)
+        parts.append((artefacts.plant_key(config), TORCH_THREADS, plant.compile))
+    if config.planner.compile:
+        core = PlannerCore.build(config)
+        parts.append((artefacts.planner_key(config), config.planner.threads, functools.partial(compile_planner, core)))
+    return parts
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         config = load_config(args.config)
         use_compile_cache(config)  # before anything of torch's asks for its cache (which then fixes the variable)
-        core = PlannerCore.build(config)
+        parts = compiled_parts(config)
     except (ConfigError, ValueError) as err:
         print(f"compile: {err}", file=sys.stderr)
         return 2
-    if not config.planner.compile:
-        print(f"compile: nothing to compile: {args.config} runs the planner eager (planner.compile = false)")
+    if not parts:
+        print(f"compile: nothing to compile: {args.config} runs the plant and the planner eager (sim.compile and "
+              f"planner.compile are false)")
         return 0
-    torch.set_num_threads(config.planner.threads)
-    cache = os.environ.get(CACHE_ENV, "torch's default cache, /tmp/torchinductor_USER")
-    print(f"compile: compiling the planner step into {cache} (minutes the first time, seconds when the cache holds "
-          f"it)", flush=True)
-    seconds = compile_step(core)
-    parts = {"step": core.dynamics, "stage cost": core.cost_terms.stage, "terminal cost": core.cost_terms.terminal}
-    failed = [f"{name}: {part.fallback_reason}" for name, part in parts.items() if not part.compiled]
-    if failed:
-        print(f"compile: the planner fell back to eager ({'; '.join(failed)})", file=sys.stderr)
+    cache = artefacts.cache_dir(config)
+    eager = []
+    for key, threads, compile in parts:
+        torch.set_num_threads(threads)
+        build = artefacts.PartBuild(key, cache)
+        if not build.run(compile, lambda line: print(f"compile: {line}", flush=True)):
+            eager.append(f"{key.part}: {build.fallback}")
+    if eager:
+        print(f"compile: fell back to eager ({'; '.join(eager)})", file=sys.stderr)
         return 1
-    print(f"compile: planner step and costs compiled in {seconds:.1f} s")
+    print(f"compile: {', '.join(key.part for key, _, _ in parts)} compiled; artefacts in {cache}")
     return 0

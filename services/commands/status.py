@@ -63,6 +63,8 @@ def report_for(status: ServiceStatus | None, heartbeat_age_s: float | None) -> R
     }
     if status.note:
         report["note"] = status.note
+    if status.compilation:
+        report["compilation"] = status.compilation
     return report
 
 
@@ -87,6 +89,8 @@ def format_table(reports: dict[str, Report]) -> str:
         lines.append(f"{'':<4}publishes: {_rates(report['published_hz'])}; receives: {_rates(report['received_hz'])}")
         if "note" in report:
             lines.append(f"{'':<4}note: {report['note']}")
+        if "compilation" in report:
+            lines.append(f"{'':<4}compilation: {report['compilation']}")
         if report["heartbeat_age_s"] is None:
             lines.append(f"{'':<4}no heartbeat in the window")
         if errors:

@@ -71,6 +71,7 @@ def test_status_reports_state_errors_and_rates(ipc_dir):
                 await asyncio.sleep(0.01)
             await asyncio.sleep(0.05)
             service.measure_rates()
+            service.compilation = "compiled (artefact 0123456789ab)"
             await service.set_state("degraded")
             status = None
             deadline_s = time.monotonic() + 5.0
@@ -84,6 +85,7 @@ def test_status_reports_state_errors_and_rates(ipc_dir):
             assert status.last_error == "driver_timeout: no frame for 0.6 s"
             assert status.published_hz["wrench/ft"] > 0 and status.received_hz["wrench/ft"] > 0
             assert status.uptime_s > 0
+            assert status.compilation == "compiled (artefact 0123456789ab)"
 
     run(scenario())
 

@@ -1,15 +1,21 @@
-"""``hydrosoft-stack compile``: it compiles the planner's step as the planner's start-up does, or says why not."""
+"""``hydrosoft-stack compile``: it builds the artefacts of a config's compiled plant and planner as their services'
+start-ups do, rebuilds a stale one, or says why it cannot."""
 
 from __future__ import annotations
 
 import functools
+import json
+import re
 from pathlib import Path
 
 import pytest
 import torch
 
 from hydrosoft.dynamics import CompiledStep
+from hydrosoft.services import sim_world
+from hydrosoft.services.bus import artefacts
 from hydrosoft.services.commands.cli import main
+from hydrosoft.services.bus.config import load_config
 from hydrosoft.services.bus.service_cli import CACHE_ENV
 from hydrosoft.tasks import evaluation
 from hydrosoft.tasks.base import compiled_cost_terms
@@ -24,10 +30,13 @@ def no_cache_env(monkeypatch):
     monkeypatch.delenv(CACHE_ENV)
 
 
-def compiled_config(tmp_path: Path) -> Path:
-    """deploy/sim.toml with the planner compiled and its compile cache under ``tmp_path``."""
+def compiled_config(tmp_path: Path, plant: bool = True) -> Path:
+    """deploy/sim.toml with the planner compiled, the plant compiled or not, and the compile cache under
+    ``tmp_path``."""
     path = tmp_path / "compiled.toml"
     text = SIM_TOML.read_text().replace("compile = false ", "compile = true ", 1)
+    if not plant:
+        text = re.sub(r"(\[sim\][^\[]*?\n)compile = true", r"\1compile = false", text, count=1)
     path.write_text(f'compile_cache_dir = "{tmp_path}/cache"\n' + text)
     return path
 
@@ -36,20 +45,23 @@ def failing_backend(graph, example_inputs):
     raise RuntimeError("no C++ compiler")
 
 
-def test_an_eager_planner_has_nothing_to_compile(capsys):
-    assert main(["compile", str(SIM_TOML)]) == 0
+def test_an_eager_stack_has_nothing_to_compile(tmp_path, capsys):
+    path = compiled_config(tmp_path, plant=False)
+    path.write_text(path.read_text().replace("compile = true ", "compile = false ", 1))
+    assert main(["compile", str(path)]) == 0
     assert "nothing to compile" in capsys.readouterr().out
 
 
 def test_a_bad_config_is_refused_by_key(tmp_path, capsys):
     path = tmp_path / "bad.toml"
-    path.write_text(SIM_TOML.read_text().replace("sdf_solver_steps = 3", "sdf_solver_steps = -1"))
+    path.write_text(SIM_TOML.read_text().replace("sdf_solver_steps = 3", "sdf_solver_steps = -1", 1))
     assert main(["compile", str(path)]) == 2
     assert "planner.sdf_solver_steps" in capsys.readouterr().err
 
 
-def test_it_compiles_the_planner_step_into_the_configs_cache(tmp_path, capsys, monkeypatch, no_cache_env):
-    """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes)."""
+def test_it_builds_each_parts_artefact_and_rebuilds_a_stale_one(tmp_path, capsys, monkeypatch, no_cache_env):
+    """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes). The cache
+    holds the planner's artefact of another torch version (stale) and none of the plant's (missing)."""
     backends = []
 
     def recording_backend(graph, example_inputs):
@@ -58,18 +70,27 @@ def test_it_compiles_the_planner_step_into_the_configs_cache(tmp_path, capsys, m
 
     monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend=recording_backend))
     monkeypatch.setattr(evaluation, "compiled_cost_terms", functools.partial(compiled_cost_terms, backend="eager"))
+    monkeypatch.setattr(sim_world, "CompiledStep", functools.partial(CompiledStep, backend="eager"))
+    path, cache = compiled_config(tmp_path), tmp_path / "cache"
+    config = load_config(path)
+    plant, planner = artefacts.plant_key(config), artefacts.planner_key(config)
+    artefacts.record(cache, artefacts.planner_key(config, "2.12.1"), 60.0)
     try:
-        assert main(["compile", str(compiled_config(tmp_path))]) == 0
+        assert main(["compile", str(path)]) == 0
     finally:
         torch._dynamo.reset()
     out = capsys.readouterr().out
-    assert f"into {tmp_path}/cache" in out and "planner step and costs compiled in" in out
+    assert f"plant: compiling: missing artefact, building {plant.key}" in out
+    assert f"planner: compiling: stale artefact (torch 2.12.1 -> {torch.__version__}), building {planner.key}" in out
+    assert f"plant: compiled (artefact {plant.key})" in out and f"planner: compiled (artefact {planner.key})" in out
+    assert f"artefacts in {cache}" in out
+    assert artefacts.check(cache, plant) == artefacts.check(cache, planner) == "ready"
     assert len(backends) >= 2  # a solve's signatures: gradient-enabled and no-grad rollouts at least
 
 
 @pytest.mark.parametrize("failing, named, unnamed", [
-    ("step", ["(step: "], "cost:"),
-    ("costs", ["(stage cost: ", "; terminal cost: "], "step:"),
+    ("step", ["(planner: step: "], "cost:"),
+    ("costs", ["(planner: stage cost: ", "; terminal cost: "], "step:"),
 ])
 def test_a_part_that_falls_back_to_eager_fails_and_is_named(failing, named, unnamed, tmp_path, capsys, monkeypatch,
                                                             no_cache_env):
@@ -79,9 +100,10 @@ def test_a_part_that_falls_back_to_eager_fails_and_is_named(failing, named, unna
                                                                           backend=backends["costs"]))
     try:
         with pytest.warns(RuntimeWarning, match="running eager"):
-            assert main(["compile", str(compiled_config(tmp_path))]) == 1
+            assert main(["compile", str(compiled_config(tmp_path, plant=False))]) == 1
     finally:
         torch._dynamo.reset()
     err = capsys.readouterr().err
     assert "fell back to eager" in err and "no C++ compiler" in err and unnamed not in err
     assert all(text in err for text in named)
+    assert not artefacts.record_path(tmp_path / "cache", "planner").exists()  # nothing recorded for it

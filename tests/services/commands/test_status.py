@@ -49,6 +49,16 @@ def test_report_carries_every_field_and_none_means_no_status():
     assert table.splitlines()[-1] == f"stack launch {'a' * 32}"
 
 
+def test_a_services_compilation_is_reported_and_shown_and_absent_for_the_others():
+    line = "compiling: stale artefact (torch 2.12.1 -> 2.13.0), building 0123456789ab"
+    compiling = status.report_for(ServiceStatus(state="starting", pid=7, uptime_s=3.0, compilation=line), None)
+    plain = status.report_for(ServiceStatus(state="ready", pid=8, uptime_s=3.0), 0.1)
+    assert compiling["compilation"] == line and "compilation" not in plain
+    table = status.format_table({"planner": compiling, "tag_tracker": plain}).splitlines()
+    assert table[table.index(next(row for row in table if row.startswith("planner"))) + 2] == f"    compilation: {line}"
+    assert sum("compilation:" in row for row in table) == 1
+
+
 def test_services_of_several_launches_are_flagged():
     reports = {name: status.report_for(ServiceStatus(state="ready", pid=pid, uptime_s=1.0, instance=launch), 0.1)
                for name, pid, launch in (("planner", 1, "a" * 32), ("arm_commander-a", 2, "b" * 32))}
