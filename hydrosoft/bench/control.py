@@ -98,8 +98,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loops", type=_csv, default=["open", "closed"], metavar="L1,L2",
                         help="open,closed (default both)")
     parser.add_argument("--goals", type=int, default=None, help="seeded goals per task (default 10, quick 2)")
-    parser.add_argument("--quick", action="store_true", help="small planner (B = 16, K = 6, G = 1) and 2 goals: 96 episodes with the default tasks, models "
-                             "and plants, about 40 min of one core; split it with --tasks over processes")
+    parser.add_argument("--quick", action="store_true",
+                        help="small planner (B = 16, K = 6, G = 1) and 2 goals: 96 episodes with the default tasks, "
+                             "models and plants, about 40 min of one core; split it with --tasks over processes")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
     parser.add_argument("--out", type=Path, default=Path("out/bench-control"), help="folder for the PNGs")
     parser.add_argument("--plant", default="nh", help="the finer plant's contact model, or 'same' as the planner (default nh)")
