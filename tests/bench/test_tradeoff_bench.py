@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+import pytest
 
 from hydrosoft.bench import tradeoff
 
@@ -44,6 +45,7 @@ def test_unknown_task_is_refused(tmp_path):
     assert tradeoff.run(parse("--tasks", "juggling", "--out", str(tmp_path))) == 2
 
 
+@pytest.mark.slow
 def test_goals_option_averages_every_setting_over_that_many_goals(tmp_path, capsys):
     assert tradeoff.run(parse("--quick", "--goals", "2", "--steps", "1", "--json", "--out", str(tmp_path))) == 0
     document = json.loads(capsys.readouterr().out)
