@@ -36,7 +36,7 @@ and model first runs an untimed one-step closed-loop episode that compiles its p
 times are steady-state ones.
 
 Run times (single thread). ``--quick``: 96 episodes of 20-56 control steps (3,336 in all, half of them closed
-loop, a solve each), about 40 minutes of one core: its first 10 episodes (pushing) took 190 s of CPU, and the
+loop, a solve each), about 40 minutes of one core: its first 10 episodes (pushing) took 184 s of CPU, and the
 rolling and PF episodes cost more (docs/benchmarks.md). It once took 3.5 min, with half the episodes (one plant),
 fixed 20-40 step episodes (1,440 steps) and rolling at 2 sub-steps. The full setting with ``--compile``, two
 processes sharing 2 cores: rolling 50 min, the other three tasks 41 min (NH and PFF, docs/results-table3.md). Run
