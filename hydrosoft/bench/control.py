@@ -13,8 +13,10 @@ success rate (final ADD <= the task's threshold), the statuses and the episode l
 
 Settings. Full (default): planner surface spacing 8.4 mm (216 points on the 5 cm cube; pruning keeps the 132
 that can touch a body in pushing and rotation), B = 64 samples, 8 elites, horizon K = 10, G = 2 gradient steps,
-4 CEM rounds for the open-loop solve, 10 goals. ``--quick`` (what CI runs, under 5 minutes on 2 cores): spacing
-12.5 mm (96 points), B = 16, 4 elites, K = 6, G = 1, 3 open-loop rounds, 2 goals, replanning rate from 3 solves.
+4 CEM rounds for the open-loop solve, 10 goals. ``--quick``: spacing 12.5 mm (96 points), B = 16, 4 elites, K = 6,
+G = 1, 3 open-loop rounds, 2 goals, replanning rate from 3 solves. The small planner makes each solve cheap, not
+the run short: with the default tasks, models and plants it is 96 episodes (CI runs pieces of it with ``--steps 1``
+or 2, ``tests/bench``).
 The replanning rate is always measured with the full planner (B = 64, K = 10, G = 2, 132 active points, 3
 sub-steps) on closed-loop planar pushing, once per ``--rate-dtypes`` entry, ``--rate-sdf-solver-steps`` entry
 (the bubble's closest-point solve converged, or in a fixed number of steps) and ``--rate-workers`` entry (the
@@ -33,9 +35,12 @@ thread; after that a full-planner pushing solve takes ~0.24 s (float64, 1 thread
 and model first runs an untimed one-step closed-loop episode that compiles its planner, so the reported solve
 times are steady-state ones.
 
-Run times (single thread): ``--quick`` ~3.5 min; the full setting with ``--compile``, two processes sharing 2
-cores: pushing 11 min, rotation 11 min, rolling 20 min, in-hand 16 min. Run tasks as separate processes
-(``--tasks pushing`` ...) to use both cores.
+Run times (single thread). ``--quick``: 96 episodes of 20-56 control steps (3,336 in all, half of them closed
+loop, a solve each), about 40 minutes of one core: its first 10 episodes (pushing) took 184 s of CPU, and the
+rolling and PF episodes cost more (docs/benchmarks.md). It once took 3.5 min, with half the episodes (one plant),
+fixed 20-40 step episodes (1,440 steps) and rolling at 2 sub-steps. The full setting with ``--compile``, two
+processes sharing 2 cores: rolling 50 min, the other three tasks 41 min (NH and PFF, docs/results-table3.md). Run
+tasks as separate processes (``--tasks pushing`` ...) to use both cores.
 
 ``--episodes FILE`` makes a run resumable (``hydrosoft.bench.episode_log``): each finished episode is appended
 to FILE as one JSON line, and a later run with the same FILE and settings reuses those episodes and runs only the
@@ -93,7 +98,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loops", type=_csv, default=["open", "closed"], metavar="L1,L2",
                         help="open,closed (default both)")
     parser.add_argument("--goals", type=int, default=None, help="seeded goals per task (default 10, quick 2)")
-    parser.add_argument("--quick", action="store_true", help="small planner and 2 goals: under 5 minutes on 2 cores")
+    parser.add_argument("--quick", action="store_true",
+                        help="small planner (B = 16, K = 6, G = 1) and 2 goals: 96 episodes with the default tasks, "
+                             "models and plants, about 40 min of one core; split it with --tasks over processes")
     parser.add_argument("--json", action="store_true", help="print exactly one JSON document instead of the table")
     parser.add_argument("--out", type=Path, default=Path("out/bench-control"), help="folder for the PNGs")
     parser.add_argument("--plant", default="nh", help="the finer plant's contact model, or 'same' as the planner (default nh)")

@@ -105,7 +105,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``hydrosoft-stack bench model``."""
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of tables")
     parser.add_argument("--quick", action="store_true",
-                        help="small grid and short paths (about a minute on 2 CPU cores)")
+                        help="small grid (4 models x 2 dtypes x batch 1, 64 x 100, 500 points: 32 settings) and short "
+                             "paths: over 9 min of one core, its timing rows alone (measured 2026-11-27)")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device to run on (default cpu)")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads (default: torch's own choice); reported in config")

@@ -176,7 +176,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_argument(parser)
     parser.add_argument("--seconds", type=float, default=20.0,
                         help="length of each phase, s (default 20; the run takes the stack's start, 1-3 min on 2 "
-                             "cores, plus about 3 x SECONDS + 20 s)")
+                             "cores and up to 4.2 min under load, plus about 3 x SECONDS + 20 s)")
     parser.add_argument("--keep", type=Path, default=None, metavar="DIR",
                         help="copy the logs and the recording to DIR")
     parser.add_argument("--json", action="store_true", help="print only the JSON document")

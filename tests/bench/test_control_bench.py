@@ -7,6 +7,7 @@ import functools
 import json
 import math
 
+import pytest
 import torch
 
 from hydrosoft.bench import control
@@ -31,6 +32,7 @@ def test_defaults_are_the_paper_setting():
     assert (control.FULL["horizon"], control.FULL["grad_steps"]) == (10, 2)
 
 
+@pytest.mark.slow
 def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsys):
     args = parse("--tasks", "pushing,in_hand", "--models", "nh,pff", "--quick", "--steps", "2", "--goals", "2",
                  "--rate-solves", "1", "--json", "--out", str(tmp_path))
@@ -94,6 +96,7 @@ def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost
         assert "--rate-activation-budgets" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_rate_is_measured_with_worker_threads_and_worker_processes_alike(tmp_path, capsys):
     """The same loop with its two shares on threads and in processes of their own: the same plans, bit for bit (the
     same arithmetic per row); the step and cost calls are not timed where they run in other processes."""
@@ -155,6 +158,7 @@ def test_unknown_names_are_refused(tmp_path, capsys):
     assert not tmp_path.exists() or not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp_path, capsys, monkeypatch):
     """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes)."""
     monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend="eager"))

@@ -31,6 +31,7 @@ def _run(args, capsys):
     return json.loads(out)
 
 
+@pytest.mark.slow
 def test_quick_bench_json_schema_and_values(quick_args, capsys):
     doc = _run(quick_args, capsys)
     assert set(doc) == {"config", "rows", "accuracy", "wrench", "object_update", "pruning", "point_sets",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+import pytest
 
 from hydrosoft.bench import tradeoff
 
@@ -59,6 +60,7 @@ def test_unknown_task_is_refused(tmp_path):
     assert tradeoff.run(parse("--tasks", "juggling", "--out", str(tmp_path))) == 2
 
 
+@pytest.mark.slow
 def test_goals_option_averages_every_setting_over_that_many_goals(tmp_path, capsys):
     args = parse("--quick", "--settings", "base,samples=8", "--goals", "2", "--steps", "1", "--json",
                  "--out", str(tmp_path))

@@ -127,6 +127,7 @@ def test_gradients_are_finite_and_match_finite_differences():
         assert torch.isclose(analytic, numeric, rtol=2e-2, atol=0)
 
 
+@pytest.mark.slow
 def test_the_compiled_step_is_the_eager_one():
     """Inductor, float32: the linearly implicit step (its written-out solve included) and its gradient against the
     eager step, at the tolerances of the explicit step's compiled check (``test_fast_path``). About a minute."""
