@@ -110,6 +110,7 @@ class RecordingReaders:
     def __init__(self, stack_options: dict | None = None) -> None:
         self.stack_options = stack_options or {}
         self.stack: dict[str, dict] = {}
+        self._read: dict[str, tuple] = {}  # each stack recording is read once (check, then load)
 
     def __call__(self, path: Path):
         from dataclasses import replace
@@ -119,12 +120,14 @@ class RecordingReaders:
 
         if not is_stack_recording(path):
             return read_wrench_recording(path)
-        read = read_stack_recording(path, **self.stack_options)
-        index = self.stack.get(str(path), {}).get("index", self.STACK_INDEX_BASE + len(self.stack))
-        self.stack[str(path)] = {"index": index, "arm": read.arm, "object": read.info.object,
-                                 "clamped": bool(self.stack_options.get("clamped", False)), "kept": read.kept,
-                                 "dropped": read.dropped}
-        return read.info, [replace(read.trajectory, index=index)]
+        if str(path) not in self._read:
+            read = read_stack_recording(path, **self.stack_options)
+            index = self.STACK_INDEX_BASE + len(self.stack)
+            self.stack[str(path)] = {"index": index, "arm": read.arm, "object": read.info.object,
+                                     "clamped": bool(self.stack_options.get("clamped", False)), "kept": read.kept,
+                                     "dropped": read.dropped}
+            self._read[str(path)] = read.info, [replace(read.trajectory, index=index)]
+        return self._read[str(path)]
 
 
 def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdout: float = 0.2, seed: int = 0,

@@ -10,8 +10,8 @@ clamped, no object pose) within ``max_gap_s`` of it is dropped and counted. With
 first tracked object pose (the object does not move; tracker noise stays out of the replay).
 
 The first kept sample is the trajectory's tare row (``wrench_replay.measured_tcp_wrenches`` subtracts it): the
-recording must start with the bubble out of contact. The file is only read, one message at a time (images and other
-topics are never decoded); only the kept topics' stamps, poses and wrenches are held.
+recording must start with the bubble out of contact. The file is only read, in one pass, one message at a time
+(images and other topics are never decoded); only these topics' stamps, poses and wrenches are held.
 """
 
 from __future__ import annotations
@@ -42,16 +42,22 @@ class StackTrajectory:
 
 
 def is_stack_recording(path: str | Path) -> bool:
-    """Whether ``path`` is a stack recording (an MCAP file without the ``collect wrench`` metadata record)."""
-    from hydrosoft.bench.wrench_recording import METADATA_NAME
-    from hydrosoft.services.recording.mcap_format import RecordingError, RecordingReader
+    """Whether ``path`` is a stack recording: an MCAP file whose first channel is not the ``collect wrench``
+    sample channel (read up to that channel only; a file that is not MCAP, or has no channel, is not one)."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel
+    from mcap.stream_reader import StreamReader
 
-    reader = RecordingReader(path, topics=[])
+    from hydrosoft.bench.wrench_recording import TOPIC
+
     try:
-        reader.raw_channels()
-    except RecordingError:
+        with open(path, "rb") as stream:
+            for record in StreamReader(stream).records:
+                if isinstance(record, Channel):
+                    return record.topic != TOPIC
+    except (McapError, EOFError, ValueError, OSError):
         return False
-    return METADATA_NAME not in reader.metadata
+    return False
 
 
 def _nearest(stamps: np.ndarray, at: int) -> tuple[int, int]:
@@ -70,42 +76,41 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     only one recorded); ``tcp_in_sensor``: ``(7,)`` the TCP frame in the F/T sensor's frame (m, wxyz). ValueError
     naming the file and the missing topic, or when no sample is left."""
     from hydrosoft.bench.wrench_scenes import BENCH_OBJECTS
+    from hydrosoft.services.bus import messages as msg
     from hydrosoft.services.recording.mcap_format import RecordingError, RecordingReader, bus_topic
 
     path = Path(path)
+    stamps: dict[str, list[int]] = {}
+    values: dict[str, list[np.ndarray]] = {}
+    names: dict[str, str] = {}
+    reader = RecordingReader(path, ["wrench", "arm_state", "object_pose"])
     try:
-        channels = RecordingReader(path, ["wrench", "arm_state", "object_pose"]).raw_channels()
+        for item in reader:  # one pass, one message at a time; only these topics' poses and wrenches are kept
+            message = item.message
+            stamps.setdefault(item.topic, []).append(message.stamp_ns)
+            if isinstance(message, msg.ObjectPose):
+                values.setdefault(item.topic, []).append(np.array(message.pose))
+                names.setdefault(item.topic, message.object)
+            elif isinstance(message, msg.Wrench):
+                values.setdefault(item.topic, []).append(np.array(message.wrench))
+            elif isinstance(message, msg.ArmState):
+                values.setdefault(item.topic, []).append(np.array(message.tcp_pose))
     except RecordingError as error:
         raise ValueError(f"{path}: {error}") from None
-    topics = {bus_topic(c) for c in channels.values()}
-    arms = sorted(t.split("/", 1)[1] for t in topics if t.startswith("wrench/"))
+    topics = {bus_topic(c) for c in reader.channels.values()} | set(stamps)
+    arms = sorted({t.split("/", 1)[1] for t in topics if t.startswith(("wrench/", "arm_state/"))})
     if arm is None:
-        if len(arms) != 1:
-            raise ValueError(f"{path}: recording has no topic wrench/ARM (the F/T wrench)" if not arms else
-                             f"{path}: wrenches of several arms ({', '.join(arms)}); name one with --arm")
-        arm = arms[0]
+        if len(arms) > 1:
+            raise ValueError(f"{path}: recording of several arms ({', '.join(arms)}); name one with --arm")
+        arm = arms[0] if arms else "ARM"
     needed = [f"wrench/{arm}", f"arm_state/{arm}", OBJECT_TOPIC]
     missing = [t for t in needed if t not in topics]
     if missing:
         raise ValueError(f"{path}: recording has no topic {', '.join(missing)}, which the fit needs")
-    stamps: dict[str, list[int]] = {t: [] for t in needed}
-    values: dict[str, list[np.ndarray]] = {t: [] for t in needed}
-    tracked_name = ""
-    reader = RecordingReader(path, needed)
-    try:
-        for item in reader:
-            message = item.message
-            stamps[item.topic].append(message.stamp_ns)
-            if item.topic == OBJECT_TOPIC:
-                values[item.topic].append(np.array(message.pose))
-                tracked_name = tracked_name or message.object
-            elif item.topic.startswith("wrench/"):
-                values[item.topic].append(np.array(message.wrench))
-            else:
-                values[item.topic].append(np.array(message.tcp_pose))
-    except RecordingError as error:
-        raise ValueError(f"{path}: {error}") from None
-    object_name = object_name or tracked_name
+    missing = [t for t in needed if not stamps.get(t)]
+    if missing:
+        raise ValueError(f"{path}: recording has no message on {', '.join(missing)}, which the fit needs")
+    object_name = object_name or names[OBJECT_TOPIC]
     if object_name not in BENCH_OBJECTS:
         raise ValueError(f"{path}: object {object_name!r} is not a benchmark object the fit can replay "
                          f"({', '.join(BENCH_OBJECTS)}); name one with --object")

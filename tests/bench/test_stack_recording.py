@@ -6,12 +6,15 @@ naming the topic."""
 
 from __future__ import annotations
 
+import argparse
+import json
+
 import foxglove
 import numpy as np
 import pytest
 import torch
 
-from hydrosoft.bench.fit import run_fit
+from hydrosoft.bench.fit import add_arguments, run, run_fit
 from hydrosoft.bench.stack_recording import read_stack_recording
 from hydrosoft.bench.synthetic_wrench import PLANT_SPACING_M, synthetic_trajectories
 from hydrosoft.services.bus import messages as msg
@@ -90,8 +93,29 @@ def test_a_stack_recording_without_the_wrench_topic_is_refused_naming_it(tmp_pat
     path = tmp_path / "no-wrench.mcap"
     record(path, bubbles[0], objects[0], measured[0], with_wrench=False)
     before = path.read_bytes()
-    with pytest.raises(ValueError, match=r"no-wrench.mcap.*wrench/ARM"):
+    with pytest.raises(ValueError, match=rf"no-wrench.mcap.*no topic wrench/{ARM}"):
         run_fit([path], "nh", ["E"], holdout=0.0, stack_options={"arm": None})
     with pytest.raises(ValueError, match=rf"no topic wrench/{ARM}"):
         read_stack_recording(path, arm=ARM)
     assert path.read_bytes() == before
+
+
+def test_the_fit_command_takes_a_stack_recording_and_refuses_one_without_the_wrench_with_exit_code_2(tmp_path,
+                                                                                                     capsys):
+    _, bubbles, objects, measured = synthetic_trajectories("cube", TRUTH, ["shear", "twist"], steps=4, seed=1)
+    good, other, bad = tmp_path / "run.mcap", tmp_path / "run-2.mcap", tmp_path / "no-wrench.mcap"
+    record(good, bubbles[0], objects[0], measured[0])
+    record(other, bubbles[1], objects[1], measured[1])
+    record(bad, bubbles[0], objects[0], measured[0], with_wrench=False)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert run(parser.parse_args([str(bad), "--clamped"])) == 2
+    assert f"no topic wrench/{ARM}" in capsys.readouterr().err
+    tracked = read_stack_recording(good)  # tracked: each sample takes the pose recorded with it
+    np.testing.assert_array_equal(tracked.trajectory.object_poses, objects[0])
+    args = parser.parse_args([str(good), str(other), "--params", "E", "--holdout", "0.5", "--substeps", "1",
+                              "--spacing", str(PLANT_SPACING_M), "--json"])
+    assert run(args) == 0
+    document = json.loads(capsys.readouterr().out)
+    assert document["settings"]["stack_recordings"][str(good)]["kept"] == 5
+    assert document["split"]["fit"] and document["split"]["held_out"]
