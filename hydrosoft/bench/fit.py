@@ -293,6 +293,10 @@ def run(args: argparse.Namespace) -> int:
     if args.substeps is not None and args.substeps < 1:
         print(f"fit: --substeps must be at least 1, got {args.substeps}", file=sys.stderr)
         return 2
+    for name, value in (("--max-gap", args.max_gap), ("--period", args.period)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            print(f"fit: {name} must be a positive number of seconds, got {value}", file=sys.stderr)
+            return 2
     if args.out is not None and args.out.suffix != ".toml":
         print(f"fit: --out must name a .toml file (the recordings are never written), got {args.out}",
               file=sys.stderr)

@@ -118,7 +118,7 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     order = {t: np.argsort(np.array(stamps[t], dtype=np.int64), kind="stable") for t in needed}
     sorted_stamps = {t: np.array(stamps[t], dtype=np.int64)[order[t]] for t in needed}
     max_gap_ns, period_ns = int(max_gap_s * 1e9), int(period_s * 1e9)
-    rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []
+    rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (TCP pose, object pose, wrench)
     dropped, last = 0, None
     for w in order[wrench_t]:
         at = int(stamps[wrench_t][w])
@@ -130,12 +130,12 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
             dropped += 1
             continue
         object_pose = values[object_t][order[object_t][0] if clamped else order[object_t][o]]
-        rows.append((values[state_t][order[state_t][s]], object_pose, values[wrench_t][w], at))
+        rows.append((values[state_t][order[state_t][s]], object_pose, values[wrench_t][w]))
         last = at
     if len(rows) < 2:
         raise ValueError(f"{path}: {len(rows)} sample(s) with a pose within {max_gap_s} s of the wrench "
                          f"({dropped} dropped): nothing to fit")
-    bubbles, objects, wrenches, _ = (np.stack(column) if i < 3 else column for i, column in enumerate(zip(*rows)))
+    bubbles, objects, wrenches = (np.stack(column) for column in zip(*rows))
     info = RecordingInfo(object=object_name, config=str(path), mode="stack", tcp_in_sensor=tuple(tcp_in_sensor),
                          plant_spacing_m=None, seed=0, epoch_offset_ns=reader.epoch_offset_ns)
     trajectory = RecordedTrajectory(object=object_name, index=0, bubble_poses=bubbles, target_poses=bubbles,

@@ -111,6 +111,8 @@ def test_the_fit_command_takes_a_stack_recording_and_refuses_one_without_the_wre
     add_arguments(parser)
     assert run(parser.parse_args([str(bad), "--clamped"])) == 2
     assert f"no topic wrench/{ARM}" in capsys.readouterr().err
+    assert run(parser.parse_args([str(good), "--max-gap", "-1"])) == 2
+    assert "--max-gap must be a positive number of seconds" in capsys.readouterr().err
     tracked = read_stack_recording(good)  # tracked: each sample takes the pose recorded with it
     np.testing.assert_array_equal(tracked.trajectory.object_poses, objects[0])
     args = parser.parse_args([str(good), str(other), "--params", "E", "--holdout", "0.5", "--substeps", "1",
