@@ -35,11 +35,25 @@ def _csv(text: str) -> list[str]:
     return [part.strip() for part in text.split(",") if part.strip()]
 
 
+def _floats(text: str) -> tuple[float, ...]:
+    values = tuple(float(part) for part in _csv(text))
+    if len(values) != 7 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected 7 finite numbers X,Y,Z,QW,QX,QY,QZ, got {text!r}")
+    return values
+
+
+def stack_options(args: argparse.Namespace) -> dict:
+    """``read_stack_recording``'s keyword arguments from the stack recording options that were given."""
+    options = {"object_name": args.object, "arm": args.arm, "clamped": args.clamped,
+               "tcp_in_sensor": args.tcp_in_sensor, "max_gap_s": args.max_gap, "period_s": args.period}
+    return {key: value for key, value in options.items() if value is not None}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``hydrosoft-stack fit``."""
     parser.add_argument("recordings", nargs="+", type=Path,
-                        help="wrench-<object>.mcap files of `hydrosoft-stack collect wrench`, or folders of them "
-                             "(only read)")
+                        help="wrench-<object>.mcap files of `hydrosoft-stack collect wrench`, or folders of them, "
+                             "or stack recordings of `launch --record` (told apart by content; only read)")
     parser.add_argument("--model", default="nh", help=f"contact model to fit: {'|'.join(FIT_MODELS)} (default nh)")
     parser.add_argument("--params", type=_csv, default=list(PARAMETERS), metavar="E,K,mu",
                         help="parameters to fit, the others held at the scenes' Soft Bubble values "
@@ -58,15 +72,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the fitted material as an [arms.material] table for an arm of a stack config "
                              "(its lines also fit a scene's bubble [[bodies]] table)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the tables")
+    stack = parser.add_argument_group("stack recordings (`launch --record` MCAP files)")
+    stack.add_argument("--arm", default=None, help="arm whose wrench and TCP pose to fit (default: the only one)")
+    stack.add_argument("--object", default=None,
+                       help="benchmark object to replay (default: the tracked pose's object name)")
+    stack.add_argument("--clamped", action="store_true",
+                       help="the object is clamped: use its first tracked pose throughout")
+    stack.add_argument("--tcp-in-sensor", type=_floats, default=None, metavar="X,Y,Z,QW,QX,QY,QZ",
+                       help="the TCP (bubble) frame's pose in the F/T sensor's frame, m and wxyz (default identity)")
+    stack.add_argument("--max-gap", type=float, default=None, metavar="S",
+                       help="drop a wrench sample with no pose within this many seconds (default 0.02)")
+    stack.add_argument("--period", type=float, default=None, metavar="S",
+                       help="keep at most one wrench sample per this many seconds (default 0.05)")
 
 
-def check_recording(path: Path) -> None:
+def check_recording(path: Path, read=None) -> None:
     """ValueError naming ``path`` (and the trajectory) when it lacks what the fit needs: a readable wrench
     recording (its samples decode, so their numbers are finite: JSON has no NaN) whose every trajectory has its
-    tare and at least one step after it."""
+    tare and at least one step after it. ``read``: as ``wrench_replay.load_recordings`` takes it."""
     from hydrosoft.bench.wrench_recording import read_wrench_recording
 
-    _, trajectories = read_wrench_recording(path)
+    _, trajectories = (read or read_wrench_recording)(path)
     if not trajectories:
         raise ValueError(f"{path}: no trajectory in this recording")
     for t in trajectories:
@@ -74,9 +100,41 @@ def check_recording(path: Path) -> None:
             raise ValueError(f"{path}: trajectory {t.index} has only its tare sample, no step to fit")
 
 
+class RecordingReaders:
+    """Reads each file in its format: a stack recording (``stack_recording.read_stack_recording`` with
+    ``stack_options``) as one trajectory, numbered from ``STACK_INDEX_BASE`` in the order read, or a ``collect
+    wrench`` file. ``stack`` holds what each stack recording gave (path, arm, object, kept and dropped samples)."""
+
+    STACK_INDEX_BASE = 1000
+
+    def __init__(self, stack_options: dict | None = None) -> None:
+        self.stack_options = stack_options or {}
+        self.stack: dict[str, dict] = {}
+        self._read: dict[str, tuple] = {}  # each stack recording is read once (check, then load)
+
+    def __call__(self, path: Path):
+        from dataclasses import replace
+
+        from hydrosoft.bench.stack_recording import is_stack_recording, read_stack_recording
+        from hydrosoft.bench.wrench_recording import read_wrench_recording
+
+        if not is_stack_recording(path):
+            return read_wrench_recording(path)
+        if str(path) not in self._read:
+            read = read_stack_recording(path, **self.stack_options)
+            index = self.STACK_INDEX_BASE + len(self.stack)
+            self.stack[str(path)] = {"index": index, "arm": read.arm, "object": read.info.object,
+                                     "clamped": bool(self.stack_options.get("clamped", False)), "kept": read.kept,
+                                     "dropped": read.dropped}
+            self._read[str(path)] = read.info, [replace(read.trajectory, index=index)]
+        return self._read[str(path)]
+
+
 def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdout: float = 0.2, seed: int = 0,
-            spacing: float | None = None, substeps: int | None = None, progress=None) -> dict:
-    """The fit's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``).
+            spacing: float | None = None, substeps: int | None = None, progress=None,
+            stack_options: dict | None = None) -> dict:
+    """The fit's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``, or stack recordings:
+    ``stack_options`` are ``stack_recording.read_stack_recording``'s keyword arguments for them).
 
     Returns ``{"model", "parameters": {name: {start, value, sigma, interval95, unit, fitted, identified}},
     "uncertainty", "rows": [...], "trajectories": [...], "split", "fit": {...}, "settings"}``: ``rows`` per set
@@ -94,9 +152,10 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
     if bad or not params:
         raise ValueError(f"unknown parameter(s) {bad}; --params takes some of {','.join(PARAMETERS)}")
     files = recording_files(recordings)
+    read = RecordingReaders(stack_options)
     for path in files:
-        check_recording(path)
-    groups = load_recordings(files, spacing)
+        check_recording(path, read)
+    groups = load_recordings(files, spacing, read)
     labels = [(g.object, t.index) for g in groups for t in g.trajectories]
     fit_labels, held_labels = material_fit.split_trajectories(labels, holdout, seed)
     batches = {"fit": material_fit.replay_batches(groups, set(fit_labels)),
@@ -138,7 +197,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
         "settings": {"recordings": [str(p) for p in files], "objects": [g.object for g in groups],
                      "params": list(params), "holdout": holdout, "seed": seed, "substeps": substeps,
                      "spacing_m": {g.object: g.spacing_m for g in groups},
-                     "modes": sorted({m for g in groups for m in g.modes})},
+                     "modes": sorted({m for g in groups for m in g.modes}), "stack_recordings": read.stack},
     }
 
 
@@ -172,6 +231,10 @@ def format_tables(document: dict) -> str:
              f"reduced chi-square {document['fit']['reduced_chi2']:.3g}, replay {document['fit']['substeps']} "
              f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
+    for path, stack in document["settings"]["stack_recordings"].items():
+        lines.append(f"  stack recording {path}: arm {stack['arm']}, object {stack['object']}"
+                     f"{' (clamped)' if stack['clamped'] else ' (tracked)'}, {stack['kept']} samples kept, "
+                     f"{stack['dropped']} dropped (no pose within the max gap)")
     index = {(r["set"], r["when"]): r for r in document["rows"]}
 
     def table(title: str, key: str, digits: int = 3) -> list[str]:
@@ -230,6 +293,10 @@ def run(args: argparse.Namespace) -> int:
     if args.substeps is not None and args.substeps < 1:
         print(f"fit: --substeps must be at least 1, got {args.substeps}", file=sys.stderr)
         return 2
+    for name, value in (("--max-gap", args.max_gap), ("--period", args.period)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            print(f"fit: {name} must be a positive number of seconds, got {value}", file=sys.stderr)
+            return 2
     if args.out is not None and args.out.suffix != ".toml":
         print(f"fit: --out must name a .toml file (the recordings are never written), got {args.out}",
               file=sys.stderr)
@@ -237,7 +304,8 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     try:
         document = run_fit(args.recordings, args.model, args.params, args.holdout, args.seed, args.spacing,
-                           args.substeps, progress=lambda text: print(f"[fit] {text}", file=sys.stderr, flush=True))
+                           args.substeps, progress=lambda text: print(f"[fit] {text}", file=sys.stderr, flush=True),
+                           stack_options=stack_options(args))
     except ValueError as error:
         print(f"fit: {error}", file=sys.stderr)
         return 2

@@ -40,12 +40,13 @@ def measured_wrenches(truth: np.ndarray, rng: np.random.Generator | None, noise_
     return np.mean(np.round(frames / FT300_RESOLUTION) * FT300_RESOLUTION, axis=0)
 
 
-def write_synthetic_recording(path: str | Path, object_name: str, material: dict[str, float],
-                              kinds: Sequence[str], steps: int, seed: int, noise_scale: float = 0.0,
-                              contact: str = "nh") -> None:
-    """Record ``len(kinds)`` press-and-shear trajectories of ``steps`` steps on ``object_name`` with the plant at
-    ``material`` (E, K in Pa/m, mu) to ``path``. ``kinds``: each trajectory's second phase (``wrench_scenes.KINDS``,
-    or ``"press"`` for pressing only); ``seed``: of the trajectories and the noise; ``noise_scale``: the FT 300's
+def synthetic_trajectories(object_name: str, material: dict[str, float], kinds: Sequence[str], steps: int,
+                           seed: int, noise_scale: float = 0.0, contact: str = "nh"):
+    """``(params, bubbles, objects, measured)``: ``len(kinds)`` press-and-shear trajectories of ``steps`` steps on
+    ``object_name`` with the plant at ``material`` (E, K in Pa/m, mu): their ``PressAndShear`` parameters, bubble
+    and object poses ``(B, steps + 1, 7)`` (base frame, m, wxyz; row 0 out of contact) and measured TCP-frame
+    wrenches ``(B, steps + 1, 6)`` (N, N m). ``kinds``: each trajectory's second phase (``wrench_scenes.KINDS``, or
+    ``"press"`` for pressing only); ``seed``: of the trajectories and the noise; ``noise_scale``: the FT 300's
     noise level (0: resolution only)."""
     obj = bench_object(object_name)
     rng = np.random.default_rng(seed)
@@ -57,6 +58,16 @@ def write_synthetic_recording(path: str | Path, object_name: str, material: dict
     plant = Material(*(torch.tensor([float(material[name])], dtype=torch.float64) for name in ("E", "K", "mu")))
     truth = predict_tcp_wrenches(object_name, objects, bubbles, contact, PLANT_SPACING_M, PLANT_SUBSTEPS, plant)
     measured = measured_wrenches(truth, rng if noise_scale > 0 else None, noise_scale)
+    return params, bubbles, objects, measured
+
+
+def write_synthetic_recording(path: str | Path, object_name: str, material: dict[str, float],
+                              kinds: Sequence[str], steps: int, seed: int, noise_scale: float = 0.0,
+                              contact: str = "nh") -> None:
+    """Record ``synthetic_trajectories(object_name, material, kinds, steps, seed, noise_scale, contact)`` to
+    ``path`` in the ``collect wrench`` format."""
+    params, bubbles, objects, measured = synthetic_trajectories(object_name, material, kinds, steps, seed,
+                                                                noise_scale, contact)
     info = RecordingInfo(object=object_name, config="synthetic", mode="sim", tcp_in_sensor=IDENTITY,
                          plant_spacing_m=PLANT_SPACING_M, seed=seed, epoch_offset_ns=0,
                          trajectories=[{"kind": kind, "material": dict(material)} for kind in kinds])

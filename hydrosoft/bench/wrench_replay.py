@@ -101,17 +101,19 @@ def recording_files(paths: Sequence[Path]) -> list[Path]:
     return files
 
 
-def load_recordings(files: Sequence[Path], spacing: float | None = None) -> list[ObjectRecordings]:
+def load_recordings(files: Sequence[Path], spacing: float | None = None, read=None) -> list[ObjectRecordings]:
     """The trajectories of ``files`` per benchmark object, in ``BENCH_OBJECTS`` order (read only). ``spacing``: the
     replay's surface spacing (m); None takes the sim plant's, recorded in the file, or ``SPACING_M`` for lab files.
-    ValueError when no file holds a complete trajectory."""
+    ``read``: path -> ``(RecordingInfo, [RecordedTrajectory])`` (default ``read_wrench_recording``). ValueError when
+    no file holds a complete trajectory."""
     from hydrosoft.bench.wrench_recording import read_wrench_recording
     from hydrosoft.bench.wrench_scenes import BENCH_OBJECTS, SPACING_M
 
+    read = read or read_wrench_recording
     by_object: dict[str, list] = {}
     infos, modes = {}, {}
     for path in files:
-        info, trajectories = read_wrench_recording(path)
+        info, trajectories = read(path)
         by_object.setdefault(info.object, []).extend(trajectories)
         infos.setdefault(info.object, info)
         modes.setdefault(info.object, set()).add(info.mode)

@@ -209,3 +209,16 @@ def test_a_clean_recording_passes_the_strict_reader_and_decodes_with_its_own_sch
         summary.channels[i].id: counts[summary.channels[i].topic] for i in summary.channels}
     image = next(m for m in messages if m.topic == "image/tag_camera").message
     assert msgspec.msgpack.decode(encode_raw(image))["image"]["shape"] == [480, 640, 3]
+
+
+def test_the_material_fit_reads_a_live_stack_recording_as_one_trajectory(recorded_run):
+    from hydrosoft.bench.stack_recording import read_stack_recording
+
+    messages, _ = read_recording(recorded_run.clean, ["arm_state/bubble", "object_pose/object"])
+    grouped = by_topic(messages)
+    read = read_stack_recording(recorded_run.clean, object_name="cube", clamped=True)
+    assert read.arm == "bubble" and read.kept >= 2, (read.kept, read.dropped)
+    states = {m.tcp_pose.tobytes() for m in grouped["arm_state/bubble"]}
+    assert all(pose.tobytes() in states for pose in read.trajectory.bubble_poses)
+    first = min(grouped["object_pose/object"], key=lambda m: m.stamp_ns).pose
+    np.testing.assert_array_equal(read.trajectory.object_poses, np.broadcast_to(first, (read.kept, 7)))

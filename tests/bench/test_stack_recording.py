@@ -1,0 +1,123 @@
+"""The material fit on a stack recording (``launch --record``): synthetic press-and-shear trajectories of an NH plant
+with a known, non-default material, logged by the recorder's own ``SceneLog`` as the stack publishes them (arm state,
+tared wrench, tracked object pose, each with its own stamps), are read back as the fit's trajectories and the fit
+recovers the material; samples without a fresh pose are dropped and counted; a file without the wrench is refused
+naming the topic."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import foxglove
+import numpy as np
+import pytest
+import torch
+
+from hydrosoft.bench.fit import add_arguments, run, run_fit
+from hydrosoft.bench.stack_recording import read_stack_recording
+from hydrosoft.bench.synthetic_wrench import PLANT_SPACING_M, synthetic_trajectories
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.recorder import RecorderOptions, SceneLog, open_sinks
+from hydrosoft.services.recording.foxglove_scene import SceneBuilder, SceneGeometry
+
+TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
+KINDS = ["shear", "twist", "shear_twist", "shear", "shear_twist", "twist"]
+STEP_NS = 50_000_000
+ARM = "bubble"
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    torch.set_num_threads(1)
+
+
+def record(path, bubbles: np.ndarray, objects: np.ndarray, wrenches: np.ndarray, with_wrench: bool = True) -> None:
+    """One trajectory (poses ``(K + 1, 7)``, wrenches ``(K + 1, 6)``) as the stack publishes it, through the
+    recorder's logging: the arm state 3 ms after each wrench, the tracked pose 7 ms before it, and one last wrench
+    1 s after the last pose (no fresh pose: dropped)."""
+    context = foxglove.Context()
+    geometry = SceneGeometry(bubbles={ARM: (0.06, 0.045, 0.03)}, object_triangles=np.zeros((2, 3, 3)),
+                             planner_points=np.eye(3) * 0.01, planner_bodies=(ARM, "table"), static_frames={})
+    log = SceneLog(context, SceneBuilder(geometry, epoch_offset_ns=10**18))
+    writer, _ = open_sinks(context, RecorderOptions(record=path), path, {})
+    log.writer = writer
+    start = 1_000_000_000
+    messages = []
+    for k in range(len(bubbles)):
+        at = start + k * STEP_NS
+        messages.append(("object_pose/object", msg.ObjectPose(
+            seq=k + 1, stamp_ns=at - 7_000_000, source="tag_tracker", object="cube", pose=objects[k],
+            tags_used=(0,), quality=1.0)))
+        if with_wrench:
+            messages.append((f"wrench/{ARM}", msg.Wrench(seq=k + 1, stamp_ns=at, source=f"ft_reader-{ARM}",
+                                                         sensor=ARM, wrench=wrenches[k], tared=True)))
+        messages.append((f"arm_state/{ARM}", msg.ArmState(
+            seq=k + 1, stamp_ns=at + 3_000_000, source=f"arm_commander-{ARM}", arm=ARM, tcp_pose=bubbles[k],
+            tcp_speed=np.zeros(6), running=True, protective_stop=False, emergency_stop=False, servo_active=True)))
+    if with_wrench:
+        late = start + len(bubbles) * STEP_NS + 1_000_000_000
+        messages.append((f"wrench/{ARM}", msg.Wrench(seq=len(bubbles) + 1, stamp_ns=late, source=f"ft_reader-{ARM}",
+                                                     sensor=ARM, wrench=wrenches[-1], tared=True)))
+    for topic, message in messages:
+        log.log_message(topic, message, received_ns=message.stamp_ns + 500_000)
+    writer.close()
+
+
+def test_the_fit_recovers_a_non_default_material_from_stack_recordings_and_counts_dropped_samples(tmp_path):
+    _, bubbles, objects, measured = synthetic_trajectories("cube", TRUTH, KINDS, steps=12, seed=1)
+    paths = []
+    for i in range(len(KINDS)):
+        paths.append(tmp_path / f"run-{i}.mcap")
+        record(paths[-1], bubbles[i], objects[i], measured[i])
+    read = read_stack_recording(paths[0], clamped=True)
+    assert (read.arm, read.info.object, read.kept, read.dropped) == (ARM, "cube", 13, 1)
+    np.testing.assert_array_equal(read.trajectory.bubble_poses, bubbles[0])
+    np.testing.assert_array_equal(read.trajectory.wrenches, measured[0])
+    assert read_stack_recording(paths[0], clamped=True, max_gap_s=0.005).kept == 13  # the arm state is 3 ms off
+    with pytest.raises(ValueError, match=r"0 sample\(s\).*14 dropped"):  # tracked: the object pose is 7 ms off
+        read_stack_recording(paths[0], max_gap_s=0.005)
+    document = run_fit(paths, "nh", ["E", "K", "mu"], holdout=0.0, spacing=PLANT_SPACING_M,
+                       stack_options={"clamped": True})
+    for name, true in TRUTH.items():
+        p = document["parameters"][name]
+        assert abs(p["start"] / true - 1) > 0.3  # starts far off
+        assert p["value"] == pytest.approx(true, rel=0.03), name
+        assert p["identified"], name
+    stack = document["settings"]["stack_recordings"]
+    assert len(stack) == len(KINDS) and all(s["kept"] == 13 and s["dropped"] == 1 for s in stack.values())
+
+
+def test_a_stack_recording_without_the_wrench_topic_is_refused_naming_it(tmp_path):
+    _, bubbles, objects, measured = synthetic_trajectories("cube", TRUTH, ["shear"], steps=4, seed=1)
+    path = tmp_path / "no-wrench.mcap"
+    record(path, bubbles[0], objects[0], measured[0], with_wrench=False)
+    before = path.read_bytes()
+    with pytest.raises(ValueError, match=rf"no-wrench.mcap.*no topic wrench/{ARM}"):
+        run_fit([path], "nh", ["E"], holdout=0.0, stack_options={"arm": None})
+    with pytest.raises(ValueError, match=rf"no topic wrench/{ARM}"):
+        read_stack_recording(path, arm=ARM)
+    assert path.read_bytes() == before
+
+
+def test_the_fit_command_takes_a_stack_recording_and_refuses_one_without_the_wrench_with_exit_code_2(tmp_path,
+                                                                                                     capsys):
+    _, bubbles, objects, measured = synthetic_trajectories("cube", TRUTH, ["shear", "twist"], steps=4, seed=1)
+    good, other, bad = tmp_path / "run.mcap", tmp_path / "run-2.mcap", tmp_path / "no-wrench.mcap"
+    record(good, bubbles[0], objects[0], measured[0])
+    record(other, bubbles[1], objects[1], measured[1])
+    record(bad, bubbles[0], objects[0], measured[0], with_wrench=False)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert run(parser.parse_args([str(bad), "--clamped"])) == 2
+    assert f"no topic wrench/{ARM}" in capsys.readouterr().err
+    assert run(parser.parse_args([str(good), "--max-gap", "-1"])) == 2
+    assert "--max-gap must be a positive number of seconds" in capsys.readouterr().err
+    tracked = read_stack_recording(good)  # tracked: each sample takes the pose recorded with it
+    np.testing.assert_array_equal(tracked.trajectory.object_poses, objects[0])
+    args = parser.parse_args([str(good), str(other), "--params", "E", "--holdout", "0.5", "--substeps", "1",
+                              "--spacing", str(PLANT_SPACING_M), "--json"])
+    assert run(args) == 0
+    document = json.loads(capsys.readouterr().out)
+    assert document["settings"]["stack_recordings"][str(good)]["kept"] == 5
+    assert document["split"]["fit"] and document["split"]["held_out"]
