@@ -13,6 +13,7 @@ from hydrosoft.services.cli import main
 from hydrosoft.services.service_main import CACHE_ENV
 from hydrosoft.tasks import evaluation
 from hydrosoft.tasks.base import compiled_cost_terms
+from stack_process import quick_planner
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 
@@ -27,7 +28,7 @@ def no_cache_env(monkeypatch):
 def compiled_config(tmp_path: Path) -> Path:
     """deploy/sim.toml with the planner compiled and its compile cache under ``tmp_path``."""
     path = tmp_path / "compiled.toml"
-    text = SIM_TOML.read_text().replace("compile = false ", "compile = true ", 1)
+    text = quick_planner(SIM_TOML.read_text()).replace('preset = "quick"', 'preset = "quick"\ncompile = true', 1)
     path.write_text(f'compile_cache_dir = "{tmp_path}/cache"\n' + text)
     return path
 
@@ -36,14 +37,16 @@ def failing_backend(graph, example_inputs):
     raise RuntimeError("no C++ compiler")
 
 
-def test_an_eager_planner_has_nothing_to_compile(capsys):
-    assert main(["compile", str(SIM_TOML)]) == 0
+def test_an_eager_planner_has_nothing_to_compile(tmp_path, capsys):
+    path = tmp_path / "quick.toml"
+    path.write_text(quick_planner(SIM_TOML.read_text()))
+    assert main(["compile", str(path)]) == 0
     assert "nothing to compile" in capsys.readouterr().out
 
 
 def test_a_bad_config_is_refused_by_key(tmp_path, capsys):
     path = tmp_path / "bad.toml"
-    path.write_text(SIM_TOML.read_text().replace("sdf_solver_steps = 3", "sdf_solver_steps = -1"))
+    path.write_text(SIM_TOML.read_text().replace('preset = "paper"', 'preset = "paper"\nsdf_solver_steps = -1', 1))
     assert main(["compile", str(path)]) == 2
     assert "planner.sdf_solver_steps" in capsys.readouterr().err
 
