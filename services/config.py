@@ -276,10 +276,10 @@ class LimitsConfig(Strict):
 PLANNER_PRESETS: dict[str, dict[str, object]] = {
     "paper": {"model": "nh", "spacing": 0.0084, "samples": 64, "elites": 8, "horizon": 10, "grad_steps": 2,
               "dtype": "float32", "sdf_solver_steps": 2, "compile": True, "object_update": "linearly_implicit",
-              "threads": 1, "workers": 2, "worker_processes": True, "target_lead_s": 0.3},
+              "threads": 1, "workers": 2, "worker_processes": True, "target_lead_s": 0.3, "nice": 10},
     "quick": {"model": "nh", "spacing": 0.0125, "samples": 16, "elites": 4, "horizon": 6, "grad_steps": 1,
               "dtype": "float32", "sdf_solver_steps": 3, "compile": False, "object_update": "linearly_implicit",
-              "threads": 1, "workers": 1, "worker_processes": False, "target_lead_s": 1.0},
+              "threads": 1, "workers": 1, "worker_processes": False, "target_lead_s": 1.0, "nice": 0},
 }
 
 
@@ -320,7 +320,10 @@ class PlannerConfig(Strict):
     the bubble back onto an object it lost (``services/reapproach.py``; one-arm scenes) before it fails; 0: a lost
     object fails the goal at once. preset: the named settings (``PLANNER_PRESETS``) the config file's table
     started from (``with_planner_preset``, applied on load), or None. target_lead_s is the shortest lead: the
-    planner lengthens it to twice its recent p90 cycle plus a margin, within ``limits.max_target_lead_s``."""
+    planner lengthens it to twice its recent p90 cycle plus a margin, within ``limits.max_target_lead_s``. nice:
+    the planner process's (and its worker processes') scheduling niceness, 0-19 (``os.nice``): on cores it shares
+    with the arm commander and the sensor services, a positive one lets them run first whenever they are ready,
+    so a solve or a compile never starves the commander's servo loop or the controller link."""
 
     preset: Literal["paper", "quick"] | None = None
 
@@ -343,6 +346,7 @@ class PlannerConfig(Strict):
     object_update: Literal["explicit", "linearly_implicit"] = "explicit"
     max_reapproaches: int = 3
     worker_processes: bool = False
+    nice: int = 0
 
     def __post_init__(self) -> None:
         _require(self.max_reapproaches >= 0, "planner.max_reapproaches",
@@ -350,6 +354,7 @@ class PlannerConfig(Strict):
         _require(self.sdf_solver_steps is None or 0 <= self.sdf_solver_steps <= SDF_SOLVER_STEPS_MAX,
                  "planner.sdf_solver_steps", f"must be 0..{SDF_SOLVER_STEPS_MAX} (or left out: solve to "
                  f"convergence), got {self.sdf_solver_steps}")
+        _require(0 <= self.nice <= 19, "planner.nice", f"must be 0..19, got {self.nice}")
         _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s",
                   "threads", "workers")
         _require(self.workers <= self.samples, "planner.workers",

@@ -598,8 +598,12 @@ def compile_step(core: PlannerCore) -> float:
 
 
 async def run(service: Service, config: StackConfig) -> None:
-    """The planner's loop: build (and compile) the model, serve the client API, plan while a goal runs."""
+    """The planner's loop: lower its priority (``planner.nice``), build (and compile) the model, serve the client
+    API, plan while a goal runs."""
     loop = asyncio.get_running_loop()
+    if config.planner.nice:
+        os.nice(config.planner.nice)  # before the worker processes start: they inherit it
+        service.log.info("running at niceness %d (planner.nice): the other services go first", os.nice(0))
     torch.set_num_threads(config.planner.threads)
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:

@@ -716,19 +716,30 @@ def test_a_target_outside_the_workspace_is_refused_and_never_moved_towards(rig):
 
 
 def test_the_arm_stops_when_the_target_deadline_passes(rig):
+    """... as a hold: named and counted once as such (``deadline_hold``), not as a fault."""
     lead_s = 0.4
 
+    def status_after(stamp_ns: int):
+        return lambda: (s := planner_status()) and s.stamp_ns > stamp_ns and s
+
     async def run(planner: PlayedPlanner, tcp: SimTcp):
+        nonlocal planner_status
+        planner_status = planner.status
+        before = await until(status_after(time.monotonic_ns()), 3.0, "a status after the probe's hold")
         sent = await planner.send_target(HOME + [0.15, 0, 0, 0, 0, 0, 0], lead_s)
         await moving_at_speed(tcp)
         rest_ns, rest = await at_rest(tcp, 2.0)
-        return sent, rest_ns, rest, planner.arm_state()
+        after = await until(status_after(rest_ns), 3.0, "a status after the rest")
+        holds = after.errors.get("deadline_hold", 0) - before.errors.get("deadline_hold", 0)
+        return sent, rest_ns, rest, planner.arm_state(), holds
 
-    sent, rest_ns, rest, arm_state = scenario(run, rig)
+    planner_status = None
+    sent, rest_ns, rest, arm_state, holds = scenario(run, rig)
     late_s = (rest_ns - sent.deadline_ns) * 1e-9
     assert late_s < SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S, late_s
     assert rest[0] - HOME[0] < LIMITS.max_speed_m_s * (lead_s + SCHEDULING_SLACK_S)
     assert not arm_state.servo_active and "deadline passed" in arm_state.stop_reason
+    assert arm_state.holding and arm_state.stop_reason.startswith(HOLD) and holds == 1
 
 
 def test_the_arm_stops_in_bounded_time_when_heartbeats_stop_and_waits_for_a_fresh_target(rig):

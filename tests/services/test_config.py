@@ -40,6 +40,7 @@ def test_the_shipped_configs_load(name):
     ('arms = [{ name = "a" }, { name = "a" }]\n', "arms"),
     (ONE_ARM + "[planner]\nsdf_solver_steps = 33\n", "planner.sdf_solver_steps"),
     (ONE_ARM + "[planner]\nworkers = 0\n", "planner.workers"),
+    (ONE_ARM + "[planner]\nnice = 20\n", "planner.nice"),
     (ONE_ARM + "[planner]\nsamples = 16\nworkers = 17\n", "planner.workers"),  # more workers than samples
     (ONE_ARM + "[planner]\nobject_update = \"implicit\"\n", "planner.object_update"),
     (ONE_ARM + "[planner]\nmodel = \"pf\"\nobject_update = \"linearly_implicit\"\n", "planner.object_update"),
@@ -173,7 +174,7 @@ def test_hosts_beyond_loopback_need_curve_keys():
 def test_a_planner_preset_fills_the_planner_and_its_own_keys_override_it():
     paper = parse_config(ONE_ARM + '[planner]\npreset = "paper"\n').planner
     assert (paper.samples, paper.horizon, paper.grad_steps, paper.dtype, paper.compile) == (64, 10, 2, "float32", True)
-    assert paper.preset == "paper" and paper.workers == 2 and paper.worker_processes
+    assert paper.preset == "paper" and paper.workers == 2 and paper.worker_processes and paper.nice == 10
     assert paper == msgspec.convert({**PLANNER_PRESETS["paper"], "preset": "paper"}, PlannerConfig)
     quick = parse_config(ONE_ARM + '[planner]\npreset = "quick"\nsamples = 32\ncompile = true\n').planner
     assert (quick.samples, quick.horizon, quick.grad_steps, quick.compile) == (32, 6, 1, True)  # the keys win
