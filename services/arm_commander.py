@@ -69,12 +69,12 @@ import numpy as np
 from hydrosoft.drivers.base import Arm, ArmState
 from hydrosoft.drivers.errors import DriverError
 from hydrosoft.drivers.ur.config import URArmConfig
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Received, Stale
-from hydrosoft.services.config import LimitsConfig, StackConfig
-from hydrosoft.services import arm_service_main, service_main
-from hydrosoft.services.runtime import Service
-from hydrosoft.services.safety import (NO_TARGET, check_path, check_target, clamped_deadline_ns, interpolate,
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Received, Stale
+from hydrosoft.services.bus.config import LimitsConfig, StackConfig
+from hydrosoft.services.bus import service_cli
+from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.arm.safety import (NO_TARGET, check_path, check_target, clamped_deadline_ns, interpolate,
                                        is_moving, retreat_refusal, watchdog)
 
 MODULE = "arm_commander"
@@ -573,8 +573,8 @@ async def serve(service: Service, config: StackConfig, arm: str, result: Shutdow
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name MODULE-ARM] (``arm_service_main``)."""
-    arm_service_main.add_arguments(parser, MODULE)
+    """Arguments: CONFIG [--name MODULE-ARM] (``service_cli``)."""
+    service_cli.add_arm_arguments(parser, MODULE)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -582,13 +582,13 @@ def run(args: argparse.Namespace) -> int:
     its shutdown failed, 2 a bad config or name, ``EXIT_STOP_UNCONFIRMED`` (3) the arm was never seen at rest after
     its stop (the controller's own watchdog is then what stops it)."""
     result = ShutdownResult()
-    code = arm_service_main.run(args, MODULE, functools.partial(serve, result=result))
+    code = service_cli.run_arm(args, MODULE, functools.partial(serve, result=result))
     return EXIT_STOP_UNCONFIRMED if code == 0 and not result.stop_confirmed else code
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main.main(MODULE, __doc__, argv, add_arguments, run)
+    return service_cli.main(MODULE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":
-    service_main.exit_process(main())
+    service_cli.exit_process(main())

@@ -1,7 +1,7 @@
 """The bubble camera service: one Soft Bubble's depth frames and its membrane deformation.
 
 One per arm, named ``bubble_camera-ARM``. Depth frames come from the bubble's ``DepthCamera``: in sim mode
-``sim_devices.BusDepthCamera`` on sim_world's rendered ``depth/ARM``; in lab mode
+``sim.devices.BusDepthCamera`` on sim_world's rendered ``depth/ARM``; in lab mode
 ``drivers.bubble.opencv_depth.OpenCVDepthCamera`` on the arm's ``depth.device`` (a device index, a URL, or a
 recorded 16-bit stream: FFV1 ``.mkv`` or a 16-bit PNG sequence), opened at ``depth.width`` x ``depth.height`` and
 ``depth.fps``. The reference is the undeformed membrane's depth image: in sim mode the nominal membrane (the scene
@@ -35,11 +35,11 @@ from hydrosoft.drivers.bubble.deformation import membrane_deformation
 from hydrosoft.drivers.bubble.reference import ReferenceFileError, load_reference
 from hydrosoft.drivers.bubble.render import PinholeDepth, reference_depth
 from hydrosoft.drivers.errors import DriverError, NotConnected, ProtocolError, Stale
-from hydrosoft.services import messages as msg
-from hydrosoft.services.config import ConfigError, StackConfig
-from hydrosoft.services import arm_service_main, service_main
-from hydrosoft.services.runtime import Service
-from hydrosoft.services.sim_devices import BusDepthCamera, depth_topic
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.config import ConfigError, StackConfig
+from hydrosoft.services.bus import service_cli
+from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.sim.devices import BusDepthCamera, depth_topic
 from hydrosoft.tasks import make_task
 
 MODULE = "bubble_camera"
@@ -240,19 +240,19 @@ def _validate(config: StackConfig, arm: str) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name MODULE-ARM] (``arm_service_main``)."""
-    arm_service_main.add_arguments(parser, MODULE)
+    """Arguments: CONFIG [--name MODULE-ARM] (``service_cli``)."""
+    service_cli.add_arm_arguments(parser, MODULE)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the service until SIGINT/SIGTERM; the exit code (2: a bad config or name, or a lab config without the
     depth camera's device or reference file)."""
-    return arm_service_main.run(args, MODULE, serve, validate=_validate)
+    return service_cli.run_arm(args, MODULE, serve, validate=_validate)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main.main(MODULE, __doc__, argv, add_arguments, run)
+    return service_cli.main(MODULE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":
-    service_main.exit_process(main())
+    service_cli.exit_process(main())

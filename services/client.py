@@ -12,7 +12,7 @@ status, subscribe to any topic. ``StackClient`` is async; ``BlockingClient`` wra
 this from the command line; with ``--json`` it prints one document ``{"status", "error_mm", "elapsed_s", "solves",
 "mean_solve_ms"}`` (error by the stack's own tracked pose) and in sim mode ``"true_error_mm"`` from sim_world's
 ``eval/object_pose``, plus ``"resumes"`` when the goal was sent again to a restarted planner and
-``"reapproaches"`` when the bubble was brought back onto a lost object (``services/reapproach.py``).
+``"reapproaches"`` when the bubble was brought back onto a lost object (``services/arm/reapproach.py``).
 
 Goals belong to one stack launch. Every status reply names the launch (``ServiceStatus.instance``); the client
 learns it from the first and stamps its goals with it (``Goal.instance``), so a planner of another launch refuses
@@ -44,9 +44,9 @@ import msgspec
 import numpy as np
 import torch
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, LatestSubscriber, RequestClient, Stale
-from hydrosoft.services.config import StackConfig, load_config
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, RequestClient, Stale
+from hydrosoft.services.bus.config import StackConfig, load_config
 
 DEFAULT_CONFIG = "deploy/sim.toml"
 CONFIG_ENV = "HYDROSOFT_CONFIG"  # the config path when --config is not given
@@ -55,7 +55,7 @@ REQUEST_TIMEOUT_S = 3.0
 #: Without ``resume``, the longest the planner may stay silent before ``wait`` gives the stack up, s (a restarted
 #: planner takes longer than this to build its model, and its goal would be interrupted anyway).
 SILENT_LIMIT_S = 5.0
-#: The file in run_dir that holds the running launcher's pid (``launcher.LOCK_FILE``).
+#: The file in run_dir that holds the running launcher's pid (``commands.launch.LOCK_FILE``).
 LAUNCHER_LOCK = "launcher.lock"
 FINAL = ("reached", "failed", "timeout", "stopped", "interrupted")
 #: Exit status of ``hydrosoft-stack goal`` when the stack is gone or was launched again.

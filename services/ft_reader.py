@@ -2,7 +2,7 @@
 
 One per arm, named ``ft_reader-ARM``. It waits up to ``PORT_WAIT_S`` for the sensor's port ``arm.ft_port`` to
 appear (in sim mode sim_world links its simulated FT 300's pseudo-terminal there), connects the real driver
-(``drivers.robotiq_ft300.FT300Sensor``) and loads the arm's stored tare (``services/ft_bias.py``, a file in
+(``drivers.robotiq_ft300.FT300Sensor``) and loads the arm's stored tare (``services/arm/ft_bias.py``, a file in
 ``state_dir``). It never tares by itself: a reader started or restarted while the bubble presses on something
 keeps subtracting the bias taken out of contact, so it still reads the load.
 
@@ -13,7 +13,7 @@ service reports ``degraded``. The status note says which: the bias, when it was 
 readings are untared.
 
 Tare on request only: ``Tare`` on the cmd endpoint (``hydrosoft-stack ft tare ARM``). It is refused, with the reason,
-unless the arm is at rest and the bubble shows no contact (``services/tare_check.py``, from ``arm_state/ARM`` and
+unless the arm is at rest and the bubble shows no contact (``services/arm/tare_rules.py``, from ``arm_state/ARM`` and
 ``deformation/ARM``) before and after averaging the samples of ``TARE_S``, and those samples were steady. An
 accepted tare is stored first (a tare that cannot be stored is refused), then used.
 
@@ -41,13 +41,13 @@ from hydrosoft.drivers.base import ForceTorqueSensor, WrenchSample
 from hydrosoft.drivers.errors import DeviceFault, DriverError, NotConnected, ProtocolError, Stale
 from hydrosoft.drivers.robotiq_ft300.config import FT300Config
 from hydrosoft.drivers.robotiq_ft300.sensor import FT300Sensor
-from hydrosoft.services import messages as msg
-from hydrosoft.services import arm_service_main, service_main
-from hydrosoft.services.bus import LatestSubscriber, Stale as StaleInput
-from hydrosoft.services.config import StackConfig
-from hydrosoft.services.ft_bias import BiasFileError, StoredBias, bias_path, load_bias, save_bias
-from hydrosoft.services.runtime import Service
-from hydrosoft.services.tare_check import (
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus import service_cli
+from hydrosoft.services.bus.sockets import LatestSubscriber, Stale as StaleInput
+from hydrosoft.services.bus.config import StackConfig
+from hydrosoft.services.arm.ft_bias import BiasFileError, StoredBias, bias_path, load_bias, save_bias
+from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.arm.tare_rules import (
     ARM_STATE_MAX_AGE_S,
     DEFORMATION_MAX_AGE_S,
     spread_refusal,
@@ -188,7 +188,7 @@ async def samples_over(sensor: ForceTorqueSensor, duration_s: float = TARE_S) ->
 
 
 class TareServer:
-    """Answers ``Tare`` requests for ``arm``'s sensor: checks the arm and the bubble (``tare_check``), averages,
+    """Answers ``Tare`` requests for ``arm``'s sensor: checks the arm and the bubble (``arm.tare_rules``), averages,
     checks again, stores the bias at ``path`` and only then hands it to the publishing loop (``current``).
 
     Args:
@@ -204,7 +204,7 @@ class TareServer:
         self._arm_states, self._deformations = arm_states, deformations
 
     def refusal(self) -> str | None:
-        """Why a tare may not be taken now (``tare_check.tare_refusal`` on the newest fresh inputs), or None."""
+        """Why a tare may not be taken now (``tare_rules.tare_refusal`` on the newest fresh inputs), or None."""
         return tare_refusal(self._newest(self._arm_states, msg.ArmState, ARM_STATE_MAX_AGE_S),
                             self._newest(self._deformations, msg.MembraneDeformation, DEFORMATION_MAX_AGE_S),
                             self.arm)
@@ -311,18 +311,18 @@ async def _health_forever(service: Service, sensor: FT300Sensor, current: Curren
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name MODULE-ARM] (``arm_service_main``)."""
-    arm_service_main.add_arguments(parser, MODULE)
+    """Arguments: CONFIG [--name MODULE-ARM] (``service_cli``)."""
+    service_cli.add_arm_arguments(parser, MODULE)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the service until SIGINT/SIGTERM; the exit code (2: a bad config or name)."""
-    return arm_service_main.run(args, MODULE, serve)
+    return service_cli.run_arm(args, MODULE, serve)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main.main(MODULE, __doc__, argv, add_arguments, run)
+    return service_cli.main(MODULE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":
-    service_main.exit_process(main())
+    service_cli.exit_process(main())

@@ -19,11 +19,11 @@ fresh inputs to start from (the drift cost is anchored at the object and TCP pos
 
 In a one-arm scene the planner solves only while the bubble touches the object (``reapproach.in_contact``); an
 object out of contact for ``reapproach.LOST_AFTER_S`` is lost, and the planner drives the arm back onto it
-(``services/reapproach.py``: up, across, down to the scene's pressing pose) before it plans again, at most
+(``services/arm/reapproach.py``: up, across, down to the scene's pressing pose) before it plans again, at most
 ``planner.max_reapproaches`` times per goal.
 
 Frames: the bus carries base-frame poses; the planner works in the task scene's frame (``scene.task_frame``,
-``services/task_frame.py``). Its inputs are converted on arrival (``fresh_inputs``), its targets, goal and
+``services/arm/task_frame.py``). Its inputs are converted on arrival (``fresh_inputs``), its targets, goal and
 predictions back to the base frame on the way out.
 
 The pure parts (``PlannerCore``, ``resolve_target``, ``targets_from_plan``) are plain functions and classes that
@@ -59,14 +59,14 @@ from hydrosoft.tasks import Task, make_task
 from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, mean_point_distance
 from hydrosoft.tasks.evaluation import (METRIC_SPACING_M, PlannerSettings, planner_calls, with_contact,
                                         with_solver_steps)
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Stale, quote
-from hydrosoft.services import service_main
-from hydrosoft.services.config import PlannerConfig, StackConfig
-from hydrosoft.services.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
-from hydrosoft.services.safety import check_target, outside_workspace
-from hydrosoft.services.runtime import Service
-from hydrosoft.services.task_frame import TaskFrame
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Stale, quote
+from hydrosoft.services.bus import service_cli
+from hydrosoft.services.bus.config import PlannerConfig, StackConfig
+from hydrosoft.services.arm.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
+from hydrosoft.services.arm.safety import check_target, outside_workspace
+from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.arm.task_frame import TaskFrame
 
 IDLE_PERIOD_S = 0.05  # s between checks while no goal runs or inputs are stale
 SETTLE_S = 0.3  # a goal is reached once the object stayed within its tolerance this long (s)
@@ -608,7 +608,7 @@ async def run(service: Service, config: StackConfig) -> None:
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
         service.log.info("compiling the planner step (the first solve; compile cache %s)",
-                         os.environ.get(service_main.CACHE_ENV, "torch's default"))
+                         os.environ.get(service_cli.CACHE_ENV, "torch's default"))
         service.note = COMPILING_NOTE
         seconds = await loop.run_in_executor(None, compile_step, core)
         service.note = ""
@@ -626,13 +626,13 @@ async def run(service: Service, config: StackConfig) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name planner] (``service_main``)."""
-    service_main.add_arguments(parser, "planner")
+    """Arguments: CONFIG [--name planner] (``service_cli``)."""
+    service_cli.add_arguments(parser, "planner")
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main.main("planner", __doc__, argv, add_arguments, lambda args: service_main.run(args, run))
+    return service_cli.main("planner", __doc__, argv, add_arguments, lambda args: service_cli.run(args, run))
 
 
 if __name__ == "__main__":
-    service_main.exit_process(main())
+    service_cli.exit_process(main())

@@ -5,8 +5,8 @@ host, which need CURVE keys, are left out with a warning) and asks the planner f
 ``PLANNER_POLL_S`` (the goal and the object's error travel only there). Each message goes to one foxglove-sdk
 logging context with up to two sinks:
 
-- ``--record PATH.mcap``: an MCAP file (``recording`` says what is in it: a raw channel per bus topic and the
-  scene channels of ``scene``), its chunks compressed with zstd at ``ZSTD_LEVEL``. Camera images are JPEGs of
+- ``--record PATH.mcap``: an MCAP file (``mcap_format`` says what is in it: a raw channel per bus topic and the
+  scene channels of ``foxglove_scene``), its chunks compressed with zstd at ``ZSTD_LEVEL``. Camera images are JPEGs of
   ``--jpeg-quality`` (``--camera-images raw``: lossless); depth frames, poses and every other array are kept
   exactly. Chunks hold at most ``CHUNK_SIZE_BYTES`` and the current chunk is closed every
   ``FLUSH_PERIOD_S``, so a crash of the recorder (even SIGKILL) loses at most the last second: the file reads up to
@@ -16,7 +16,7 @@ logging context with up to two sinks:
 
 Every message received is written; a gap in a topic's ``seq`` (messages the recorder did not get, e.g. dropped by
 a publisher's high-water mark) is counted as ``gap``, a message that does not decode under its kind, a scene
-conversion that fails as ``scene``. None of these stops the recording. The shutdown closes the file with its
+conversion that fails as ``foxglove_scene``. None of these stops the recording. The shutdown closes the file with its
 summary and index; the launcher stops the recorder last, so the stack's own shutdown is in the file.
 
 Run: ``python -m hydrosoft.services.recorder CONFIG [--name recorder] [--record PATH.mcap] [--view [--view-port P]]``.
@@ -41,12 +41,12 @@ import foxglove.channels
 import zmq
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions, MCAPWriter
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services import service_main
-from hydrosoft.services.bus import RequestClient, is_local_endpoint
-from hydrosoft.services.config import StackConfig
-from hydrosoft.services.image_codec import ImageCodecError
-from hydrosoft.services.recording import (
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus import service_cli
+from hydrosoft.services.bus.sockets import RequestClient, is_local_endpoint
+from hydrosoft.services.bus.config import StackConfig
+from hydrosoft.services.recording.image_codec import ImageCodecError
+from hydrosoft.services.recording.mcap_format import (
     CLOCK_METADATA,
     EPOCH_OFFSET_KEY,
     CAMERA_FORMATS,
@@ -60,8 +60,8 @@ from hydrosoft.services.recording import (
     raw_encoding,
     raw_schema,
 )
-from hydrosoft.services.runtime import Service
-from hydrosoft.services.scene import SceneBuilder, SceneError, SceneGeometry, SceneOutput, scene_topics
+from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.recording.foxglove_scene import SceneBuilder, SceneError, SceneGeometry, SceneOutput, scene_topics
 
 SERVICE = "recorder"
 #: Uncompressed size of the MCAP file's chunks, bytes (about half a second of the sim stack; 256 KiB chunks made its
@@ -387,13 +387,13 @@ def _raw_format(args: argparse.Namespace) -> RawFormat:
 
 def run_with_options(args: argparse.Namespace, options: Callable[[], RecorderOptions]) -> int:
     """Run ``serve`` with the ``RecorderOptions`` that ``options()`` builds from the command line
-    (``service_main.run``); the exit code (2: options or a config that cannot be used)."""
+    (``service_cli.run``); the exit code (2: options or a config that cannot be used)."""
     try:
         built = options()
     except RecorderError as err:
         print(f"{args.name}: {err}", file=sys.stderr)
         return 2
-    return service_main.run(args, functools.partial(serve, config_path=args.config, options=built))
+    return service_cli.run(args, functools.partial(serve, config_path=args.config, options=built))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -404,4 +404,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    service_main.exit_process(main())
+    service_cli.exit_process(main())

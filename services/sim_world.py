@@ -11,7 +11,7 @@
   READY), and a late tick takes the steps it is due, so simulated time keeps up with the simulated arm on two
   cores beside the planner. A tick that fails (a bad TCP pose, ``UnstableStepError``, a torch error, non-finite
   values) is logged and counted under its kind (``PlantStepError``), and the state kept. The plant lies at
-  ``scene.task_frame`` in the base frame (``services/task_frame.py``): TCP poses arrive and every pose, point and
+  ``scene.task_frame`` in the base frame (``services/arm/task_frame.py``): TCP poses arrive and every pose, point and
   force leaves in the base frame, as in the lab.
 - Per arm, a simulated UR controller (``drivers/ur/simulator.py``) on ``arm.ur_host``, started at the scene's pose
   of the arm's body (the TCP frame is the bubble's frame), which the real ``ur_rtde`` client in the arm commander
@@ -20,9 +20,9 @@
   ``arm.ft_port``, streaming the wrench the object applies to the bubble (``hydrosoft.dynamics.body_wrenches``,
   about the TCP, in the TCP frame: pressing down on the object reads as +Fz for a TCP whose z points up) plus the
   sensor's zero-load offset ``sim.ft_bias``, which the real serial driver in the F/T reader reads. sim_world stores
-  that offset as the arm's tare (``services/ft_bias.py``, in ``state_dir``) before the sensor starts: the tare a
+  that offset as the arm's tare (``services/arm/ft_bias.py``, in ``state_dir``) before the sensor starts: the tare a
   person would take before the membrane touches the object, since the scenes start in contact.
-- Rendered sensors (``sim_world_render``), each in a worker thread so the physics keeps its rate: the tag
+- Rendered sensors (``sim.render``), each in a worker thread so the physics keeps its rate: the tag
   camera's image on ``image/tag_camera`` (``CameraImage``) at ``camera.fps``, and each bubble's depth image on
   ``depth/ARM`` (``DepthFrame``) at ``arm.depth.fps`` or as fast as it renders.
 - The truth leaves only on ``eval/object_pose`` and ``eval/contact_forces`` (10 Hz), which no control service
@@ -58,15 +58,15 @@ from hydrosoft.drivers.ur.simulator import SimulatedURController
 from hydrosoft.dynamics import CompiledStep, Model, State, UnstableStepError, body_wrenches, step
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, compile_scene
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Publisher
-from hydrosoft.services import service_main
-from hydrosoft.services.config import ConfigError, StackConfig
-from hydrosoft.services.ft_bias import StoredBias, bias_path, save_bias
-from hydrosoft.services.runtime import Service
-from hydrosoft.services.sim_devices import image_topic
-from hydrosoft.services.sim_world_render import BubbleDepthCamera, tag_camera
-from hydrosoft.services.task_frame import TaskFrame
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Publisher
+from hydrosoft.services.bus import service_cli
+from hydrosoft.services.bus.config import ConfigError, StackConfig
+from hydrosoft.services.arm.ft_bias import StoredBias, bias_path, save_bias
+from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.sim.devices import image_topic
+from hydrosoft.services.sim.render import BubbleDepthCamera, tag_camera
+from hydrosoft.services.arm.task_frame import TaskFrame
 from hydrosoft.services.tag_tracker import OBJECT, TAG_CAMERA
 from hydrosoft.tasks import make_task
 from hydrosoft.tasks.evaluation import PlantSettings, with_contact
@@ -475,18 +475,18 @@ async def serve(service: Service, config: StackConfig) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG (mode = 'sim') [--name sim_world] (``service_main``)."""
-    service_main.add_arguments(parser, SERVICE)
+    """Arguments: CONFIG (mode = 'sim') [--name sim_world] (``service_cli``)."""
+    service_cli.add_arguments(parser, SERVICE)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run sim_world until SIGINT/SIGTERM; the exit code (2 for a config that cannot be used)."""
-    return service_main.run(args, serve)
+    return service_cli.run(args, serve)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main.main(SERVICE, __doc__, argv, add_arguments, run)
+    return service_cli.main(SERVICE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":
-    service_main.exit_process(main())
+    service_cli.exit_process(main())

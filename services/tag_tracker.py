@@ -1,10 +1,10 @@
 """The tag tracker service: the object's pose in the robot base frame from the AprilTags in the tag camera's images.
 
-Camera: in sim mode ``sim_devices.BusCamera`` on sim_world's ``image/tag_camera``; in the lab ``OpenCVCamera`` on
+Camera: in sim mode ``sim.devices.BusCamera`` on sim_world's ``image/tag_camera``; in the lab ``OpenCVCamera`` on
 ``camera.device``. Calibration (``camera_calibration``): the ``camera.calibration`` file when set (intrinsics and
 ``T_base_camera``), otherwise the numbers of ``[camera]`` (``pose`` = ``T_base_camera``).
 
-For each image, ``TagTracker.track`` runs ``tag_tracking``: ``RegionOfInterest.detect`` (``detect_tags`` around
+For each image, ``TagTracker.track`` runs ``tag_detection``: ``RegionOfInterest.detect`` (``detect_tags`` around
 where the object's tags were last seen, the whole image every ``FULL_FRAME_PERIOD_S`` or when that finds fewer of
 them), ``solve_tag`` per tag and ``object_pose_from_tags`` with the object's layout (``object_layout``: the one
 sim_world renders, so sim and tracker agree on where every tag sits) and those solutions. The service publishes,
@@ -50,12 +50,12 @@ from hydrosoft.drivers.camera.tags import (
 from hydrosoft.drivers.errors import DriverError
 from hydrosoft.drivers.poses import check_pose, compose, inverse
 from hydrosoft.scene import ObjectSpec
-from hydrosoft.services import messages as msg
-from hydrosoft.services import service_main
-from hydrosoft.services.config import ConfigError, StackConfig
-from hydrosoft.services.runtime import Service
-from hydrosoft.services.sim_devices import BusCamera, image_topic
-from hydrosoft.services.tag_tracking import (
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus import service_cli
+from hydrosoft.services.bus.config import ConfigError, StackConfig
+from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.sim.devices import BusCamera, image_topic
+from hydrosoft.services.tag_detection import (
     MAX_REPROJECTION_RMS_PX,
     ObjectPose,
     RegionOfInterest,
@@ -84,7 +84,7 @@ FULL_FRAME_PERIOD_S = 1.0
 # (a hand or the arm passing in front of them), shorter than a user's wait for a goal to start.
 BLIND_AFTER_S = 2.0
 
-_REJECTION_KINDS = (  # prefix of a tag_tracking.Rejection reason -> short error kind
+_REJECTION_KINDS = (  # prefix of a tag_detection.Rejection reason -> short error kind
     ("no tag of the object seen", "no_object_tag"),
     ("no usable tag", "no_usable_tag"),
     ("ambiguous", "ambiguous_pose"),
@@ -402,18 +402,18 @@ async def report_health(service: Service, note: str) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments: CONFIG [--name tag_tracker] (``service_main``)."""
-    service_main.add_arguments(parser, SERVICE)
+    """Arguments: CONFIG [--name tag_tracker] (``service_cli``)."""
+    service_cli.add_arguments(parser, SERVICE)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the tag tracker until SIGINT/SIGTERM; the exit code (2 for a config that cannot be used)."""
-    return service_main.run(args, serve)
+    return service_cli.run(args, serve)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main.main(SERVICE, __doc__, argv, add_arguments, run)
+    return service_cli.main(SERVICE, __doc__, argv, add_arguments, run)
 
 
 if __name__ == "__main__":
-    service_main.exit_process(main())
+    service_cli.exit_process(main())

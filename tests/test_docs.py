@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hydrosoft.services.cli import build_parser
+from hydrosoft.services.commands.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

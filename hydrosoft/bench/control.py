@@ -203,7 +203,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     (both ``PlannerSettings``); ``activation_budget``: the compiled step's ``activation_memory_budget``;
     ``object_update``: the planner model's (``PlannerSettings.object_update``); ``compiled_costs``: with ``compile``,
     the costs through the setup's compiled cost terms (as the planner runs them) or eager; ``preloaded``: the
-    process's ``LD_PRELOAD`` (the allocator ``hydrosoft-stack`` preloads, ``hydrosoft.services.allocator``), or None.
+    process's ``LD_PRELOAD`` (the allocator ``hydrosoft-stack`` preloads, ``hydrosoft.services.bus.allocator``), or None.
 
     After the warm-up solves the process's garbage collector is settled (``compilation.settle_garbage_collector``), as
     the stack's planner does once it has compiled. A timed solve is one cycle of the closed loop, as

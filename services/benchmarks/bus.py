@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hydrosoft.services.bus import Bus, CurveKeys, LatestSubscriber, Publisher, Stale
-from hydrosoft.services.keys import generate_key_pair
-from hydrosoft.services.messages import DepthFrame, Message, Wrench
+from hydrosoft.services.bus.sockets import Bus, CurveKeys, LatestSubscriber, Publisher, Stale
+from hydrosoft.services.commands.keys import generate_key_pair
+from hydrosoft.services.bus.messages import DepthFrame, Message, Wrench
 
 #: Publishing rate per payload, Hz: above an F/T sensor's stream rate we consume, and a depth camera's frame rate.
 RATES_HZ = {"wrench": 1000.0, "depth_640x480": 100.0}

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from hydrosoft.services.client import ClientError, StackClient
-from hydrosoft.services.config import load_config
+from hydrosoft.services.bus.config import load_config
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "sim.toml"
 #: Longest wait for the whole stack to report ready, s (the planner and sim_world compile on two busy cores), unless

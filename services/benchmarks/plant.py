@@ -23,7 +23,7 @@ import time
 import numpy as np
 import torch
 
-from hydrosoft.services.config import load_config
+from hydrosoft.services.bus.config import load_config
 from hydrosoft.services.sim_world import TORCH_THREADS, SimPlant, plant_model
 
 STEP_MM = 1.0  # TCP travel per tick along base x, mm

@@ -32,7 +32,7 @@ import numpy as np
 import zmq
 from mcap.reader import make_reader
 
-from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.benchmarks.launched_stack import (
     STACK_READY_S,
     Child,
@@ -41,9 +41,9 @@ from hydrosoft.services.benchmarks.launched_stack import (
     private_config,
     start_goal,
 )
-from hydrosoft.services.bus import Bus
+from hydrosoft.services.bus.sockets import Bus
 from hydrosoft.services.client import StackClient
-from hydrosoft.services.config import StackConfig, load_config
+from hydrosoft.services.bus.config import StackConfig, load_config
 
 #: Longest wait for the recorder to report READY, s.
 RECORDER_READY_S = 120.0
@@ -113,7 +113,7 @@ def measure(config: Path, seconds: float, keep: Path | None = None) -> dict[str,
     try:
         config_path = private_config(config, root)
         stack_config = load_config(config_path)
-        stack = Child([sys.executable, "-m", "hydrosoft.services.launcher", str(config_path)], root / "launcher.log")
+        stack = Child([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config_path)], root / "launcher.log")
         children.append(stack)
         stack.wait_for("stack ready", STACK_READY_S)
 

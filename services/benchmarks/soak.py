@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import zmq
 
-from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.benchmarks.launched_stack import (
     Child,
     add_config_argument,
@@ -54,10 +54,10 @@ from hydrosoft.services.benchmarks.launched_stack import (
     start_goal,
     thread_cpu_times_s,
 )
-from hydrosoft.services.bus import Bus
+from hydrosoft.services.bus.sockets import Bus
 from hydrosoft.services.client import true_error_mm
-from hydrosoft.services.config import StackConfig, load_config
-from hydrosoft.services.status import collect
+from hydrosoft.services.bus.config import StackConfig, load_config
+from hydrosoft.services.commands.status import collect
 
 SAMPLE_PERIOD_S = 5.0  # memory and CPU time of every service, this often
 GOAL_TIMEOUT_S = 120.0  # one goal of the soak
@@ -247,7 +247,7 @@ def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: 
         stack_config = load_config(config_path)
         if stack_config.scene.task not in SOAK_GOALS:
             raise ValueError(f"bench soak has goals for {sorted(SOAK_GOALS)}, not {stack_config.scene.task!r}")
-        stack = Child([sys.executable, "-m", "hydrosoft.services.launcher", str(config_path)], root / "launcher.log")
+        stack = Child([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config_path)], root / "launcher.log")
         stack.wait_for("stack ready", stack_ready_s(stack_config))
         names = stack_config.service_names()
         reports = asyncio.run(collect(stack_config, names, STATUS_WINDOW_S))

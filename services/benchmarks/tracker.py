@@ -5,7 +5,7 @@ setting (camera distance to the cube's centre, view angle from the vertical: 0 =
 sample, the cube's yaw, the camera's azimuth and its aim point (up to ``AIM_JITTER`` of the distance off the cube,
 so the cube is not always at the image centre) are drawn at random from a seeded generator; ``drivers.camera.render``
 renders the image (1280 x 720, fx = fy = 900 px, mild barrel distortion, Gaussian noise and blur) and
-``services.tag_tracking`` estimates the cube's pose in the base frame from it.
+``services.tag_detection`` estimates the cube's pose in the base frame from it.
 
 Each row (one setting): ``images``; ``detection_rate``, the fraction of images that gave a pose;
 ``tags_per_pose``, the mean number of tags fitted; position error (mm, Euclidean) and orientation error (deg, angle
@@ -50,7 +50,7 @@ from hydrosoft.drivers.poses import compose, inverse, look_at, rotation_angle_ra
 from hydrosoft.drivers.camera.render import Renderer, RenderOptions
 from hydrosoft.drivers.camera.tags import box_layout
 from hydrosoft.services.tag_tracker import TagTracker, full_frame_every
-from hydrosoft.services.tag_tracking import ObjectPose, Rejection, detect_tags, make_detector, object_pose_from_tags
+from hydrosoft.services.tag_detection import ObjectPose, Rejection, detect_tags, make_detector, object_pose_from_tags
 
 CUBE_EDGE_M = 0.05
 TAG_SIZE_M = 0.032

@@ -17,7 +17,7 @@ from hydrosoft.bench import fit
 from hydrosoft.bench.synthetic_wrench import IDENTITY, write_synthetic_recording
 from hydrosoft.bench.wrench_recording import RecordingInfo, WrenchRecordingWriter, WrenchSample
 from hydrosoft.scene import BodySpec
-from hydrosoft.services.cli import build_parser
+from hydrosoft.services.commands.cli import build_parser
 
 TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from recording_processes import publisher, recorder, remove_root, service, short_root, write_config
 
-from hydrosoft.services.config import StackConfig, load_config
+from hydrosoft.services.bus.config import StackConfig, load_config
 
 RUN_BEFORE_KILL_S = 3.0  # the publisher's run recorded by both recorders, s
 RUN_AFTER_KILL_S = 1.5  # then by the clean recorder alone, s

@@ -20,8 +20,8 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import FUTURE_STAMP_TOLERANCE_NS, FutureStamp, StaleStamp
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import FUTURE_STAMP_TOLERANCE_NS, FutureStamp, StaleStamp
 
 Frames = list[bytes]
 Header = dict[str, Any]

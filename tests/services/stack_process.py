@@ -50,8 +50,8 @@ def sim_toml_text(compiled_plant: bool = False) -> str:
 def place_scene(text: str, task_frame: list[float]) -> str:
     """A sim config ``text`` with its scene moved to ``task_frame`` (``T_base_task``, a turn about z): the tag
     camera and the workspace box move with it, so the base-frame numbers all change and the physics does not."""
-    from hydrosoft.services.config import parse_config
-    from hydrosoft.services.task_frame import TaskFrame
+    from hydrosoft.services.bus.config import parse_config
+    from hydrosoft.services.arm.task_frame import TaskFrame
 
     config = parse_config(text)
     frame = TaskFrame.from_pose(task_frame)
@@ -102,7 +102,7 @@ class Stack:
     def __init__(self, config: Path, log: Path) -> None:
         self.config, self.log = config, log
         self._out = log.open("wb")
-        self.process = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.cli", "launch", str(config)],
+        self.process = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.commands.cli", "launch", str(config)],
                                         stdout=self._out, stderr=subprocess.STDOUT, start_new_session=True)
 
     def text(self) -> str:

@@ -7,14 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from hydrosoft.services.allocator import APPLIED, CANDIDATES, SETTING, choose, library_dirs
+from hydrosoft.services.bus.allocator import APPLIED, CANDIDATES, SETTING, choose, library_dirs
 
 TCMALLOC, _, MIMALLOC, JEMALLOC = CANDIDATES
 
 # Prints its pid, re-executes on the allocator, prints its pid again and whether the library is mapped.
 CHILD = """
 import os, sys
-from hydrosoft.services.allocator import reexec_with_allocator
+from hydrosoft.services.bus.allocator import reexec_with_allocator
 print("pid", os.getpid(), flush=True)
 reexec_with_allocator()
 preload = os.environ.get("LD_PRELOAD", "")

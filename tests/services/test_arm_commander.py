@@ -26,12 +26,12 @@ import pytest
 
 from hydrosoft.drivers.base import ArmState
 from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SIM_CONTROL_PORT, URArmConfig
-from hydrosoft.services import arm_enable
-from hydrosoft.services import messages as msg
+from hydrosoft.services.commands import arm as arm_enable
+from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, HOLD, MAX_STEP_PERIODS, NO_TARGET, UNTARED_FT,
                                              ServoLogic, driver_config)
-from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale
-from hydrosoft.services.config import LimitsConfig, load_config
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale
+from hydrosoft.services.bus.config import LimitsConfig, load_config
 from loopback import free_ur_host
 
 # --- the decisions, without sockets --------------------------------------------------------------------------------

@@ -25,17 +25,17 @@ from hydrosoft.drivers.bubble.reference import Reference, save_reference
 from hydrosoft.drivers.bubble.render import render_depth, to_counts
 from hydrosoft.drivers.errors import NotConnected, ProtocolError, Stale
 from hydrosoft.geometry.sdf import Box
-from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bubble_camera import (
     BadFrame,
     BubbleDepth,
     error_kind,
     membrane_radii,
 )
-from hydrosoft.services import bus as bus_layer
-from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher
-from hydrosoft.services.config import ConfigError, load_config, parse_config
-from hydrosoft.services.sim_devices import BusDepthCamera, depth_topic
+from hydrosoft.services.bus import sockets as bus_layer
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher
+from hydrosoft.services.bus.config import ConfigError, load_config, parse_config
+from hydrosoft.services.sim.devices import BusDepthCamera, depth_topic
 
 SCENARIO_TIMEOUT_S = 40.0
 FRAME_PERIOD_S = 0.05  # the test camera's 20 Hz

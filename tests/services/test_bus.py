@@ -16,8 +16,8 @@ import zmq
 import zmq.asyncio
 import zmq.auth
 
-from hydrosoft.services import bus as b
-from hydrosoft.services import messages as m
+from hydrosoft.services.bus import sockets as b
+from hydrosoft.services.bus import messages as m
 
 TEST_TIMEOUT_S = 20.0
 #: How long a test waits for a subscription to reach its publisher (slow joiner), s.

@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from hydrosoft.geometry import se3
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, Publisher
-from hydrosoft.services.calibrate_task_frame import level_frame, spread
-from hydrosoft.services.config import parse_config
-from hydrosoft.services.task_frame import TaskFrame
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, Publisher
+from hydrosoft.services.commands.calibrate import level_frame, spread
+from hydrosoft.services.bus.config import parse_config
+from hydrosoft.services.arm.task_frame import TaskFrame
 from hydrosoft.tasks import make_task
 
 YAW = math.radians(-35.0)
@@ -61,7 +61,7 @@ async def run_command(tmp_path, poses: torch.Tensor | None, seconds: float = 1.5
     bus = Bus()
     out = Publisher(bus, parse_config(config_text(tmp_path)).endpoint("tag_tracker"), source="tag_tracker")
     process = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "hydrosoft.services.cli", "calibrate", "task-frame", str(path), "--seconds", str(seconds),
+        sys.executable, "-m", "hydrosoft.services.commands.cli", "calibrate", "task-frame", str(path), "--seconds", str(seconds),
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
     try:
         async def publish():

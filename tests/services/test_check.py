@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from hydrosoft.drivers.robotiq_ft300.simulator import SimulatedFT300
-from hydrosoft.services import check
+from hydrosoft.services.commands import check
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 READY_TIMEOUT_S = 15.0

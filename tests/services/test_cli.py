@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from hydrosoft.services.cli import COMMANDS, GROUPS, main
+from hydrosoft.services.commands.cli import COMMANDS, GROUPS, main
 
 
 def test_help_lists_every_command(capsys):
@@ -46,7 +46,7 @@ def test_unknown_model_is_rejected_with_a_usage_error(capsys):
 
 
 def test_console_script_entry_point_runs():
-    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.cli", "--help"], capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.commands.cli", "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "hydrosoft-stack" in result.stdout
 
 

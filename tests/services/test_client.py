@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from hydrosoft.services import client as c
-from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.client import ClientError, StackClient, StackGone
-from hydrosoft.services.config import load_config
+from hydrosoft.services.bus.config import load_config
 
 SIM_CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "sim.toml"
 TARGET = np.array([0.04, 0.0, 0.025, 1.0, 0.0, 0.0, 0.0])

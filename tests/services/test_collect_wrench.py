@@ -23,8 +23,8 @@ from mcap.reader import make_reader
 from hydrosoft.bench import wrench
 from hydrosoft.bench.wrench_recording import TOPIC, read_wrench_recording
 from hydrosoft.bench.wrench_scenes import bench_object
-from hydrosoft.services import cli
-from hydrosoft.services.config import load_config
+from hydrosoft.services.commands import cli
+from hydrosoft.services.bus.config import load_config
 from loopback import free_ur_host
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
@@ -52,7 +52,7 @@ def private_config(tmp_path: Path, **replacements: str) -> Path:
 def collect(config: Path, out: Path, *options: str,
             timeout_s: float = COLLECT_TIMEOUT_S) -> subprocess.CompletedProcess:
     """Run the collector to its end in its own session; on a timeout, kill the session's processes by its pid."""
-    proc = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.cli", "collect", "wrench", str(config),
+    proc = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.commands.cli", "collect", "wrench", str(config),
                              "--out", str(out), *options], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:

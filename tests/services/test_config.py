@@ -8,9 +8,9 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from hydrosoft.services.config import (PLANNER_PRESETS, SDF_SOLVER_STEPS_MAX, ConfigError, PlannerConfig, load_config,
-                                      parse_config)
-from hydrosoft.services.service_main import CACHE_ENV, use_compile_cache
+from hydrosoft.services.bus.config import (PLANNER_PRESETS, SDF_SOLVER_STEPS_MAX, ConfigError, PlannerConfig,
+                                          load_config, parse_config)
+from hydrosoft.services.bus.service_cli import CACHE_ENV, use_compile_cache
 
 DEPLOY = Path(__file__).parents[2] / "deploy"
 ONE_ARM = 'arms = [{ name = "bubble" }]\n'

@@ -14,9 +14,9 @@ import sys
 import pytest
 from fakes.stack_run import LauncherRun, remove_tree, short_run_root, wait_until, write_config
 
-from hydrosoft.services import bus as b
-from hydrosoft.services import keys
-from hydrosoft.services.config import load_config
+from hydrosoft.services.bus import sockets as b
+from hydrosoft.services.commands import keys
+from hydrosoft.services.bus.config import load_config
 
 #: Longest a status call may take here, s (its window plus a Python start on a busy machine).
 STATUS_TIMEOUT_S = 30.0
@@ -38,7 +38,7 @@ def free_tcp_port() -> int:
 
 
 def run_status(config) -> dict:
-    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.status", str(config), "--json", "--wait", "3"],
+    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.commands.status", str(config), "--json", "--wait", "3"],
                             capture_output=True, text=True, timeout=STATUS_TIMEOUT_S)
     assert result.returncode == 0, result.stderr
     return json.loads(result.stdout)["services"]

@@ -1,4 +1,4 @@
-"""The stored F/T tare (``services/ft_bias.py``) and how the reader takes it (``ft_reader.stored_tare``): a round
+"""The stored F/T tare (``services/arm/ft_bias.py``) and how the reader takes it (``ft_reader.stored_tare``): a round
 trip keeps every value, a missing file means untared, and a file that cannot be used is a clear, counted error,
 never a zero bias."""
 
@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from hydrosoft.services.ft_bias import (
+from hydrosoft.services.arm.ft_bias import (
     MAX_FILE_BYTES,
     BiasFileError,
     StoredBias,

@@ -21,12 +21,12 @@ from service_process import ServiceProcess
 from hydrosoft.drivers.base import WrenchSample
 from hydrosoft.drivers.errors import NotConnected, ProtocolError, Stale
 from hydrosoft.drivers.robotiq_ft300.simulator import FT300Faults, SimulatedFT300
-from hydrosoft.services import bus as bus_layer
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, LatestSubscriber
-from hydrosoft.services.config import load_config
-from hydrosoft.services.ft_bias import StoredBias, bias_path, load_bias, save_bias
-from hydrosoft.services.ft_command import request_tare
+from hydrosoft.services.bus import sockets as bus_layer
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber
+from hydrosoft.services.bus.config import load_config
+from hydrosoft.services.arm.ft_bias import StoredBias, bias_path, load_bias, save_bias
+from hydrosoft.services.commands.ft import request_tare
 from hydrosoft.services.ft_reader import (
     bias_of,
     error_kind,

@@ -21,11 +21,11 @@ import pytest
 from service_process import ServiceProcess
 from stack_process import READY_TIMEOUT_S, stack_config
 
-from hydrosoft.services import cli
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, LatestSubscriber, Stale
-from hydrosoft.services.config import load_config
-from hydrosoft.services.ft_bias import bias_path, load_bias
+from hydrosoft.services.commands import cli
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Stale
+from hydrosoft.services.bus.config import load_config
+from hydrosoft.services.arm.ft_bias import bias_path, load_bias
 
 pytestmark = pytest.mark.slow
 

@@ -5,9 +5,9 @@ import stat
 import pytest
 import zmq.auth
 
-from hydrosoft.services import bus as b
-from hydrosoft.services import keys
-from hydrosoft.services.cli import main
+from hydrosoft.services.bus import sockets as b
+from hydrosoft.services.commands import keys
+from hydrosoft.services.commands.cli import main
 
 
 def test_keys_generate_writes_a_pair_whose_secret_only_its_owner_may_read(tmp_path, capsys):

@@ -22,8 +22,10 @@ import pytest
 from hydrosoft.drivers.bubble.reference import load_reference
 from hydrosoft.drivers.bubble.render import to_counts
 from hydrosoft.drivers.camera.config import CameraCalibration, CameraIntrinsics, save_calibration
-from hydrosoft.services import bubble_camera, check, cli
-from hydrosoft.services.config import load_config
+from hydrosoft.services import bubble_camera
+from hydrosoft.services.commands import check
+from hydrosoft.services.commands import cli
+from hydrosoft.services.bus.config import load_config
 
 LAB_TOML = Path(__file__).parents[2] / "deploy" / "lab.toml"
 CHECK_TIMEOUT_S = 60.0  # the command's own probes time out after 2 s each; this only catches a hang
@@ -65,7 +67,7 @@ def loopback_lab(tmp_path: Path, text: str) -> Path:
 def test_check_reports_every_lab_device_as_not_answering_here(tmp_path):
     tic = time.monotonic()
     path = loopback_lab(tmp_path, LAB_TOML.read_text())
-    done = subprocess.run([sys.executable, "-m", "hydrosoft.services.cli", "check", str(path), "--json"],
+    done = subprocess.run([sys.executable, "-m", "hydrosoft.services.commands.cli", "check", str(path), "--json"],
                           capture_output=True, text=True, timeout=CHECK_TIMEOUT_S)
     wall_s = time.monotonic() - tic
     assert done.returncode == 1, done.stderr

@@ -28,10 +28,12 @@ from fakes.stack_run import (
     write_config,
 )
 
-from hydrosoft.services import keys, launcher
-from hydrosoft.services.config import ServiceConfig, load_config
-from hydrosoft.services.recording import read_recording
-from hydrosoft.services.launcher import (
+from hydrosoft.services.commands import keys
+
+from hydrosoft.services.commands import launch as launcher
+from hydrosoft.services.bus.config import ServiceConfig, load_config
+from hydrosoft.services.recording.mcap_format import read_recording
+from hydrosoft.services.commands.launch import (
     LaunchError,
     _OutputProtocol,
     check_ipc_paths,
@@ -182,7 +184,7 @@ def test_bad_config_exits_2_naming_the_key(root, capsys):
     assert launcher.launch(path) == 2
     assert "limits.max_speed_m_s" in capsys.readouterr().err
     path.write_text(path.read_text().replace("max_speed_m_s = -1.0", "max_sped_m_s = 0.1"))
-    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.launcher", str(path)], capture_output=True,
+    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.commands.launch", str(path)], capture_output=True,
                             text=True, timeout=30)
     assert result.returncode == 2 and "max_sped_m_s" in result.stderr and "limits" in result.stderr, result.stderr
     assert not (root / "run").exists()  # nothing was started or created

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from hydrosoft.services import messages as m
+from hydrosoft.services.bus import messages as m
 
 IDENTITY_POSE = np.array([0.1, -0.2, 0.3, 1.0, 0.0, 0.0, 0.0])
 

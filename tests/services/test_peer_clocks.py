@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hydrosoft.services import bus as b
-from hydrosoft.services import messages as m
+from hydrosoft.services.bus import sockets as b
+from hydrosoft.services.bus import messages as m
 from hydrosoft.services.arm_commander import ServoLogic
-from hydrosoft.services.config import LimitsConfig
-from hydrosoft.services.safety import watchdog
-from hydrosoft.services.peer_clocks import MAX_PEERS, WINDOW_NS, PeerClock, PeerClocks
+from hydrosoft.services.bus.config import LimitsConfig
+from hydrosoft.services.arm.safety import watchdog
+from hydrosoft.services.bus.peer_clocks import MAX_PEERS, WINDOW_NS, PeerClock, PeerClocks
 
 S = 1_000_000_000
 MS = 1_000_000

@@ -17,9 +17,9 @@ import torch
 
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
-from hydrosoft.services import messages as msg
-from hydrosoft.services.config import load_config, parse_config
-from hydrosoft.services.bus import ErrorCounter
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.config import load_config, parse_config
+from hydrosoft.services.bus.sockets import ErrorCounter
 from hydrosoft.services.planner import (
     LEAD_CYCLES,
     LEAD_MARGIN_S,

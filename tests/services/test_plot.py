@@ -15,9 +15,9 @@ import pytest
 from mcap.writer import Writer
 from PIL import Image
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.plot import MAX_BUCKETS, PLOTTED_TOPICS, Envelope, Tally, run, series
-from hydrosoft.services.recording import (
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.commands.plot import MAX_BUCKETS, PLOTTED_TOPICS, Envelope, Tally, run, series
+from hydrosoft.services.recording.mcap_format import (
     RecordedMessage,
     RecordingReader,
     encode_raw,

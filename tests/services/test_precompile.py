@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from hydrosoft.dynamics import CompiledStep
-from hydrosoft.services.cli import main
-from hydrosoft.services.service_main import CACHE_ENV
+from hydrosoft.services.commands.cli import main
+from hydrosoft.services.bus.service_cli import CACHE_ENV
 from hydrosoft.tasks import evaluation
 from hydrosoft.tasks.base import compiled_cost_terms
 from stack_process import quick_planner

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from hydrosoft.services.reapproach import (
+from hydrosoft.services.arm.reapproach import (
     ARRIVED_M,
     CLEARANCE_M,
     CONTACT_DEPTH_M,

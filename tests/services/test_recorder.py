@@ -21,8 +21,8 @@ from mcap.records import Chunk
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.config import parse_config
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.config import parse_config
 from hydrosoft.services.recorder import (
     FLUSH_PERIOD_S,
     ChunkBudget,
@@ -32,7 +32,7 @@ from hydrosoft.services.recorder import (
     bus_endpoints,
     recording_path,
 )
-from hydrosoft.services.recording import (
+from hydrosoft.services.recording.mcap_format import (
     CLOCK_METADATA,
     RecordingError,
     bus_topic,

@@ -1,4 +1,4 @@
-"""The recording format (``services/recording.py``): what the recorder's own logging writes to a file reads back
+"""The recording format (``services/recording/mcap_format.py``): what the recorder's own logging writes to a file reads back
 exactly (depth frames and poses bit for bit, camera images as their JPEG or PNG holds them), images are stored
 compressed and once, and recordings in the older all-JSON format still read."""
 
@@ -14,10 +14,10 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from test_recorder import assert_same
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.image_codec import ImageCodecError, encode_image
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.recording.image_codec import ImageCodecError, encode_image
 from hydrosoft.services.recorder import RecorderOptions, SceneLog, open_sinks
-from hydrosoft.services.recording import (
+from hydrosoft.services.recording.mcap_format import (
     RawFormat,
     RecordingError,
     decode_raw,
@@ -28,7 +28,7 @@ from hydrosoft.services.recording import (
     raw_schema,
     read_recording,
 )
-from hydrosoft.services.scene import SceneBuilder, SceneGeometry
+from hydrosoft.services.recording.foxglove_scene import SceneBuilder, SceneGeometry
 
 POSE = np.array([0.1, -0.05, 0.02, np.cos(0.3), 0.0, 0.0, np.sin(0.3)])
 

@@ -21,11 +21,11 @@ from mcap.records import Channel
 from recording_processes import remove_root, service, short_root, write_config
 from test_recorder import assert_same
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus
-from hydrosoft.services.config import load_config
-from hydrosoft.services.recording import RecordedMessage, raw_channel_metadata, read_recording
-from hydrosoft.services.replay import (
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus
+from hydrosoft.services.bus.config import load_config
+from hydrosoft.services.recording.mcap_format import RecordedMessage, raw_channel_metadata, read_recording
+from hydrosoft.services.commands.replay import (
     MAX_BEHIND_S,
     ReplayError,
     ReplayStats,
@@ -120,7 +120,7 @@ def test_a_replay_reproduces_rates_and_contents_and_a_fresh_tag_tracker_gives_th
     try:
         tracker.wait_ready()
         endpoints = [config.endpoint(name) for name in config.service_names()]
-        replay = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.replay", str(run.clean), "--config",
+        replay = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.commands.replay", str(run.clean), "--config",
                                    str(config_path), "--json", "--topics", *replayed_topics],
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         received = asyncio.run(asyncio.wait_for(collect(endpoints, replay), REPLAY_TIMEOUT_S))

@@ -16,9 +16,9 @@ import msgspec
 import numpy as np
 import pytest
 
-from hydrosoft.services import messages as m
-from hydrosoft.services.bus import Bus, LatestSubscriber
-from hydrosoft.services.runtime import INSTANCE_ENV, RuntimeConfig, Service, run_service
+from hydrosoft.services.bus import messages as m
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber
+from hydrosoft.services.bus.runtime import INSTANCE_ENV, RuntimeConfig, Service, run_service
 
 TEST_TIMEOUT_S = 30.0
 #: Longest wait for the subprocess to print READY (imports on two busy cores), s.

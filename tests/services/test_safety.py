@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from hydrosoft.services.config import LIMIT_BOUNDS, ConfigError, LimitsConfig
-from hydrosoft.services.safety import (NO_TARGET, check_path, check_target, clamped_deadline_ns, interpolate,
+from hydrosoft.services.bus.config import LIMIT_BOUNDS, ConfigError, LimitsConfig
+from hydrosoft.services.arm.safety import (NO_TARGET, check_path, check_target, clamped_deadline_ns, interpolate,
                                       is_moving, outside_workspace, retreat_refusal, rotation_angle_rad,
                                       tilt_and_yaw_deg, watchdog)
 

@@ -1,4 +1,4 @@
-"""The scene the recorder and the live view show (``services/scene.py``): numpy geometry, force arrows and the
+"""The scene the recorder and the live view show (``services/recording/foxglove_scene.py``): numpy geometry, force arrows and the
 conversion of each bus message, without sockets. (``tests/test_scene.py`` tests the model library's scenes.)"""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import torch
 from foxglove.messages import Color, CompressedImage, FrameTransforms, RawImage, SceneUpdate
 
 from hydrosoft.geometry import se3
-from hydrosoft.services import messages as msg
-from hydrosoft.services.config import parse_config
-from hydrosoft.services.scene import (
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.config import parse_config
+from hydrosoft.services.recording.foxglove_scene import (
     PREDICTED_FORCES_TOPIC,
     TRUE_FORCES_TOPIC,
     SceneBuilder,

@@ -7,7 +7,7 @@ import sys
 
 EXITS_WITH_BUFFERED_OUTPUT = """
 import logging, sys
-from hydrosoft.services.service_main import exit_process
+from hydrosoft.services.bus.service_cli import exit_process
 logging.basicConfig(stream=sys.stderr, level="INFO")
 logging.getLogger("svc").info("stopped (exit 3)")
 print("last line", end="")  # a pipe is block-buffered: only a flush sends it

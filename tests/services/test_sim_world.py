@@ -24,10 +24,10 @@ from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT
 from hydrosoft.dynamics import body_wrenches, packed_distances
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, LatestSubscriber
-from hydrosoft.services.config import load_config, parse_config
-from hydrosoft.services.sim_world_render import BubbleDepthCamera
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber
+from hydrosoft.services.bus.config import load_config, parse_config
+from hydrosoft.services.sim.render import BubbleDepthCamera
 from hydrosoft.services.sim_world import (
     DurationStats,
     PlantStepError,

@@ -23,7 +23,7 @@ import pytest
 from stack_process import READY_TIMEOUT_S, Stack, assert_stopped_in_order, stack_config
 
 from hydrosoft.services.client import StackClient, true_error_mm
-from hydrosoft.services.config import load_config
+from hydrosoft.services.bus.config import load_config
 
 pytestmark = pytest.mark.slow
 
@@ -41,8 +41,8 @@ OBJECT_OFFSET_M = (0.0, 0.06)
 async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
     """Start a second goal, SIGKILL the planner while the arm servoes, and return the seconds from the kill until
     the arm commander reports the arm stopped, and the planner's restart count once the launcher restarted it."""
-    from hydrosoft.services import messages as msg
-    from hydrosoft.services.status import collect
+    from hydrosoft.services.bus import messages as msg
+    from hydrosoft.services.commands.status import collect
 
     arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
     await client.set_goal("pushing", dy_m=-0.03, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)

@@ -18,7 +18,7 @@ from stack_process import Stack, assert_stopped_in_order, bimanual_stack_config
 
 from hydrosoft.geometry.se3 import angle_between
 from hydrosoft.services.client import StackClient, true_error_mm
-from hydrosoft.services.config import load_config
+from hydrosoft.services.bus.config import load_config
 
 pytestmark = pytest.mark.slow
 
@@ -28,7 +28,7 @@ ARMS = ("bubble_left", "bubble_right")
 
 async def tcp_poses(client: StackClient) -> dict[str, np.ndarray]:
     """Each arm's latest TCP pose ``(7,)`` (base frame) from its commander's arm state."""
-    from hydrosoft.services import messages as msg
+    from hydrosoft.services.bus import messages as msg
 
     poses = {}
     for arm in ARMS:

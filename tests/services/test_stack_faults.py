@@ -39,12 +39,12 @@ from service_process import ServiceProcess
 from stack_process import Stack, children_left, free_ur_host, sim_toml_text, stack_config
 
 from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import FUTURE_STAMP_TOLERANCE_NS, Bus, LatestSubscriber, Stale, StaleStamp
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import FUTURE_STAMP_TOLERANCE_NS, Bus, LatestSubscriber, Stale, StaleStamp
 from hydrosoft.services.client import ClientError, StackClient
-from hydrosoft.services.config import load_config
-from hydrosoft.services.safety import is_moving
-from hydrosoft.services.status import collect
+from hydrosoft.services.bus.config import load_config
+from hydrosoft.services.arm.safety import is_moving
+from hydrosoft.services.commands.status import collect
 
 pytestmark = pytest.mark.slow
 

@@ -32,10 +32,10 @@ import zmq
 from stack_process import Stack, children_left, stack_config
 from test_stack_faults import HELD_M, tcp_truth
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus
 from hydrosoft.services.client import EXIT_STACK_GONE, ClientError, Pursuit, StackClient, StackGone
-from hydrosoft.services.config import load_config
+from hydrosoft.services.bus.config import load_config
 
 pytestmark = pytest.mark.slow
 
@@ -183,7 +183,7 @@ def test_a_leftover_client_gives_up_at_once_and_the_relaunched_stack_does_not_mo
     config = load_config(config_path)
     first = stacks[0]
     client_out = (tmp_path / "client.out").open("wb")
-    leftover = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.cli", "goal", "pushing", "--dx", "0.03",
+    leftover = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.commands.cli", "goal", "pushing", "--dx", "0.03",
                                  "--wait", "600", "--config", str(config_path)],
                                 stdout=client_out, stderr=subprocess.STDOUT)
     try:

@@ -18,10 +18,10 @@ import torch
 from stack_process import Stack, assert_stopped_in_order, stack_config
 
 from hydrosoft.geometry import se3
-from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.client import StackClient, true_error_mm
-from hydrosoft.services.config import load_config
-from hydrosoft.services.status import collect
+from hydrosoft.services.bus.config import load_config
+from hydrosoft.services.commands.status import collect
 from hydrosoft.tasks import make_task
 
 pytestmark = pytest.mark.slow

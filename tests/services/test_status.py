@@ -12,8 +12,8 @@ import time
 import pytest
 from fakes.stack_run import LauncherRun, remove_tree, short_run_root, write_config
 
-from hydrosoft.services import status
-from hydrosoft.services.messages import ServiceStatus
+from hydrosoft.services.commands import status
+from hydrosoft.services.bus.messages import ServiceStatus
 
 #: Longest a status call may take here, s (its window plus a Python start on a busy machine).
 STATUS_TIMEOUT_S = 30.0
@@ -27,7 +27,7 @@ def root():
 
 
 def run_status(config, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "hydrosoft.services.status", str(config), *args],
+    return subprocess.run([sys.executable, "-m", "hydrosoft.services.commands.status", str(config), *args],
                           capture_output=True, text=True, timeout=STATUS_TIMEOUT_S)
 
 

@@ -19,12 +19,12 @@ import pytest
 from hydrosoft.drivers.errors import NotConnected, Stale
 from hydrosoft.drivers.poses import rotation_angle_rad
 from hydrosoft.geometry import se3
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, LatestSubscriber, Publisher, Stale as NoStatus
-from hydrosoft.services.config import load_config, parse_config
-from hydrosoft.services.sim_devices import BusCamera, image_topic
-from hydrosoft.services.sim_world_render import tag_camera
-from hydrosoft.services.tag_tracking import MAX_VIEW_ANGLE_DEG, Rejection, solve_tag
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale as NoStatus
+from hydrosoft.services.bus.config import load_config, parse_config
+from hydrosoft.services.sim.devices import BusCamera, image_topic
+from hydrosoft.services.sim.render import tag_camera
+from hydrosoft.services.tag_detection import MAX_VIEW_ANGLE_DEG, Rejection, solve_tag
 from hydrosoft.services.tag_tracker import (
     BLIND_AFTER_S,
     PoseWatch,
@@ -339,7 +339,7 @@ def test_the_tracker_process_follows_rendered_images_counts_rejections_and_says_
 def test_a_scene_moved_and_turned_by_its_task_frame_keeps_its_tags_facing_the_camera():
     """The camera and the scene moved together (``scene.task_frame``): the same faces carry tags, the table is drawn
     at the frame's height, and the tracker finds the cube in the base frame as precisely as at the origin."""
-    from hydrosoft.services.task_frame import TaskFrame
+    from hydrosoft.services.arm.task_frame import TaskFrame
 
     frame = [0.4, -0.1, -0.05, math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]
     to_base = TaskFrame.from_pose(frame).to_base

@@ -15,9 +15,9 @@ from hydrosoft.drivers.camera.config import CameraIntrinsics
 from hydrosoft.drivers.poses import compose, inverse, rotation_angle_rad, rvec_tvec_from_pose
 from hydrosoft.drivers.camera.render import Renderer, RenderOptions
 from hydrosoft.drivers.camera.tags import MARKER_CELLS, Tag, TagLayout, box_layout, cylinder_layout, tag_corners
-from hydrosoft.services import tag_tracking as tracking
+from hydrosoft.services import tag_detection as tracking
 from hydrosoft.services.benchmarks.tracker import camera_pose
-from hydrosoft.services.tag_tracking import (
+from hydrosoft.services.tag_detection import (
     ObjectPose,
     PixelBox,
     RegionOfInterest,

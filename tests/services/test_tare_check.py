@@ -1,4 +1,4 @@
-"""The rules for taking an F/T tare (``services/tare_check.py``): only at rest, only with the bubble out of contact
+"""The rules for taking an F/T tare (``services/arm/tare_rules.py``): only at rest, only with the bubble out of contact
 (judged on a noisy depth image), only from steady readings; every refusal says why."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.tare_check import (
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.arm.tare_rules import (
     CONTACT_DEFORMATION_M,
     MAX_SPREAD_N,
     contact_pixels,

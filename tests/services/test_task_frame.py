@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from hydrosoft.geometry import se3
-from hydrosoft.services.task_frame import TaskFrame
+from hydrosoft.services.arm.task_frame import TaskFrame
 
 YAW = math.radians(120.0)
 FRAME = TaskFrame.from_pose([0.45, -0.12, -0.03, math.cos(YAW / 2), 0.0, 0.0, math.sin(YAW / 2)])

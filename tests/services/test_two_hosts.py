@@ -19,13 +19,13 @@ import pytest
 from fakes.stack_run import LauncherRun, remove_tree, short_run_root, wait_until, write_config
 from loopback import free_loopback_address
 
-from hydrosoft.services import bus as b
-from hydrosoft.services import keys
-from hydrosoft.services.config import ENDPOINT_KINDS, HOST_ENV, load_config
+from hydrosoft.services.bus import sockets as b
+from hydrosoft.services.commands import keys
+from hydrosoft.services.bus.config import ENDPOINT_KINDS, HOST_ENV, load_config
 
 DEPLOY = Path(__file__).parents[2] / "deploy"
 
-#: The hosts' tcp ports start here (three per service, see services/config.py).
+#: The hosts' tcp ports start here (three per service, see services/bus/config.py).
 FIRST_PORT = 5600
 #: Longest a status call may take here, s (its window plus a Python start on a busy machine).
 STATUS_TIMEOUT_S = 30.0
@@ -62,7 +62,7 @@ def two_host_config(root) -> tuple:
 
 
 def run_status(config, host: str) -> dict:
-    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.status", str(config), "--json", "--wait", "4"],
+    result = subprocess.run([sys.executable, "-m", "hydrosoft.services.commands.status", str(config), "--json", "--wait", "4"],
                             capture_output=True, text=True, timeout=STATUS_TIMEOUT_S,
                             env={**os.environ, HOST_ENV: host})
     assert result.returncode == 0, result.stderr

@@ -23,11 +23,11 @@ import pytest
 from loopback import free_loopback_address
 from stack_process import Stack, children_left, stack_config
 
-from hydrosoft.services import bus as b
-from hydrosoft.services import keys
-from hydrosoft.services import messages as m
+from hydrosoft.services.bus import sockets as b
+from hydrosoft.services.commands import keys
+from hydrosoft.services.bus import messages as m
 from hydrosoft.services.client import StackClient, true_error_mm
-from hydrosoft.services.config import ENDPOINT_KINDS, load_config
+from hydrosoft.services.bus.config import ENDPOINT_KINDS, load_config
 
 pytestmark = pytest.mark.slow
 
@@ -48,7 +48,7 @@ class HostStack(Stack):
     def __init__(self, config, log, host: str) -> None:
         self.config, self.log = config, log
         self._out = log.open("wb")
-        self.process = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.cli", "launch", str(config),
+        self.process = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.commands.cli", "launch", str(config),
                                          "--host", host], stdout=self._out, stderr=subprocess.STDOUT,
                                         start_new_session=True)
 
@@ -143,7 +143,7 @@ def test_two_hosts_push_the_cube_with_curve_while_an_unauthorised_peer_gets_noth
         assert reply.outcome == "reached", (reply.outcome, reply.outcome_reason, reply.error_mm,
                                             compute.text()[-2000:], robot.text()[-2000:])
         assert true is not None and true < 5.0, true
-        status = subprocess.run([sys.executable, "-m", "hydrosoft.services.status", str(config_path), "--json",
+        status = subprocess.run([sys.executable, "-m", "hydrosoft.services.commands.status", str(config_path), "--json",
                                  "--wait", "4"], capture_output=True, text=True, timeout=60,
                                 env={**os.environ, "HYDROSOFT_HOST": "compute"})
         services = json.loads(status.stdout)["services"]

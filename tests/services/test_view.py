@@ -87,7 +87,7 @@ def test_a_websocket_client_gets_the_scene_channels_and_decodes_their_updates():
     root = short_root()
     config = write_config(root)
     source = publisher(config, root)
-    view = Proc([sys.executable, "-m", "hydrosoft.services.view", config, "--port", "0"], "view", root / "view.log")
+    view = Proc([sys.executable, "-m", "hydrosoft.services.commands.view", config, "--port", "0"], "view", root / "view.log")
     try:
         source.wait_ready()
         view.wait_ready()

@@ -13,7 +13,7 @@ from hydrosoft.drivers.poses import look_at, rotation_angle_rad
 from hydrosoft.drivers.camera.sim import SimCamera
 from hydrosoft.drivers.camera.tags import box_layout
 from hydrosoft.drivers.errors import DeviceFault, NotConnected, ProtocolError
-from hydrosoft.services.tag_tracking import ObjectPose, detect_tags, make_detector, object_pose_from_tags
+from hydrosoft.services.tag_detection import ObjectPose, detect_tags, make_detector, object_pose_from_tags
 
 INTRINSICS = CameraIntrinsics(640, 480, 500.0, 500.0, 319.5, 239.5)
 LAYOUT = box_layout((0.05, 0.05, 0.05), 0.032)

@@ -10,7 +10,7 @@ from mcap.writer import Writer
 
 from hydrosoft.services.benchmarks.launched_stack import DEFAULT_CONFIG, cpu_time_s, private_config
 from hydrosoft.services.benchmarks.recording import PHASES, format_table, latency_summary, recorded_span_s
-from hydrosoft.services.config import load_config
+from hydrosoft.services.bus.config import load_config
 
 
 def test_the_private_config_moves_the_run_dir_and_the_ur_controller(tmp_path):

@@ -10,7 +10,7 @@ import os
 import numpy as np
 import pytest
 
-from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import messages as msg
 import threading
 import time
 

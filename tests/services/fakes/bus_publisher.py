@@ -23,11 +23,11 @@ import time
 
 import numpy as np
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Publisher
-from hydrosoft.services.config import StackConfig, load_config
-from hydrosoft.services.runtime import Service, run_service
-from hydrosoft.services.sim_world_render import tag_camera
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Publisher
+from hydrosoft.services.bus.config import StackConfig, load_config
+from hydrosoft.services.bus.runtime import Service, run_service
+from hydrosoft.services.sim.render import tag_camera
 
 RATES_HZ = {"wrench": 100.0, "arm_state": 50.0, "image": 10.0, "depth": 10.0, "eval": 10.0, "plan": 5.0}
 #: Object poses (base frame) the tag camera images show, one after the other.

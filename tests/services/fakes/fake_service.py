@@ -25,9 +25,9 @@ import subprocess
 import sys
 import time
 
-from hydrosoft.services.config import load_config
-from hydrosoft.services.messages import Heartbeat
-from hydrosoft.services.runtime import Service, run_service
+from hydrosoft.services.bus.config import load_config
+from hydrosoft.services.bus.messages import Heartbeat
+from hydrosoft.services.bus.runtime import Service, run_service
 
 MODES_ENV = "HYDROSOFT_FAKE_MODES"
 DATA_RATE_HZ = 20.0

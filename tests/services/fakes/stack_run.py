@@ -91,7 +91,7 @@ def wait_until(condition: Callable[[], bool], timeout_s: float, period_s: float 
 
 
 class LauncherRun:
-    """``python -m hydrosoft.services.launcher CONFIG ARGS`` running fake services (modes by service name)."""
+    """``python -m hydrosoft.services.commands.launch CONFIG ARGS`` running fake services (modes by service name)."""
 
     def __init__(self, config: Path, *args: str, modes: dict[str, str] | None = None) -> None:
         env = {**os.environ, "HYDROSOFT_SERVICE_MODULE": "fake_service",
@@ -99,7 +99,7 @@ class LauncherRun:
                "PYTHONPATH": os.pathsep.join(filter(None, [str(FAKES_DIR), os.environ.get("PYTHONPATH")]))}
         self.lines: list[tuple[float, str]] = []
         self._lock = threading.Lock()
-        self.process = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.launcher", str(config), *args],
+        self.process = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config), *args],
                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                         env=env, cwd=REPO, start_new_session=True)
         self._reader = threading.Thread(target=self._read, daemon=True)

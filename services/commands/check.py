@@ -19,7 +19,7 @@ import time
 from dataclasses import asdict, dataclass
 
 from hydrosoft.drivers.errors import DriverError
-from hydrosoft.services.config import ConfigError, StackConfig, load_config
+from hydrosoft.services.bus.config import ConfigError, StackConfig, load_config
 
 UR_TIMEOUT_S = 2.0  # each UR probe, s
 DASHBOARD_PORT = 29999

@@ -70,8 +70,8 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import parse_monitor_message
 
-from hydrosoft.services.peer_clocks import PeerClocks
-from hydrosoft.services.messages import (
+from hydrosoft.services.bus.peer_clocks import PeerClocks
+from hydrosoft.services.bus.messages import (
     MAX_FRAME_BYTES,
     BusError,
     CommandReply,

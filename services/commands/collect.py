@@ -10,7 +10,7 @@ to ``DIR/wrench-<object>.mcap`` (``hydrosoft.bench.wrench_recording``), which ``
 
 The devices are the config's first arm (``--arm`` for another): the real ``URArm`` (ur_rtde) on ``ur_host`` and the
 real ``FT300Sensor`` on ``ft_port``. In sim mode (``mode = "sim"``) the collector starts, per object, a plant process
-(``python -m hydrosoft.services.collect_wrench CONFIG --object NAME``) that serves a simulated UR controller on
+(``python -m hydrosoft.services.commands.collect CONFIG --object NAME``) that serves a simulated UR controller on
 ``ur_host`` and a simulated FT 300 on ``ft_port``, fed by an NH plant of the benchmark object clamped to the table
 (sim_world's ``SimPlant``, device start-up and physics loop, on the wrench scene). In the lab the same code drives
 the real devices; clamp one object at ``--object-at`` (its centre on the table top, base frame) per run.
@@ -48,8 +48,8 @@ import numpy as np
 from hydrosoft.drivers.base import Arm, ArmState, ForceTorqueSensor
 from hydrosoft.drivers.base import WrenchSample as WrenchReading
 from hydrosoft.drivers.errors import DriverError, Stale
-from hydrosoft.services.config import ConfigError, LimitsConfig, StackConfig, load_config
-from hydrosoft.services.safety import check_target, interpolate, is_moving, rotation_angle_rad
+from hydrosoft.services.bus.config import ConfigError, LimitsConfig, StackConfig, load_config
+from hydrosoft.services.arm.safety import check_target, interpolate, is_moving, rotation_angle_rad
 
 PLANT_SERVICE = "wrench_plant"
 PLANT_READY_TIMEOUT_S = 120.0  # import torch, compile the object's plant, start the simulated devices
@@ -367,12 +367,12 @@ async def collect_object(config: StackConfig, config_path: str, arm_name: str, n
 
 
 class PlantProcess:
-    """The sim plant of one object as a child process (``python -m hydrosoft.services.collect_wrench``): started
+    """The sim plant of one object as a child process (``python -m hydrosoft.services.commands.collect``): started
     and awaited READY by ``start``, stopped by its pid (SIGINT, then SIGKILL) by ``stop``."""
 
     def __init__(self, config_path: str, name: str, origin, arm: str) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "hydrosoft.services.collect_wrench", config_path, "--object", name, "--arm", arm,
+            [sys.executable, "-m", "hydrosoft.services.commands.collect", config_path, "--object", name, "--arm", arm,
              "--object-at", ",".join(repr(float(v)) for v in origin)], stdout=subprocess.PIPE)
 
     def wait_ready(self, timeout_s: float = PLANT_READY_TIMEOUT_S) -> None:
@@ -504,11 +504,11 @@ async def serve_plant(service, config: StackConfig, name: str, origin, arm_name:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m hydrosoft.services.collect_wrench CONFIG --object NAME``: the sim plant alone, until SIGINT."""
+    """``python -m hydrosoft.services.commands.collect CONFIG --object NAME``: the sim plant alone, until SIGINT."""
     from hydrosoft.bench.wrench_scenes import BENCH_OBJECTS
-    from hydrosoft.services.runtime import run_service
+    from hydrosoft.services.bus.runtime import run_service
 
-    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.collect_wrench",
+    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.commands.collect",
                                      description="the wrench benchmark's sim plant (collect wrench starts it)")
     parser.add_argument("config", help="the stack's TOML config (mode = 'sim')")
     parser.add_argument("--object", required=True, choices=list(BENCH_OBJECTS), help="the benchmark object")

@@ -15,9 +15,9 @@ import sys
 
 import numpy as np
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, RequestClient
-from hydrosoft.services.config import ConfigError, StackConfig, load_config
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, RequestClient
+from hydrosoft.services.bus.config import ConfigError, StackConfig, load_config
 
 #: The config read when neither --config nor the environment variable names one (as ``hydrosoft-stack goal``).
 DEFAULT_CONFIG = "deploy/sim.toml"

@@ -11,8 +11,8 @@ import asyncio
 
 from hydrosoft.drivers.base import DepthFrame, ImageFrame
 from hydrosoft.drivers.errors import NotConnected, ProtocolError, Stale
-from hydrosoft.services import bus
-from hydrosoft.services import messages as msg
+from hydrosoft.services.bus import sockets
+from hydrosoft.services.bus import messages as msg
 
 #: How long ``BusDepthCamera.read`` waits for a new depth frame by default, s (five periods of a 10 Hz camera).
 DEPTH_TIMEOUT_S = 0.5
@@ -35,7 +35,7 @@ class BusDepthCamera:
             it hands out.
     """
 
-    def __init__(self, subscriber: bus.LatestSubscriber, bubble: str, timeout_s: float = DEPTH_TIMEOUT_S) -> None:
+    def __init__(self, subscriber: sockets.LatestSubscriber, bubble: str, timeout_s: float = DEPTH_TIMEOUT_S) -> None:
         if not timeout_s > 0:
             raise ValueError(f"BusDepthCamera: timeout_s must be > 0 s, got {timeout_s!r}")
         self.bubble = bubble
@@ -86,7 +86,7 @@ class BusDepthCamera:
         """The newest frame if it is younger than ``timeout_s`` and newer than the last one returned."""
         try:
             received = self._subscriber.latest(self.topic, self.timeout_s, msg.DepthFrame)
-        except bus.Stale:
+        except sockets.Stale:
             return None
         return received.value if received.stamp_ns > self._last_stamp_ns else None
 
@@ -115,7 +115,7 @@ class BusCamera:
             it hands out.
     """
 
-    def __init__(self, subscriber: bus.LatestSubscriber, camera: str = "tag_camera",
+    def __init__(self, subscriber: sockets.LatestSubscriber, camera: str = "tag_camera",
                  timeout_s: float = IMAGE_TIMEOUT_S) -> None:
         if not timeout_s > 0:
             raise ValueError(f"BusCamera: timeout_s must be > 0 s, got {timeout_s!r}")
@@ -163,7 +163,7 @@ class BusCamera:
         """The newest image if it is younger than ``timeout_s`` and newer than the last one returned."""
         try:
             received = self._subscriber.latest(self.topic, self.timeout_s, msg.CameraImage)
-        except bus.Stale:
+        except sockets.Stale:
             return None
         return received.value if received.stamp_ns > self._last_stamp_ns else None
 

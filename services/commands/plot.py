@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.recording import RecordedMessage, RecordingError, RecordingReader
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.recording.mcap_format import RecordedMessage, RecordingError, RecordingReader
 
 #: The bus topics the plots read (and their sub-topics); the rest of the file is not decoded.
 PLOTTED_TOPICS = ("reply/status", "object_pose", "eval", "plan", "wrench", "status", "arm_state")
@@ -338,7 +338,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.plot", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.commands.plot", description=__doc__.split("\n")[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))
 

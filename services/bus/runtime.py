@@ -29,7 +29,7 @@ What the runtime does around ``main``:
 A long computation (a planner's solve) should run in an executor (``loop.run_in_executor``): while it holds the
 loop, no timer fires, no heartbeat leaves and no subscriber reads.
 
-``Latest`` (an input's newest value with a maximum age), ``Received`` and ``Stale`` live in ``bus`` and are
+``Latest`` (an input's newest value with a maximum age), ``Received`` and ``Stale`` live in ``sockets`` and are
 re-exported here, since every service uses them.
 """
 
@@ -48,7 +48,7 @@ from collections.abc import Awaitable, Callable, Iterable, Sequence
 
 import msgspec
 
-from hydrosoft.services.bus import (
+from hydrosoft.services.bus.sockets import (
     Bus,
     BusConfigError,
     Curve,
@@ -63,7 +63,7 @@ from hydrosoft.services.bus import (
     Stale,
     SUB_RCVHWM,
 )
-from hydrosoft.services.messages import BusError, Heartbeat, ServiceState, ServiceStatus, topic_for
+from hydrosoft.services.bus.messages import BusError, Heartbeat, ServiceState, ServiceStatus, topic_for
 
 __all__ = ["Latest", "Received", "RuntimeConfig", "Service", "Stale", "new_instance_id", "run_service"]
 

@@ -19,8 +19,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.safety import MOVING_ANGULAR_SPEED_RAD_S, MOVING_SPEED_M_S, is_moving
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.arm.safety import MOVING_ANGULAR_SPEED_RAD_S, MOVING_SPEED_M_S, is_moving
 
 #: The newest arm state counts as the arm's state for this long, s (the commander publishes at 25 Hz or more).
 ARM_STATE_MAX_AGE_S = 0.5

@@ -63,9 +63,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from hydrosoft.services.bus import BusConfigError, check_secret_key_file
-from hydrosoft.services.config import HOST_ENV, ConfigError, ServiceConfig, StackConfig, load_config
-from hydrosoft.services.runtime import INSTANCE_ENV, RESTARTS_ENV, new_instance_id
+from hydrosoft.services.bus.sockets import BusConfigError, check_secret_key_file
+from hydrosoft.services.bus.config import HOST_ENV, ConfigError, ServiceConfig, StackConfig, load_config
+from hydrosoft.services.bus.runtime import INSTANCE_ENV, RESTARTS_ENV, new_instance_id
 
 #: The package holding the service modules.
 SERVICE_PACKAGE = "hydrosoft.services"
@@ -667,7 +667,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.launcher",
+    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.commands.launch",
                                      description=__doc__.split("\n", 1)[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))

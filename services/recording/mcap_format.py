@@ -22,7 +22,7 @@ An MCAP recording (written by ``recorder``) holds two sorts of channels:
   Recordings written before the binary channels (every channel ``json``, images as raw base64 arrays) still read:
   the reader decodes each channel by its own message encoding. The channel's metadata names the bus topic
   (``hydrosoft.topic``), the message kind (``hydrosoft.kind``) and the publishing service (``hydrosoft.source``).
-- **scene channels** (names starting with ``/``) in Foxglove's well-known schemas (``services/scene.py``): what a
+- **scene channels** (names starting with ``/``) in Foxglove's well-known schemas (``services/recording/foxglove_scene.py``): what a
   person wants to look at. Replay and plots read only the raw channels.
 
 Times. Every MCAP time (``log_time``, ``publish_time``, scene stamps) is on one clock: the host's
@@ -51,8 +51,8 @@ from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.image_codec import FORMATS, JPEG, PNG, EncodedImage, decode_image, encode_image
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.recording.image_codec import FORMATS, JPEG, PNG, EncodedImage, decode_image, encode_image
 
 #: Channel metadata keys of a raw channel: its bus topic, message kind and publishing service.
 TOPIC_KEY = "hydrosoft.topic"

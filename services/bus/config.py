@@ -49,8 +49,8 @@ from typing import Literal
 
 import msgspec
 
-from hydrosoft.services.bus import CurveKeys, CurveServer, check_endpoint
-from hydrosoft.services.runtime import RuntimeConfig
+from hydrosoft.services.bus.sockets import CurveKeys, CurveServer, check_endpoint
+from hydrosoft.services.bus.runtime import RuntimeConfig
 
 Pose = tuple[float, float, float, float, float, float, float]
 Vec3 = tuple[float, float, float]
@@ -94,7 +94,7 @@ frame's -z, so a task frame that is not level (for a table-mounted arm) is a wro
 class SceneConfig(Strict):
     """task: the ``hydrosoft.tasks`` task whose scene is on the table. tag_size_m: AprilTag black-square edge on
     each face of the object (m). task_frame: ``T_base_task``, where the task scene's frame (its table top at
-    z = 0, the object's start near its origin) lies in the robot's base frame (``services/task_frame.py``); level,
+    z = 0, the object's start near its origin) lies in the robot's base frame (``services/arm/task_frame.py``); level,
     so only a turn about z; identity by default."""
 
     task: Literal["pushing", "rotation", "rolling", "in_hand"] = "pushing"
@@ -317,7 +317,7 @@ class PlannerConfig(Strict):
     (``hydrosoft.dynamics.Model.object_update``): ``explicit``, sub-stepped as the scene's contacts need, or
     ``linearly_implicit``, one sub-step per control step (NH and SNH planners; ``hydrosoft-stack bench control
     --rate-object-updates`` measures the rate of each). max_reapproaches: how often one goal may bring
-    the bubble back onto an object it lost (``services/reapproach.py``; one-arm scenes) before it fails; 0: a lost
+    the bubble back onto an object it lost (``services/arm/reapproach.py``; one-arm scenes) before it fails; 0: a lost
     object fails the goal at once. preset: the named settings (``PLANNER_PRESETS``) the config file's table
     started from (``with_planner_preset``, applied on load), or None. target_lead_s is the shortest lead: the
     planner lengthens it to twice its recent p90 cycle plus a margin, within ``limits.max_target_lead_s``. nice:
@@ -385,9 +385,9 @@ class SimConfig(Strict):
     RTDE streams: a CB3's 125 Hz by default, not an e-Series' 500 Hz, as the commander servoes and reads at 125 Hz
     and each extra cycle is a Python loop turn in sim_world (at least ``limits.servo_rate_hz``). object_offset_m:
     the object starts this far (m, task frame x and y) from the scene's pose, under no bubble when it is far enough:
-    a lost object for the planner to re-approach (``services/reapproach.py``). ft_bias: the simulated FT 300's
+    a lost object for the planner to re-approach (``services/arm/reapproach.py``). ft_bias: the simulated FT 300's
     zero-load reading ``[Fx, Fy, Fz, Mx, My, Mz]`` (N, N m), which it adds to every frame as a real sensor's offset;
-    sim_world stores it as the arm's tare (``services/ft_bias.py``) at its start, a tare taken before the membrane
+    sim_world stores it as the arm's tare (``services/arm/ft_bias.py``) at its start, a tare taken before the membrane
     touched anything."""
 
     rate_hz: float = 50.0

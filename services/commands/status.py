@@ -30,9 +30,9 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from hydrosoft.services.bus import Bus, LatestSubscriber, Stale, is_local_endpoint
-from hydrosoft.services.config import ConfigError, StackConfig, load_config
-from hydrosoft.services.messages import Heartbeat, ServiceStatus, topic_for
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Stale, is_local_endpoint
+from hydrosoft.services.bus.config import ConfigError, StackConfig, load_config
+from hydrosoft.services.bus.messages import Heartbeat, ServiceStatus, topic_for
 
 #: How long ``status`` listens by default, s (the runtime publishes a status every second).
 DEFAULT_WINDOW_S = 1.5
@@ -157,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.status", description=__doc__.split("\n", 1)[0])
+    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.commands.status", description=__doc__.split("\n", 1)[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))
 

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import torch
 
-from hydrosoft.services.config import ConfigError, load_config
+from hydrosoft.services.bus.config import ConfigError, load_config
 from hydrosoft.services.planner import PlannerCore, compile_step
-from hydrosoft.services.service_main import CACHE_ENV, use_compile_cache
+from hydrosoft.services.bus.service_cli import CACHE_ENV, use_compile_cache
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

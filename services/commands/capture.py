@@ -20,7 +20,7 @@ import numpy as np
 from hydrosoft.drivers.bubble.reference import Reference, capture_reference, save_reference
 from hydrosoft.drivers.errors import DriverError
 from hydrosoft.services.bubble_camera import lab_depth_camera
-from hydrosoft.services.config import ConfigError, load_config
+from hydrosoft.services.bus.config import ConfigError, load_config
 
 DEFAULT_FRAMES = 30  # one second at 30 Hz: enough for the median to reject a camera's outliers
 

@@ -17,10 +17,10 @@ Images: ``/image/CAMERA`` (``CompressedImage``, the JPEG the recording stores, o
 ``mono8`` where it keeps camera images raw), ``/depth/ARM``
 (``CompressedImage``, a 16-bit PNG of the counts of ``depth_scale_m``), ``/deformation/ARM`` (``RawImage``
 ``32FC1``, m, NaN = no return). Each image is the same bytes as the raw channel's, so the file's compression stores
-it once (``recording``).
+it once (``mcap_format``).
 
 Every stamp is ``stamp_ns`` (or the hardware stamp of an image) plus the recording's epoch offset (see
-``recording``). ``SceneGeometry.from_config`` compiles the task scene as the planner does (it imports torch);
+``mcap_format``). ``SceneGeometry.from_config`` compiles the task scene as the planner does (it imports torch);
 everything else is numpy.
 """
 
@@ -50,10 +50,10 @@ from foxglove.messages import (
     Vector3,
 )
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.config import StackConfig
-from hydrosoft.services.image_codec import EncodedImage
-from hydrosoft.services.recording import JPEG, RawFormat, encoded_images
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.config import StackConfig
+from hydrosoft.services.recording.image_codec import EncodedImage
+from hydrosoft.services.recording.mcap_format import JPEG, RawFormat, encoded_images
 
 WORLD = "world"
 OBJECT_FRAME = "object"
@@ -276,7 +276,7 @@ class SceneBuilder:
 
     Args:
         geometry: the shapes to draw.
-        epoch_offset_ns: added to monotonic stamps (see ``recording``).
+        epoch_offset_ns: added to monotonic stamps (see ``mcap_format``).
     """
 
     def __init__(self, geometry: SceneGeometry, epoch_offset_ns: int) -> None:

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from hydrosoft.geometry import se3
-from hydrosoft.services import messages as msg
-from hydrosoft.services.config import MAX_TASK_FRAME_TILT_DEG, ConfigError, StackConfig, load_config
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.config import MAX_TASK_FRAME_TILT_DEG, ConfigError, StackConfig, load_config
 
 DEFAULT_SECONDS = 2.0
 MIN_POSES = 5  # fewer tracked poses than this within the window: refuse (the object is barely in view)

@@ -9,7 +9,7 @@ import argparse
 import importlib
 import sys
 
-from hydrosoft.services.allocator import reexec_with_allocator
+from hydrosoft.services.bus.allocator import reexec_with_allocator
 
 # group -> (group help, {subcommand -> (module with add_arguments(parser) and run(args) -> int, one-line help)})
 GROUPS = {
@@ -25,24 +25,24 @@ GROUPS = {
         "fit": ("hydrosoft.bench.fit_noise", "the material fit on synthetic recordings of a known material: recovery, and coverage of its 95-percent intervals under FT 300 noise over 10 seeds (about 70 s of CPU; 3 min on a shared 2-core VM)"),
         "wrench": ("hydrosoft.bench.wrench", "wrench RMSE per object and contact model on collected recordings (paper Table II)"),
     }),
-    "collect": ("record benchmark data with the arm (see `collect DATASET --help`)", {"wrench": ("hydrosoft.services.collect_wrench", "press-and-shear trajectories on the benchmark objects: bubble pose, object pose and F/T wrench to MCAP (paper Table II)")}),
+    "collect": ("record benchmark data with the arm (see `collect DATASET --help`)", {"wrench": ("hydrosoft.services.commands.collect", "press-and-shear trajectories on the benchmark objects: bubble pose, object pose and F/T wrench to MCAP (paper Table II)")}),
     "simulate": ("run a simulated device on its own until Ctrl-C (see `simulate DEVICE --help`)", {
         "ur": ("hydrosoft.drivers.ur.simulator", "simulated UR e-Series controller (RTDE 30004, dashboard 29999, script 30003) on a 127.0.0.N address"),
         "ft300": ("hydrosoft.drivers.robotiq_ft300.simulator", "simulated Robotiq FT 300 streaming real frames on a pseudo-terminal"),
     }),
     "calibrate": ("calibrate a device (see `calibrate DEVICE --help`)", {
         "camera": ("hydrosoft.drivers.camera.calibration", "camera intrinsics from ChArUco board pictures, written as a calibration TOML"),
-        "task-frame": ("hydrosoft.services.calibrate_task_frame", "the task scene's frame in the robot base frame (scene.task_frame), from the tag tracker's poses of the object set down where the task starts"),
+        "task-frame": ("hydrosoft.services.commands.calibrate", "the task scene's frame in the robot base frame (scene.task_frame), from the tag tracker's poses of the object set down where the task starts"),
     }),
     "ft": ("the F/T sensors of a running stack (see `ft COMMAND --help`)", {
-        "tare": ("hydrosoft.services.ft_command", "tare an arm's F/T sensor now (refused unless the arm is at rest and its bubble touches nothing); the bias is stored and kept across restarts"),
+        "tare": ("hydrosoft.services.commands.ft", "tare an arm's F/T sensor now (refused unless the arm is at rest and its bubble touches nothing); the bias is stored and kept across restarts"),
     }),
     "arm": ("act on a running stack's arm (see `arm ACTION --help`)", {
-        "enable": ("hydrosoft.services.arm_enable", "re-enable an arm after an external stop (pendant, dashboard, protective, safeguard or emergency stop): refused while the controller still reports one"),
+        "enable": ("hydrosoft.services.commands.arm", "re-enable an arm after an external stop (pendant, dashboard, protective, safeguard or emergency stop): refused while the controller still reports one"),
     }),
-    "keys": ("CURVE keys for a stack split across hosts (see `keys generate --help`)", {"generate": ("hydrosoft.services.keys", "write a host's CURVE key pair: DIR/HOST.key (public, for its peers' authorized_keys_dir) and DIR/HOST.key_secret (mode 0600)")}),
+    "keys": ("CURVE keys for a stack split across hosts (see `keys generate --help`)", {"generate": ("hydrosoft.services.commands.keys", "write a host's CURVE key pair: DIR/HOST.key (public, for its peers' authorized_keys_dir) and DIR/HOST.key_secret (mode 0600)")}),
     "capture": ("capture what a device needs before a run (see `capture WHAT --help`)", {
-        "reference": ("hydrosoft.services.capture_reference", "a Soft Bubble's reference membrane (its undeformed depth image, the median of N frames) for lab mode, as a .npz file"),
+        "reference": ("hydrosoft.services.commands.capture", "a Soft Bubble's reference membrane (its undeformed depth image, the median of N frames) for lab mode, as a .npz file"),
     }),
 }
 
@@ -50,14 +50,14 @@ GROUPS = {
 # top-level command -> (module with add_arguments(parser) and run(args) -> int, one-line help)
 COMMANDS = {
     "goal": ("hydrosoft.services.client", "set a goal on a running stack, start it and (with --wait) wait for the outcome"),
-    "launch": ("hydrosoft.services.launcher", "start the stack's services from a config, keep them up, stop them safely on Ctrl-C"),
-    "status": ("hydrosoft.services.status", "show each running service's state, pid, uptime, message rates, restarts and errors"),
-    "compile": ("hydrosoft.services.precompile", "compile a config's planner step into torch's compile cache once, so that every launch after it is ready in seconds"),
-    "check": ("hydrosoft.services.check", "probe every device a stack config names and say what answers, without moving the arm"),
-    "replay": ("hydrosoft.services.replay", "publish an MCAP recording back onto the bus with its original timing (stands in for the services that sent it)"),
-    "view": ("hydrosoft.services.view", "serve a running stack's scene and topics live to Foxglove over WebSocket on 127.0.0.1"),
+    "launch": ("hydrosoft.services.commands.launch", "start the stack's services from a config, keep them up, stop them safely on Ctrl-C"),
+    "status": ("hydrosoft.services.commands.status", "show each running service's state, pid, uptime, message rates, restarts and errors"),
+    "compile": ("hydrosoft.services.commands.compile", "compile a config's planner step into torch's compile cache once, so that every launch after it is ready in seconds"),
+    "check": ("hydrosoft.services.commands.check", "probe every device a stack config names and say what answers, without moving the arm"),
+    "replay": ("hydrosoft.services.commands.replay", "publish an MCAP recording back onto the bus with its original timing (stands in for the services that sent it)"),
+    "view": ("hydrosoft.services.commands.view", "serve a running stack's scene and topics live to Foxglove over WebSocket on 127.0.0.1"),
     "fit": ("hydrosoft.bench.fit", "the Soft Bubble's material (E, K, mu) fitted to collect-wrench recordings, with its uncertainty and held-out RMSE, as TOML for a scene"),
-    "plot": ("hydrosoft.services.plot", "PNG plots of a recorded run: object error, contact forces, planner solve time and rate, watchdog events"),
+    "plot": ("hydrosoft.services.commands.plot", "PNG plots of a recorded run: object error, contact forces, planner solve time and rate, watchdog events"),
 }
 
 
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     if args.command == "demo":
-        from hydrosoft.services.demo import run_demo
+        from hydrosoft.services.commands.demo import run_demo
 
         return run_demo(steps=args.steps, model=args.model, speed_mm=args.speed)
     return importlib.import_module(args.command_module).run(args)

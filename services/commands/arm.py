@@ -16,9 +16,9 @@ import getpass
 import os
 import sys
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, RequestClient
-from hydrosoft.services.config import ConfigError, load_config
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, RequestClient
+from hydrosoft.services.bus.config import ConfigError, load_config
 
 # As services/client.py's (not imported from there: it loads torch, seconds of start-up for one request).
 CONFIG_ENV = "HYDROSOFT_CONFIG"

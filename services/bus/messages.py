@@ -613,7 +613,7 @@ class TareReply(Reply, frozen=True, kw_only=True):
 class Tare(Request, frozen=True, kw_only=True):
     """Ask an F/T reader (``ft_reader-ARM``'s cmd endpoint) to tare its sensor: take the mean reading as the new
     bias and store it. Refused (``ok`` False, the reason in ``error``) unless the arm is at rest and its bubble
-    shows no contact (``services/tare_check.py``)."""
+    shows no contact (``services/arm/tare_rules.py``)."""
 
     topic = "cmd/tare"
     reply = TareReply

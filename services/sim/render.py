@@ -25,8 +25,8 @@ from hydrosoft.drivers.camera.sim import SimCamera
 from hydrosoft.drivers.poses import compose, inverse
 from hydrosoft.geometry.sdf import Box, Cylinder
 from hydrosoft.scene import ObjectSpec
-from hydrosoft.services import messages as msg
-from hydrosoft.services.config import StackConfig
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.config import StackConfig
 from hydrosoft.services.tag_tracker import camera_calibration, config_layout
 from hydrosoft.tasks import make_task
 

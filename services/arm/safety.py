@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from hydrosoft.services.config import LimitsConfig
+from hydrosoft.services.bus.config import LimitsConfig
 
 #: A target quaternion whose norm is further than this from 1 is refused (the bus already rejects worse).
 UNIT_QUATERNION_TOLERANCE = 1e-6

@@ -40,10 +40,10 @@ from pathlib import Path
 
 from mcap.records import Channel
 
-from hydrosoft.services import messages as msg
-from hydrosoft.services.bus import Bus, BusConfigError, Publisher
-from hydrosoft.services.config import ConfigError, StackConfig, load_config, parse_config
-from hydrosoft.services.recording import (
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.sockets import Bus, BusConfigError, Publisher
+from hydrosoft.services.bus.config import ConfigError, StackConfig, load_config, parse_config
+from hydrosoft.services.recording.mcap_format import (
     SOURCE_KEY,
     RecordedMessage,
     RecordingError,
@@ -232,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.replay", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m hydrosoft.services.commands.replay", description=__doc__.split("\n")[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))
 

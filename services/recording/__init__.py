@@ -1,0 +1,1 @@
+"""Recordings: the MCAP format, the Foxglove scene and the image codec."""

@@ -1,0 +1,1 @@
+"""Simulated hardware helpers: bus-backed devices and the simulated world's renderers."""
