@@ -130,7 +130,8 @@ class ServoLogic:
     safety stop, a paused or stopped program, an unpowered arm) latches: nothing is servoed until ``enable``
     (a person's ``arm enable``), even once the controller runs again. A ``stack`` stop is one of the commander's
     own rules; the transient ones (deadline, heartbeat, state, F/T, driver errors, the force limit) clear on the
-    next fresh target, a refused target holds the arm for the rest of its goal.
+    next fresh target, a refused target holds the arm for the rest of its goal. A stop for the servoed target's
+    passed deadline alone is a hold (``holding``): a late planner, not a fault (the module docstring).
 
     No motion the person did not start: only targets of a goal started (``ArmTarget.goal_started_ns``) after the
     commander's start, its last reconnect to the controller (``ArmState.link_since_ns``), its last ``enable`` and
