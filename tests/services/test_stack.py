@@ -78,13 +78,19 @@ async def stop_cause_after(arm, expected: str, timeout_s: float = 3.0) -> tuple[
     """The arm commander's stop cause and ``servo_active`` once the cause reads ``expected``, or as they are after
     ``timeout_s`` (s)."""
     from hydrosoft.services.bus import messages as msg
+    from hydrosoft.services.bus.sockets import Stale
 
-    deadline = time.monotonic() + timeout_s
-    while True:
+    deadline, seen = time.monotonic() + timeout_s, ("no fresh arm state", True)
+    while time.monotonic() < deadline:
         await arm.wait(1.0)
-        state = arm.latest("arm_state/bubble", 1.0, msg.ArmState).value
-        if state.stop_reason == expected or time.monotonic() > deadline:
-            return state.stop_reason, state.servo_active
+        try:
+            state = arm.latest("arm_state/bubble", 1.0, msg.ArmState).value
+        except Stale:
+            continue
+        seen = (state.stop_reason, state.servo_active)
+        if state.stop_reason == expected:
+            break
+    return seen
 
 
 def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_path):
@@ -95,11 +101,11 @@ def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_p
         stack.wait_ready(client)
 
         async def push():
-            arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))
             await client.set_goal("pushing", dy_m=0.035, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
             await client.start()
             reply = await client.wait(GOAL_TIMEOUT_S + 10)
             true = await true_error_mm(client, reply.goal.target_pose, "pushing")
+            arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))  # subscribed now: fresh states
             return reply, true, await stop_cause_after(arm, "goal reached")
 
         reply, true, (stop_reason, servo_active) = asyncio.run(push())
