@@ -16,10 +16,18 @@ Every stop has a named cause (``ArmState.stop_reason``) and an owner (``ArmState
   still reports a safety stop or an unpowered arm; the program is restarted then if it is not running).
 - ``stack``: the commander's own rules. The transient ones clear on the next fresh target: the driver failing
   (Stale, NotConnected, DeviceFault), the target's deadline (clamped to ``limits.max_target_lead_s`` after its
-  arrival), no planner heartbeat seen yet, the plan's age (``ArmTarget.plan_done_ns`` older than
+  arrival; a hold, see below), no planner heartbeat seen yet, the plan's age (``ArmTarget.plan_done_ns`` older than
   ``limits.max_plan_age_s``: a hung solve), the state not advancing, no fresh F/T reading, the force limit. A
   refused target (``safety.check_target``: outside the workspace box or the orientation limits, malformed, another
   arm's; or a straight path that starts outside them) holds the arm for the rest of its goal.
+
+Hold: a target's deadline that passes while the arm servoes, every other rule met, means only that the planner's
+next target is late. The arm stops as for any stop (``driver.stop()``: it decelerates to rest at the driver's stop
+deceleration and goes no further than its servo command), but the stop is a hold: ``ArmState.holding`` says so, the
+cause reads ``HOLD`` ("hold: target deadline passed ..."), it is counted once as ``deadline_hold`` (not as a
+fault), and the next fresh target resumes. The planner sizes its targets' deadlines to its own measured cycle
+(``planner.target_lead``), so holds are rare. A goal's end (the planner's halt, ``ArmTarget.goal_end``) stops the
+arm with the cause "goal OUTCOME" ("goal reached"), which stays the arm's reported cause until a fresh target.
 
 No motion the person did not start: a target is acted on only when its goal (``ArmTarget.goal_started_ns``) started
 after this commander's start, its last reconnect to the controller, its last ``arm enable`` and the last loss of the
@@ -97,6 +105,8 @@ EXIT_STOP_UNCONFIRMED = 3
 STOPPING = "stopping"
 #: The goal floor's cause after the planner's heartbeat went stale (or gone) from fresh.
 PLANNER_LOST = "the loss of the planner's heartbeat"
+#: The cause a hold names: a target's deadline passed while the arm servoed and no other rule stopped it.
+HOLD = "hold: target deadline passed"
 #: The loop skips ahead instead of bursting when it falls this many periods behind.
 MAX_LAG_PERIODS = 2
 #: Each servo step covers the time since the previous one at the speed limits, but at most this many periods (a
@@ -109,13 +119,15 @@ class Decision:
     """What to do this period. command: the servo pose ``(7,)`` [m, wxyz] to send, or None (hold stopped).
     stop: send ``driver.stop()`` now. reason: why the arm is stopped ("" while servoing). refusal: a target refused
     this period for its path (to be counted), or "". planner_lost: why the planner counts as lost this period and
-    every goal started before it ended (to be counted once), or ""."""
+    every goal started before it ended (to be counted once), or "". hold_started: the stop begun this period is a
+    hold (to be counted as one)."""
 
     command: np.ndarray | None
     stop: bool
     reason: str
     refusal: str = ""
     planner_lost: str = ""
+    hold_started: bool = False
 
 
 class ServoLogic:
@@ -126,7 +138,9 @@ class ServoLogic:
     (a person's ``arm enable``), even once the controller runs again. A ``stack`` stop is one of the commander's
     own rules; the transient ones (deadline, a heartbeat not seen yet, state, F/T, driver errors, the force limit)
     clear on the next fresh target, a refused target holds the arm for the rest of its goal, a lost planner (its
-    heartbeat fresh at one decision, stale or gone at a later one) ends every goal started before the loss.
+    heartbeat fresh at one decision, stale or gone at a later one) ends every goal started before the loss. A stop
+    for the servoed target's passed deadline alone is a hold (``holding``): a late planner, not a fault (the module
+    docstring).
 
     No motion the person did not start: only targets of a goal started (``ArmTarget.goal_started_ns``) after the
     commander's start, its last reconnect to the controller (``ArmState.link_since_ns``), its last ``enable``, the
@@ -147,6 +161,7 @@ class ServoLogic:
         self.target: msg.ArmTarget | None = None  # the accepted, unspent target
         self.deadline_ns = 0  # its deadline, clamped to limits.max_target_lead_s after its arrival
         self.servoing = False
+        self.holding = False  # the arm is held because a target's deadline passed, waiting for the next one
         self.reason = NO_TARGET
         self.owner: msg.StopOwner = "stack"
         self.external: str | None = None  # the latched external stop, until enable()
@@ -157,6 +172,7 @@ class ServoLogic:
         self._command_ns = 0  # when it was decided
         self._newest_target_ns = 0  # stamp of the newest target seen, accepted or refused
         self._refusal: str | None = None
+        self._goal_end: str | None = None  # the cause of the planner's last goal-end halt, until a fresh target
         self._link_since_ns = 0
         self._enabled_ns = 0  # the last enable: states read before it do not latch
         self._state_hw_ns: int | None = None
@@ -169,7 +185,8 @@ class ServoLogic:
         A target not newer than the last one seen is ignored. A new invalid one is refused (``target_refused``):
         the current target is dropped (the arm stops and holds) and the rest of its goal is not acted on. A valid
         one of a goal started too early (see the class) is not acted on (``old_goal``). Otherwise it replaces the
-        current target, its deadline clamped to ``limits.max_target_lead_s`` after ``now_ns``."""
+        current target, its deadline clamped to ``limits.max_target_lead_s`` after ``now_ns``; a goal's end
+        (``ArmTarget.goal_end``) drops the target instead, and the arm stops with the cause "goal OUTCOME"."""
         if target is None or target.stamp_ns <= self._newest_target_ns:
             return None
         self._newest_target_ns = target.stamp_ns
@@ -185,7 +202,10 @@ class ServoLogic:
             if not self.servoing and self.external is None:
                 self.reason, self.owner = text, "stack"
             return "old_goal", text
-        self.target, self._refusal = target, None
+        if target.goal_end:
+            self.target, self._goal_end = None, f"goal {target.goal_end}"
+            return None
+        self.target, self._refusal, self._goal_end = target, None, None
         self.deadline_ns = clamped_deadline_ns(target.deadline_ns, now_ns, self.limits)
         return None
 
@@ -246,7 +266,7 @@ class ServoLogic:
         self.goal_floor_ns, self.goal_floor_cause = max(self.goal_floor_ns, now_ns), "the last arm enable"
         self._refusal = None
         self.halt(NO_TARGET)
-        self.reason, self.owner = NO_TARGET, "stack"
+        self.reason, self.owner, self.holding = NO_TARGET, "stack", False
         return cleared
 
     def decide(self, now_ns: int, state: ArmState | None, driver_error: str | None, heartbeat_ns: int | None,
@@ -268,10 +288,14 @@ class ServoLogic:
         refusal = ""
         untared_reason = UNTARED_FT if untared else None
         planner_lost = self._planner_lost(now_ns, heartbeat_ns)
-        reason = self._external_reason() or planner_lost or driver_error or self._refusal or untared_reason
-        reason = reason or watchdog(
+        early = (self._external_reason() or planner_lost or driver_error or self._refusal or untared_reason
+                 or self._goal_end)
+        reason = early or watchdog(
             now_ns, None if self.target is None else self.deadline_ns, heartbeat_ns, self._state_advanced_ns,
             force_n, self.limits, None if self.target is None else self.target.plan_done_ns)
+        hold = reason is not None and early is None and self._only_late(now_ns, state, heartbeat_ns, force_n)
+        if hold:
+            reason = f"{HOLD} {(now_ns - self.deadline_ns) * 1e-9:.3f} s ago (waiting for the planner's next target)"
         if reason is None and stopping:
             reason = STOPPING
         if reason is None and state is not None and not self.servoing:
@@ -292,12 +316,23 @@ class ServoLogic:
                 start, dt_s = state.tcp_pose, self.period_s
             self._command = interpolate(start, self.target.tcp_pose, dt_s, self.limits)
             self._command_ns, self.servoing, self.reason, self.owner = now_ns, True, "", ""
+            self.holding = False
             return Decision(self._command, stop=False, reason="")
         was_servoing = self.servoing
-        self.halt(reason or "no arm state")
+        self.halt(reason or "no arm state", hold=hold)
         moving = state is not None and is_moving(state.tcp_speed)
         return Decision(None, stop=was_servoing or (moving and not stopping), reason=self.reason, refusal=refusal,
-                        planner_lost=planner_lost)
+                        planner_lost=planner_lost, hold_started=hold)
+
+    def _only_late(self, now_ns: int, state: ArmState | None, heartbeat_ns: int | None, force_n: float | None) -> bool:
+        """Whether the only stop at ``now_ns`` is the servoed target's passed deadline (then the stop is a hold): the
+        arm servoes, its state was read, the force is not over the limit, and with the deadline still ahead the
+        watchdog would let it servo on."""
+        if (not self.servoing or self.target is None or state is None or self.force_limited
+                or now_ns <= self.deadline_ns):
+            return False
+        return watchdog(now_ns, now_ns, heartbeat_ns, self._state_advanced_ns, force_n, self.limits,
+                        self.target.plan_done_ns) is None
 
     def _external_reason(self) -> str | None:
         if self.external is None:
@@ -311,14 +346,14 @@ class ServoLogic:
         return (not self.servoing and self.target is None and not stopping and state is not None
                 and not is_moving(state.tcp_speed))
 
-    def halt(self, reason: str) -> None:
-        """Hold the arm for ``reason``. This spends the target (only a fresh target that can be servoed on when it
-        arrives resumes), except while the previous stop is in flight (``STOPPING``): a target that arrives then
-        waits for the stop's end, checked again each period. The reported ``reason`` stays that of the stop:
-        "no target" and "stopping" (what every stop leaves behind) do not replace it; an external stop replaces
-        any other."""
+    def halt(self, reason: str, hold: bool = False) -> None:
+        """Hold the arm for ``reason`` (``hold``: a hold, the target's deadline passed; see the class). This spends
+        the target (only a fresh target that can be servoed on when it arrives resumes), except while the previous
+        stop is in flight (``STOPPING``): a target that arrives then waits for the stop's end, checked again each
+        period. The reported ``reason`` stays that of the stop: "no target" and "stopping" (what every stop leaves
+        behind) do not replace it; an external stop replaces any other."""
         if reason not in (NO_TARGET, STOPPING) or self.servoing:
-            self.reason = reason
+            self.reason, self.holding = reason, hold
             self.owner = "external" if reason == self._external_reason() else "stack"
         if reason != STOPPING:
             self.target = None
@@ -393,6 +428,8 @@ class Commander:
             self.service.count_error("target_refused", decision.refusal)
         if decision.planner_lost:
             self.service.count_error("planner_lost", decision.planner_lost)
+        if decision.hold_started:
+            self.service.count_error("deadline_hold", decision.reason)
         if decision.command is not None:
             try:
                 await self.driver.servo_to(decision.command)
@@ -408,7 +445,8 @@ class Commander:
                 arm=self.arm, tcp_pose=np.asarray(state.tcp_pose, dtype=np.float64),
                 tcp_speed=np.asarray(state.tcp_speed, dtype=np.float64), running=state.running,
                 protective_stop=state.protective_stop, emergency_stop=state.emergency_stop,
-                servo_active=self.logic.servoing, stop_reason=self.logic.reason, stop_owner=self.logic.owner,
+                servo_active=self.logic.servoing, holding=self.logic.holding, stop_reason=self.logic.reason,
+                stop_owner=self.logic.owner,
                 controller_stop=state.controller_stop, safety_flags=state.safety_flags,
                 latched=self.logic.external is not None, hw_stamp_ns=state.hw_stamp_ns,
                 goal_floor_ns=self.logic.goal_floor_ns, goal_floor_cause=self.logic.goal_floor_cause),

@@ -6,7 +6,9 @@ pose from its commander, and each bubble's membrane deformation image from its b
 membrane), which ``hydrosoft.tactile.estimate_state`` turns into the planner's state, carrying shear over from the
 planner's own prediction of the last plan (the solver's rollout of it, ``PlanResult.states``). ``CemGd`` then plans;
 the plan's first actions, applied to the arms' current TCP poses, are the absolute TCP targets sent to the
-commanders, each with a deadline. Stale inputs mean no solve and no target, also when an input went stale during the
+commanders, each with a deadline: ``target_lead`` after it is sent, twice the p90 of the planner's recent cycles
+plus a margin, within ``planner.target_lead_s`` .. ``limits.max_target_lead_s`` (so the next target comes before it
+lapses; a lapsed one makes the commander hold the arm). When a goal ends, a halt names its outcome. Stale inputs mean no solve and no target, also when an input went stale during the
 solve: the commander's watchdog then stops the arm.
 
 The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. A goal set for another stack
@@ -37,8 +39,10 @@ import asyncio
 import functools
 import importlib
 import math
+import os
 import time
-from collections.abc import Callable, Iterable
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import msgspec
@@ -71,6 +75,15 @@ from hydrosoft.services.arm.task_frame import TaskFrame
 IDLE_PERIOD_S = 0.05  # s between checks while no goal runs or inputs are stale
 SETTLE_S = 0.3  # a goal is reached once the object stayed within its tolerance this long (s)
 COMMAND_TIMEOUT_S = 1.0
+#: The target lead (``target_lead``): a target outlives this many of the planner's slow (p90) cycles, plus a margin
+#: (s) for the transport and the commander's tick, so one late cycle does not leave the arm without a target.
+LEAD_CYCLES = 2.0
+LEAD_MARGIN_S = 0.05
+#: How many recent cycles the lead's p90 is taken over.
+LEAD_WINDOW = 20
+#: The status note while the planner compiles its step (``planner.compile``) before it reports ready.
+COMPILING_NOTE = ("compiling the planner step (planner.compile): ready in seconds with a warm compile cache, 2-5 min "
+                  "with a cold one on 2 busy cores")
 
 
 def as_pose(values) -> torch.Tensor:
@@ -87,6 +100,18 @@ def resolve_target(goal: msg.Goal, start_pose: torch.Tensor) -> torch.Tensor:
     delta = torch.tensor([goal.dx_m, goal.dy_m, 0.0, goal.droll_rad, goal.dpitch_rad, goal.dyaw_rad],
                          dtype=torch.float64)
     return se3.retract(start_pose, delta)
+
+
+def target_lead(floor_s: float, cycles_s: Sequence[float], ceiling_s: float) -> float:
+    """How long (s) a target sent now stays valid: ``LEAD_CYCLES`` times the p90 of the recent planning cycles
+    ``cycles_s`` (s, inputs read to targets sent) plus ``LEAD_MARGIN_S``, at least ``floor_s``
+    (``planner.target_lead_s``; alone while no cycle was measured) and at most ``ceiling_s`` (the commander's
+    ``limits.max_target_lead_s``, which it enforces anyway)."""
+    lead = floor_s
+    if len(cycles_s) > 0:
+        lead = max(floor_s, LEAD_CYCLES * float(np.percentile(np.asarray(cycles_s, dtype=np.float64), 90))
+                   + LEAD_MARGIN_S)
+    return min(lead, ceiling_s)
 
 
 def planner_scene(task: Task, config: StackConfig) -> Scene:
@@ -283,6 +308,7 @@ class Planner:
             topics=["object_pose/", "arm_state/", "deformation/"], background=True)
         self.out = service.publisher(config.endpoint("planner"))
         self.pose_stamps = (0, 0)  # (image, publish) stamps of the object pose fresh_inputs returned last, ns
+        self.cycles_s: deque[float] = deque(maxlen=LEAD_WINDOW)  # recent cycles, inputs read to targets sent (s)
 
     # --- client API ---
 
@@ -367,15 +393,17 @@ class Planner:
         self._halting = task  # held: the loop keeps only weak references to tasks
 
     async def _halt_arms(self) -> None:
-        """Tell every commander to stop now: a target at the arm's current pose whose deadline has passed (the
-        last real target would otherwise stay valid, and the arm keep moving, until its own deadline)."""
+        """Tell every commander to stop now: a target at the arm's current pose whose deadline has passed and which
+        names the goal's outcome (``ArmTarget.goal_end``: the arm's stop cause reads "goal reached"); the last real
+        target would otherwise stay valid, and the arm keep moving, until its own deadline."""
         poses = {}
         for arm in self.config.arms:
             try:
                 poses[arm.name] = np.array(self.inputs.latest(f"arm_state/{arm.name}", 1.0).value.tcp_pose)
             except Stale:
                 continue
-        await self.send_targets(poses, time.monotonic_ns())
+        ended = self.last_outcome.outcome if self.last_outcome is not None else "stopped"
+        await self.send_targets(poses, time.monotonic_ns(), goal_end=ended if ended != "running" else "stopped")
 
     # --- the loop ---
 
@@ -487,6 +515,7 @@ class Planner:
         targets = targets_from_plan(self.core, arm_poses, result.plan.detach(), steps)
         await self.send_targets({name: pose.numpy() for name, pose in targets.items()}, self.target_deadline_ns())
         stamps["targets_ns"] = time.monotonic_ns()
+        self.cycles_s.append((stamps["targets_ns"] - stamps["inputs_ns"]) * 1e-9)
         await self.out.send(self.plan_message(result, stamps), topic=f"plan/{self.config.scene.task}")
         episode.prediction = carry_over(result.states, steps)
 
@@ -522,19 +551,26 @@ class Planner:
         await self.send_targets({name: base}, self.target_deadline_ns())
 
     def target_deadline_ns(self) -> int:
-        """The deadline (``time.monotonic_ns()``) of a target sent now: ``planner.target_lead_s`` from now."""
-        return time.monotonic_ns() + int(self.config.planner.target_lead_s * 1e9)
+        """The deadline (``time.monotonic_ns()``) of a target sent now: ``target_lead`` from now, from the recent
+        cycles (shown in the service's status note)."""
+        lead_s = target_lead(self.config.planner.target_lead_s, self.cycles_s, self.config.limits.max_target_lead_s)
+        if self.cycles_s:
+            self.service.note = (f"target lead {lead_s:.2f} s (p90 of the last {len(self.cycles_s)} cycles: "
+                                 f"{1e3 * float(np.percentile(self.cycles_s, 90)):.0f} ms)")
+        return time.monotonic_ns() + int(lead_s * 1e9)
 
-    async def send_targets(self, poses: dict[str, np.ndarray], deadline_ns: int) -> None:
+    async def send_targets(self, poses: dict[str, np.ndarray], deadline_ns: int, goal_end: msg.GoalEnd = "") -> None:
         """Send each arm's TCP target ``(7,)`` (m, wxyz, base frame), all with one new ``plan_seq`` and
-        ``deadline_ns`` (the plan they come from: a solve, a re-approach waypoint, or the halt at a goal's end),
-        stamped with the goal's start and with now as the plan's completion (it is sent as soon as it is made)."""
+        ``deadline_ns`` (the plan they come from: a solve, a re-approach waypoint, or the halt at a goal's end, which
+        names the goal's outcome in ``goal_end``), stamped with the goal's start and with now as the plan's
+        completion (it is sent as soon as it is made)."""
         self.plan_seq += 1
         episode, plan_done_ns = self.episode or self.last_outcome, time.monotonic_ns()
         goal_started_ns = 0 if episode is None else int(episode.started_s * 1e9)  # time.monotonic() in ns
         for name, pose in poses.items():
             await self.out.send(msg.ArmTarget(arm=name, tcp_pose=pose, deadline_ns=deadline_ns, plan_seq=self.plan_seq,
-                                              goal_started_ns=goal_started_ns, plan_done_ns=plan_done_ns),
+                                              goal_started_ns=goal_started_ns, plan_done_ns=plan_done_ns,
+                                              goal_end=goal_end),
                                 topic=f"arm_target/{name}")
 
     def _fail(self, episode: Episode, reason: str) -> None:
@@ -605,15 +641,21 @@ def compile_planner(core: PlannerCore) -> str | None:
 
 
 async def run(service: Service, config: StackConfig) -> None:
-    """The planner's loop: build (and compile) the model, serve the client API, plan while a goal runs."""
+    """The planner's loop: lower its priority (``planner.nice``), build (and compile) the model, serve the client
+    API, plan while a goal runs."""
     loop = asyncio.get_running_loop()
+    if config.planner.nice:
+        os.nice(config.planner.nice)  # before the worker processes start: they inherit it
+        service.log.info("running at niceness %d (planner.nice): the other services go first", os.nice(0))
     torch.set_num_threads(config.planner.threads)
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
         service.compilation = build.status
+        service.note = COMPILING_NOTE
         if not await loop.run_in_executor(None, build.run, functools.partial(compile_planner, core), service.log.info):
             service.log.warning("the planner runs eager: %s", build.fallback)
+        service.note = ""
         service.compilation = build.status
     else:
         service.compilation = "eager (planner.compile = false)"

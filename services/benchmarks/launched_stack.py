@@ -16,12 +16,20 @@ from hydrosoft.services.client import ClientError, StackClient
 from hydrosoft.services.bus.config import load_config
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "sim.toml"
-#: Longest wait for the whole stack to report ready, s (the planner and sim_world compile on two busy cores).
+#: Longest wait for the whole stack to report ready, s (the planner and sim_world compile on two busy cores), unless
+#: the config's own readiness timeouts add up to more (``stack_ready_s``).
 STACK_READY_S = 300.0
 #: The launcher's shutdown bound plus a margin, s.
 STOP_WAIT_S = 20.0
 #: How long a goal's start may be refused (no object pose yet) before the benchmark gives up, s.
 GOAL_START_S = 60.0
+
+
+def stack_ready_s(config) -> float:
+    """How long to wait for the stack of ``config`` (a ``StackConfig``) to report ready, s: ``STACK_READY_S``, or
+    the sum of its services' ``ready_timeout_s`` when that is longer (the launcher starts them one after the other
+    and gives up only past one of them)."""
+    return max(STACK_READY_S, sum(config.service(name).ready_timeout_s for name in config.service_names()))
 
 
 def add_config_argument(parser: argparse.ArgumentParser) -> None:

@@ -17,7 +17,9 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
   simulated time);
 - the first and the last ``--window`` seconds of the soak compared: per service the mean memory (MB) and CPU
   use, and the latency split (p50 and p99, ms), with each one's growth (last / first - 1). The issue's target:
-  neither memory nor the loop latency grows by more than 10 % over 10 minutes.
+  neither memory nor the loop latency grows by more than 10 % over 10 minutes;
+- over the whole soak (``whole``): the latency split, and the replanning rate (``replanning_hz``: plans published
+  per second of the goals' wall time).
 
 It prints a table and one JSON document (only the document with ``--json``). Every process it starts is stopped
 by its pid. Latencies are the planner host's monotonic clock, so they are meaningful in sim mode; in the lab the
@@ -43,12 +45,12 @@ import zmq
 
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.benchmarks.launched_stack import (
-    STACK_READY_S,
     Child,
     add_config_argument,
     cpu_time_s,
     private_config,
     resident_mb,
+    stack_ready_s,
     start_goal,
     thread_cpu_times_s,
 )
@@ -226,10 +228,12 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
     end_s = max(t for rows in samples.usage.values() for t, _, _ in rows)
     first = window_summary(samples, 0.0, window_s)
     last = window_summary(samples, end_s - window_s, end_s)
+    goal_s = sum(goal["seconds"] for goal in goals)
     return {"idle": {"seconds": idle_s, "services": idle_summary["services"], "threads": threads,
                      "cpu_percent_total": round(sum(s["cpu_percent"] for s in idle_summary["services"].values()), 1)},
             "soak_seconds": round(end_s, 1), "goals": goals, "first": first, "last": last,
-            "growth": growth(first, last)}
+            "growth": growth(first, last), "whole": window_summary(samples, 0.0, end_s),
+            "replanning_hz": round(len(samples.plans) / goal_s, 2) if goal_s > 0 else 0.0}
 
 
 def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: Path | None = None
@@ -245,7 +249,7 @@ def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: 
             raise ValueError(f"bench soak has goals for {sorted(SOAK_GOALS)}, not {stack_config.scene.task!r}")
         stack = Child([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config_path)],
                       root / "launcher.log")
-        stack.wait_for("stack ready", STACK_READY_S)
+        stack.wait_for("stack ready", stack_ready_s(stack_config))
         names = stack_config.service_names()
         reports = asyncio.run(collect(stack_config, names, STATUS_WINDOW_S))
         pids = {name: report["pid"] for name, report in reports.items() if report is not None}
@@ -278,6 +282,10 @@ def format_table(result: dict[str, object]) -> str:
     reapproaches = sum(g.get("reapproaches", 0) for g in result["goals"])
     lines.append(f"soak: {result['soak_seconds']} s, {len(outcomes)} goals, {outcomes.count('reached')} reached, "
                  f"{reapproaches} re-approaches of a lost cube")
+    whole = result["whole"]["latency"].get("total")
+    lines.append(f"replanning: {result['replanning_hz']} Hz over the goals' time; camera to arm targets over the "
+                 "whole soak: " + (f"{whole['p50_ms']} / {whole['p99_ms']} ms (p50 / p99, {whole['plans']} plans)"
+                                   if whole else "no plans"))
     lines.append("errors counted: " + ("; ".join(f"{name} " + ", ".join(f"{kind} {n}" for kind, n in kinds.items())
                                                  for name, kinds in result["errors"].items()) or "none"))
     lines.append(f"{'':<24}{'first window':>24}{'last window':>24}{'growth':>10}")

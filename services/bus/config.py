@@ -17,7 +17,9 @@ Layout (see ``deploy/sim.toml`` for a commented example)::
                                       controller's address, its bubble's depth camera, its F/T sensor's port,
                                       optionally its bubble's fitted material ([arms.material]: E, K, mu)
     [limits]                          the arm commander's safety limits and watchdog timeouts
-    [planner]                         the MPC settings and the maximum age of each input
+    [planner]                         the MPC settings and the maximum age of each input; ``preset = "paper"`` or
+                                      ``"quick"`` starts from a named set of settings (``PLANNER_PRESETS``), which
+                                      the table's own keys override
     [sim]                             sim_world: rate, plant resolution, noise
     [services.NAME]                   per service: restart policy and readiness timeout
     [endpoints]                       optional overrides "SERVICE.data|status|cmd" = "tcp://..." (else ipc://)
@@ -296,6 +298,33 @@ class LimitsConfig(Strict):
         return 0.75 * self.max_force_n if self.release_force_n is None else self.release_force_n
 
 
+#: Named planner settings (``planner.preset``): a ``[planner]`` table with ``preset = NAME`` starts from these values
+#: and its own keys override them. ``paper``: the paper's planner (B = 64, K = 10, G = 2, 216 surface points),
+#: float32, compiled (ready after minutes with a cold compile cache), its samples rolled out by two worker processes;
+#: its targets live at least 0.3 s and longer as its measured cycle asks (``planner.target_lead``). ``quick``: B = 16,
+#: K = 6, G = 1, 96 points, eager, one process: ready in seconds, replans at a few Hz on 2 cores.
+PLANNER_PRESETS: dict[str, dict[str, object]] = {
+    "paper": {"model": "nh", "spacing": 0.0084, "samples": 64, "elites": 8, "horizon": 10, "grad_steps": 2,
+              "dtype": "float32", "sdf_solver_steps": 2, "compile": True, "object_update": "linearly_implicit",
+              "threads": 1, "workers": 2, "worker_processes": True, "target_lead_s": 0.3, "nice": 10},
+    "quick": {"model": "nh", "spacing": 0.0125, "samples": 16, "elites": 4, "horizon": 6, "grad_steps": 1,
+              "dtype": "float32", "sdf_solver_steps": 3, "compile": False, "object_update": "linearly_implicit",
+              "threads": 1, "workers": 1, "worker_processes": False, "target_lead_s": 1.0, "nice": 0},
+}
+
+
+def with_planner_preset(raw: object) -> object:
+    """A decoded config document ``raw`` with its ``[planner]`` table filled in from ``planner.preset``
+    (``PLANNER_PRESETS``): the table's own keys win. Raises ConfigError for an unknown preset."""
+    planner = raw.get("planner") if isinstance(raw, dict) else None
+    if not isinstance(planner, dict) or "preset" not in planner:
+        return raw
+    name = planner["preset"]
+    _require(isinstance(name, str) and name in PLANNER_PRESETS, "planner.preset",
+             f"must be one of {', '.join(sorted(PLANNER_PRESETS))}, got {name!r}")
+    return {**raw, "planner": {**PLANNER_PRESETS[name], **planner}}
+
+
 class PlannerConfig(Strict):
     """The MPC (``hydrosoft.tasks.evaluation.PlannerSettings`` names): contact model, surface spacing (m), samples
     B, elites, horizon K, gradient steps G, dtype, compile (compile the step during start-up), seed.
@@ -319,7 +348,14 @@ class PlannerConfig(Strict):
     ``linearly_implicit``, one sub-step per control step (NH and SNH planners; ``hydrosoft-stack bench control
     --rate-object-updates`` measures the rate of each). max_reapproaches: how often one goal may bring
     the bubble back onto an object it lost (``services/arm/reapproach.py``; one-arm scenes) before it fails; 0: a lost
-    object fails the goal at once."""
+    object fails the goal at once. preset: the named settings (``PLANNER_PRESETS``) the config file's table
+    started from (``with_planner_preset``, applied on load), or None. target_lead_s is the shortest lead: the
+    planner lengthens it to twice its recent p90 cycle plus a margin, within ``limits.max_target_lead_s``. nice:
+    the planner process's (and its worker processes') scheduling niceness, 0-19 (``os.nice``): on cores it shares
+    with the arm commander and the sensor services, a positive one lets them run first whenever they are ready,
+    so a solve or a compile never starves the commander's servo loop or the controller link."""
+
+    preset: Literal["paper", "quick"] | None = None
 
     model: Literal["nh", "snh", "pf", "pff", "nh_pressure_normal"] = "nh"
     spacing: float = 0.0125
@@ -340,6 +376,7 @@ class PlannerConfig(Strict):
     object_update: Literal["explicit", "linearly_implicit"] = "explicit"
     max_reapproaches: int = 3
     worker_processes: bool = False
+    nice: int = 0
 
     def __post_init__(self) -> None:
         _require(self.max_reapproaches >= 0, "planner.max_reapproaches",
@@ -347,6 +384,7 @@ class PlannerConfig(Strict):
         _require(self.sdf_solver_steps is None or 0 <= self.sdf_solver_steps <= SDF_SOLVER_STEPS_MAX,
                  "planner.sdf_solver_steps", f"must be 0..{SDF_SOLVER_STEPS_MAX} (or left out: solve to "
                  f"convergence), got {self.sdf_solver_steps}")
+        _require(0 <= self.nice <= 19, "planner.nice", f"must be 0..19, got {self.nice}")
         _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s",
                   "threads", "workers")
         _require(self.workers <= self.samples, "planner.workers",
@@ -645,9 +683,10 @@ class StackConfig(Strict):
 
 
 def parse_config(text: str | bytes, origin: str = "config") -> StackConfig:
-    """Validate a stack config from TOML text; raises ConfigError naming ``origin`` and the key."""
+    """Validate a stack config from TOML text (its planner preset applied: ``with_planner_preset``); raises
+    ConfigError naming ``origin`` and the key."""
     try:
-        return msgspec.toml.decode(text, type=StackConfig)
+        return msgspec.convert(with_planner_preset(msgspec.toml.decode(text)), StackConfig)
     except ConfigError as err:
         raise ConfigError(f"{origin}: {err}") from err
     except msgspec.ValidationError as err:

@@ -342,7 +342,9 @@ class ArmState(SensorMessage, frozen=True, kw_only=True):
     """An arm's state as its commander sees it. tcp_pose: ``(7,)`` float64, base frame (m, wxyz). tcp_speed:
     ``(6,)`` float64 (m/s, rad/s), base frame. running: the controller executes our program. protective_stop,
     emergency_stop: the controller's stop flags. servo_active: the commander is servoing towards targets (False:
-    stopped). stop_reason: why it stopped ("" while servoing). stop_owner: who stopped it: "stack" (the commander's
+    stopped). holding: the stop is a hold: the target's deadline passed while it servoed and no other rule
+    stopped it (the planner's next target is late; the next fresh target resumes; not a fault). stop_reason: why
+    it stopped ("" while servoing). stop_owner: who stopped it: "stack" (the commander's
     own rules), "external" (a person or the controller: pendant, dashboard, safety system; latched until ``arm
     enable``) or "" while servoing. controller_stop: the controller's own named stop ("" when it runs our program
     normally; e.g. "safeguard stop", "program paused"). safety_flags: every safety stop the controller reports.
@@ -360,6 +362,7 @@ class ArmState(SensorMessage, frozen=True, kw_only=True):
     protective_stop: bool
     emergency_stop: bool
     servo_active: bool
+    holding: bool = False
     stop_reason: str = ""
     stop_owner: StopOwner = ""
     controller_stop: str = ""
@@ -372,6 +375,10 @@ class ArmState(SensorMessage, frozen=True, kw_only=True):
 # --- planner outputs ---------------------------------------------------------------------------------------------
 
 
+#: How a goal ended, for the halt target the planner sends then (``ArmTarget.goal_end``; "" for a plan's target).
+GoalEnd = Literal["", "reached", "failed", "timeout", "stopped"]
+
+
 class ArmTarget(Message, frozen=True, kw_only=True):
     """The pose the arm should servo towards. tcp_pose: ``(7,)`` float64, base frame (m, wxyz). deadline_ns:
     ``time.monotonic_ns()`` after which the target is void and the arm stops (the commander caps how far ahead it
@@ -379,7 +386,9 @@ class ArmTarget(Message, frozen=True, kw_only=True):
     goal it serves was started (the planner's ``time.monotonic_ns()``; 0: no goal): a commander servoes only on
     goals started after its own start, its last reconnect and its last ``arm enable``. plan_done_ns: when the plan
     it comes from was completed (the end of its solve, or when a waypoint or halt was computed); the commander stops
-    when it is older than ``limits.max_plan_age_s``."""
+    when it is older than ``limits.max_plan_age_s``. goal_end: "" for a plan's target; the goal's outcome
+    (``GoalEnd``) for the halt the planner sends when the goal ends: the commander stops the arm and names that
+    outcome as the cause ("goal reached")."""
 
     topic = "arm_target"
     ARRAYS = {"tcp_pose": POSE}
@@ -390,6 +399,7 @@ class ArmTarget(Message, frozen=True, kw_only=True):
     plan_seq: int
     goal_started_ns: int = 0
     plan_done_ns: int = 0
+    goal_end: GoalEnd = ""
 
     def check(self) -> None:
         _positive(self, deadline_ns=self.deadline_ns)

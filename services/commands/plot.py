@@ -11,7 +11,8 @@ Written to ``--out`` (default: next to the file, ``STEM-plots/``), time in secon
 - ``planner.png``: each plan's solve time (ms) and the plan rate (plans per second, each from the spacing of two
   plans' stamps);
 - ``events.png``: above, per service, its error counts by kind over time (from ``status/SERVICE``); below, a
-  timeline with one lane per cause: each arm's watchdog stops by reason (``ArmState.servo_active`` turning false)
+  timeline with one lane per cause: each arm's watchdog stops by reason (``ArmState.servo_active`` turning false;
+  the holds, ``ArmState.holding``, in one lane of their own: a late target, not a fault)
   and each service's turns to degraded or stopping, a tick per event (darker: several in one time bucket) and the
   lane's total in its label. Hundreds of stops stay readable: they add ticks and counts, not labels.
 
@@ -44,6 +45,9 @@ MAX_BUCKETS = 2000
 MIN_BUCKET_S = 1e-3
 #: Most lanes of the events timeline; further causes share the lane ``OTHER_LANE``.
 MAX_LANES = 12
+#: The lane of an arm's holds (``ArmState.holding``: the target's deadline passed, every other rule met), whatever
+#: how late each target was.
+HOLD_LANE = "target deadline passed"
 OTHER_LANE = "other causes"
 
 
@@ -210,7 +214,7 @@ class SeriesBuilder:
                 self._last_state[service] = m.state
             case msg.ArmState():
                 if self._servoing.get(m.arm, False) and not m.servo_active:
-                    self._event(f"{m.arm} stop: {m.stop_reason}", t)
+                    self._event(f"{m.arm} hold: {HOLD_LANE}" if m.holding else f"{m.arm} stop: {m.stop_reason}", t)
                 self._servoing[m.arm] = m.servo_active
 
     def _event(self, lane: str, t: float) -> None:

@@ -32,11 +32,18 @@ def free_ur_host(taken: tuple[str, ...] = ()) -> str:
     return loopback.free_ur_host(60, 60, taken)
 
 
+def quick_planner(text: str) -> str:
+    """A sim config ``text`` (deploy/sim.toml's) with the quick planner preset instead of the paper's: eager, ready
+    in seconds (the paper's compiles for minutes at every cold start, too long for a test)."""
+    assert 'preset = "paper"' in text, "the config names no paper planner preset"
+    return text.replace('preset = "paper"', 'preset = "quick"', 1)
+
+
 def sim_toml_text(compiled_plant: bool = False) -> str:
-    """deploy/sim.toml's text, its plant compiled (``[sim] compile``, 30-60 s before sim_world is READY) only when
-    asked: only the end-to-end goals, where the cube must follow the bubble in real time, pay for it at every
-    start."""
-    text = SIM_TOML.read_text()
+    """deploy/sim.toml's text with the quick planner (``quick_planner``), its plant compiled (``[sim] compile``,
+    30-60 s before sim_world is READY) only when asked: only the end-to-end goals, where the cube must follow the
+    bubble in real time, pay for it at every start."""
+    text = quick_planner(SIM_TOML.read_text())
     return text if compiled_plant else re.sub(r"(\[sim\][^\[]*?)compile = true", r"\1compile = false", text)
 
 

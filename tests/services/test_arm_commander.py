@@ -28,7 +28,7 @@ from hydrosoft.drivers.base import ArmState
 from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SIM_CONTROL_PORT, URArmConfig
 from hydrosoft.services.commands import arm as arm_enable
 from hydrosoft.services.bus import messages as msg
-from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, MAX_STEP_PERIODS, NO_TARGET, PLANNER_LOST,
+from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, HOLD, MAX_STEP_PERIODS, NO_TARGET, PLANNER_LOST,
                                              UNTARED_FT, ServoLogic, driver_config)
 from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.bus.config import LimitsConfig, load_config
@@ -336,6 +336,59 @@ def test_a_target_lead_of_1e12_ns_holds_only_for_max_target_lead_s():
         if step(logic, now, reading=state(now)).command is not None:
             last_servo_ns = now
     assert last_servo_ns <= T0 + int(LIMITS.max_target_lead_s * S) and "deadline passed" in logic.reason
+
+
+def test_a_passed_deadline_while_servoing_is_a_hold_counted_once_and_a_fresh_target_resumes():
+    logic = servoing_logic()
+    late_ns = T0 + int(0.55 * S)  # past the 0.5 s clamped deadline, the plan 0.55 s old (limit 0.6 s)
+    decision = step(logic, late_ns)
+    assert decision.stop and decision.command is None and decision.hold_started
+    assert decision.reason.startswith(HOLD) and logic.holding and logic.owner == "stack"
+    later = [step(logic, late_ns + k * PERIOD_NS) for k in range(1, 5)]  # held: no second count, the cause stays
+    assert not any(d.hold_started or d.stop for d in later) and logic.holding and logic.reason == decision.reason
+    fresh_ns = late_ns + 5 * PERIOD_NS
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], fresh_ns), fresh_ns)  # the same goal's next target
+    resumed = step(logic, fresh_ns)
+    assert resumed.command is not None and resumed.reason == "" and not logic.holding
+
+
+def test_a_passed_deadline_is_a_stop_not_a_hold_when_another_rule_fires_or_nothing_was_servoed():
+    for name, kwargs in [("heartbeat", {"heartbeat_ns": T0 - S}), ("F/T", {"force": None}),
+                         ("force", {"force": [0.0, 0.0, -45.0]})]:
+        logic = servoing_logic()
+        decision = step(logic, T0 + int(0.55 * S), **kwargs)
+        assert decision.stop and not decision.hold_started and not logic.holding, name
+        assert not decision.reason.startswith(HOLD), name
+    logic = servoing_logic()  # the plan's age too
+    decision = step(logic, T0 + int(0.61 * S))
+    assert decision.stop and not logic.holding and "deadline passed" in decision.reason
+    idle = new_logic()  # a target that arrives with its deadline passed was never servoed on
+    idle.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0 - S, lead_s=0.2), T0)
+    decision = step(idle, T0)
+    assert decision.command is None and not idle.holding and not decision.hold_started
+
+
+def test_a_hold_turns_into_the_cause_of_a_later_stop_and_an_external_stop_ends_it():
+    logic = servoing_logic()
+    step(logic, T0 + int(0.55 * S))
+    assert logic.holding
+    step(logic, T0 + int(0.56 * S), reading=state(T0 + int(0.56 * S), controller_stop="program paused"))
+    assert not logic.holding and logic.owner == "external" and logic.external == "program paused"
+
+
+def test_a_goal_end_stops_the_arm_naming_the_outcome_until_a_fresh_target():
+    logic = servoing_logic()
+    now = T0 + PERIOD_NS
+    halt = msgspec.structs.replace(target(HOME, now), deadline_ns=now, goal_end="reached")
+    assert logic.offer(halt, now) is None
+    decision = step(logic, now)
+    assert decision.command is None and decision.stop and decision.reason == "goal reached"
+    for k in range(1, 40):  # heartbeats stop, the deadline is long gone: the cause stays the goal's end
+        step(logic, now + k * PERIOD_NS, heartbeat_ns=T0 - S)
+    assert logic.reason == "goal reached" and logic.owner == "stack" and not logic.servoing and not logic.holding
+    fresh_ns = now + 40 * PERIOD_NS
+    logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], fresh_ns, goal_ns=fresh_ns - 1), fresh_ns)
+    assert step(logic, fresh_ns).command is not None and logic.reason == ""
 
 
 def test_a_hung_solve_stops_the_arm_within_max_plan_age_s_while_heartbeats_and_targets_go_on():
@@ -710,19 +763,30 @@ def test_a_target_outside_the_workspace_is_refused_and_never_moved_towards(rig):
 
 
 def test_the_arm_stops_when_the_target_deadline_passes(rig):
+    """... as a hold: named and counted once as such (``deadline_hold``), not as a fault."""
     lead_s = 0.4
 
+    def status_after(stamp_ns: int):
+        return lambda: (s := planner_status()) and s.stamp_ns > stamp_ns and s
+
     async def run(planner: PlayedPlanner, tcp: SimTcp):
+        nonlocal planner_status
+        planner_status = planner.status
+        before = await until(status_after(time.monotonic_ns()), 3.0, "a status after the probe's hold")
         sent = await planner.send_target(HOME + [0.15, 0, 0, 0, 0, 0, 0], lead_s)
         await moving_at_speed(tcp)
         rest_ns, rest = await at_rest(tcp, 2.0)
-        return sent, rest_ns, rest, planner.arm_state()
+        after = await until(status_after(rest_ns), 3.0, "a status after the rest")
+        holds = after.errors.get("deadline_hold", 0) - before.errors.get("deadline_hold", 0)
+        return sent, rest_ns, rest, planner.arm_state(), holds
 
-    sent, rest_ns, rest, arm_state = scenario(run, rig)
+    planner_status = None
+    sent, rest_ns, rest, arm_state, holds = scenario(run, rig)
     late_s = (rest_ns - sent.deadline_ns) * 1e-9
     assert late_s < SERVO_PERIOD_S + STOP_TIME_S + SCHEDULING_SLACK_S, late_s
     assert rest[0] - HOME[0] < LIMITS.max_speed_m_s * (lead_s + SCHEDULING_SLACK_S)
     assert not arm_state.servo_active and "deadline passed" in arm_state.stop_reason
+    assert arm_state.holding and arm_state.stop_reason.startswith(HOLD) and holds == 1
 
 
 def test_the_arm_stops_in_bounded_time_when_heartbeats_stop_and_only_a_new_goal_moves_it_again(rig):

@@ -4,8 +4,10 @@ from the stack config, the client API's refusals."""
 from __future__ import annotations
 
 import asyncio
+import collections
 import math
 import os
+import time
 from pathlib import Path
 
 import msgspec
@@ -17,25 +19,32 @@ from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
 from hydrosoft.services.arm_commander import PLANNER_LOST
 from hydrosoft.services.bus import messages as msg
-from hydrosoft.services.bus.config import load_config
+from hydrosoft.services.bus.config import load_config, parse_config
 from hydrosoft.services.bus.sockets import ErrorCounter
 from hydrosoft.services.planner import (
+    LEAD_CYCLES,
+    LEAD_MARGIN_S,
+    LEAD_WINDOW,
     Planner,
     PlannerCore,
     arm_end_positions,
     ended_by_commander,
     planner_scene,
     resolve_target,
+    target_lead,
     targets_from_plan,
 )
 from hydrosoft.tasks import make_task
+from stack_process import quick_planner
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
+SIM_TEXT = quick_planner(SIM_TOML.read_text())  # deploy/sim.toml with the quick planner: no worker processes
+NO_PRESET = SIM_TEXT.replace('preset = "quick"', "", 1)  # the planner's own defaults, no preset
 
 
 @pytest.fixture(scope="module")
 def core():
-    return PlannerCore.build(load_config(SIM_TOML))
+    return PlannerCore.build(parse_config(SIM_TEXT))
 
 
 def test_a_displacement_goal_moves_and_turns_the_start_pose():
@@ -71,18 +80,18 @@ def test_the_core_follows_the_config(core):
 
 
 def test_the_bubble_sdf_is_solved_as_the_config_says(core, tmp_path):
-    """deploy/sim.toml's fixed 3-step bubble solve reaches the planner's model and its tactile membranes; without
-    the key the planner solves to convergence."""
-    config = load_config(SIM_TOML)
+    """The quick preset's fixed 3-step bubble solve reaches the planner's model and its tactile membranes; without
+    the key (and no preset) the planner solves to convergence."""
+    config = parse_config(SIM_TEXT)
     assert config.planner.sdf_solver_steps == 3
     assert core.membranes["bubble"].solver_steps == 3 and core.model.bodies[0].solver_steps == 3
     path = tmp_path / "converged.toml"
-    path.write_text(SIM_TOML.read_text().replace("sdf_solver_steps = 3", ""))
+    path.write_text(NO_PRESET)
     assert PlannerCore.build(load_config(path)).membranes["bubble"].solver_steps is None
 
 
 def test_an_arm_that_is_not_a_scene_body_is_refused_by_name(tmp_path):
-    text = SIM_TOML.read_text().replace('name = "bubble"', 'name = "gripper"')
+    text = SIM_TEXT.replace('name = "bubble"', 'name = "gripper"')
     path = tmp_path / "bad.toml"
     path.write_text(text)
     with pytest.raises(ValueError, match="'gripper' is not a body of the pushing scene"):
@@ -113,7 +122,7 @@ def test_targets_apply_the_first_plan_steps_to_the_current_tcp(core):
 
 
 def test_targets_leave_in_the_base_frame_of_a_turned_and_moved_task_frame(core, tmp_path):
-    text = SIM_TOML.read_text().replace('tag_size_m = 0.032', 'tag_size_m = 0.032\ntask_frame = [0.5, -0.1, -0.02, '
+    text = SIM_TEXT.replace('tag_size_m = 0.032', 'tag_size_m = 0.032\ntask_frame = [0.5, -0.1, -0.02, '
                                         f'{math.sqrt(0.5)}, 0.0, 0.0, {math.sqrt(0.5)}]', 1)
     path = tmp_path / "turned.toml"
     path.write_text(text)
@@ -135,18 +144,17 @@ def test_targets_leave_in_the_base_frame_of_a_turned_and_moved_task_frame(core, 
 def test_the_solver_gets_the_configured_workers(core, tmp_path):
     """``planner.workers`` reaches the solver settings of every goal; one worker when the key is left out."""
     path = tmp_path / "workers.toml"
-    path.write_text(SIM_TOML.read_text().replace("[planner]", "[planner]\nworkers = 2\n", 1))
+    path.write_text(SIM_TEXT.replace("[planner]", "[planner]\nworkers = 2\n", 1))
     two = PlannerCore.build(load_config(path))
     assert core.settings.config(core.settings.horizon, 1).workers == 1
     assert two.settings.config(two.settings.horizon, 1).workers == 2
 
 
 def test_the_planner_model_takes_the_configured_object_update(core, tmp_path):
-    """deploy/sim.toml's ``planner.object_update = "linearly_implicit"`` gives the solver's model that update and one
-    sub-step per step; left out, the scene's explicit update and its sub-steps."""
+    """The presets' ``planner.object_update = "linearly_implicit"`` gives the solver's model that update and one
+    sub-step per step; left out (no preset), the scene's explicit update and its sub-steps."""
     path = tmp_path / "explicit.toml"
-    text = SIM_TOML.read_text()
-    path.write_text("\n".join(line for line in text.splitlines() if not line.startswith("object_update")))
+    path.write_text(NO_PRESET)
     explicit = PlannerCore.build(load_config(path))
     assert core.model.object_update == "linearly_implicit" and core.model.substeps == 1
     assert core.settings.object_update == "linearly_implicit"
@@ -156,7 +164,7 @@ def test_the_planner_model_takes_the_configured_object_update(core, tmp_path):
 def test_worker_processes_plan_what_threads_plan_and_stop_with_the_core(tmp_path):
     """``planner.worker_processes``: two solves of a goal on two worker processes give the plans of two worker
     threads (each process builds the config's core and the goal's costs itself); ``close`` stops the processes."""
-    text = SIM_TOML.read_text().replace("[planner]", "[planner]\nworkers = 2\n", 1)
+    text = SIM_TEXT.replace("[planner]", "[planner]\nworkers = 2\n", 1)
     (tmp_path / "threads.toml").write_text(text)
     (tmp_path / "processes.toml").write_text(text.replace("[planner]", "[planner]\nworker_processes = true\n", 1))
     threads = PlannerCore.build(load_config(tmp_path / "threads.toml"))
@@ -218,3 +226,40 @@ def test_a_goal_ends_once_an_arm_commanders_goal_floor_reaches_its_start():
     lost = commander_state("right", started_ns + 1, PLANNER_LOST)
     why = ended_by_commander(started_ns, [fine, lost])
     assert why is not None and "arm right" in why and PLANNER_LOST in why and "start a new goal" in why
+
+def test_the_target_lead_follows_the_slow_cycles_within_the_configured_floor_and_the_commanders_ceiling():
+    assert target_lead(0.3, [], 1.0) == 0.3  # nothing measured yet: the configured lead
+    fast = [0.06] * 18 + [0.08, 0.09]  # p90 0.08 s: 2 x 0.08 + 0.05 = 0.21 s, under the floor
+    assert target_lead(0.3, fast, 1.0) == 0.3
+    loaded = [0.15] * 17 + [0.3, 0.32, 0.34]  # p90 0.302 s: the lead grows past the floor to outlive two of them
+    assert target_lead(0.3, loaded, 1.0) == pytest.approx(LEAD_CYCLES * 0.302 + LEAD_MARGIN_S)
+    assert target_lead(0.3, [1.0, 2.6, 1.8], 1.0) == 1.0  # the quick planner under load: capped at the ceiling
+    assert target_lead(1.0, fast, 0.5) == 0.5  # a floor above the ceiling is capped too
+    assert LEAD_WINDOW >= 10  # a p90 over fewer cycles would be their maximum
+
+
+def test_a_goal_end_sends_a_halt_naming_its_outcome_and_the_deadline_follows_the_cycles():
+    """The planner's halt at a goal's end carries the outcome (the commander's stop cause "goal reached"); a plan's
+    targets get a deadline of ``target_lead`` from now, the lead shown in the status note."""
+    sent = []
+
+    class Out:
+        async def send(self, message, topic):
+            sent.append((topic, message))
+
+    planner = Planner.__new__(Planner)
+    planner.service, planner.config = ServiceOfLaunch("a" * 32), load_config(SIM_TOML)
+    planner.service.note = ""
+    planner.out, planner.plan_seq, planner.episode, planner.last_outcome = Out(), 0, None, None
+    planner.cycles_s = collections.deque([0.4] * 10, maxlen=LEAD_WINDOW)
+    before_ns = time.monotonic_ns()
+    deadline_ns = planner.target_deadline_ns()
+    lead_s = (deadline_ns - before_ns) * 1e-9
+    assert LEAD_CYCLES * 0.4 + LEAD_MARGIN_S <= lead_s < LEAD_CYCLES * 0.4 + LEAD_MARGIN_S + 0.05
+    assert "target lead 0.85 s" in planner.service.note
+    asyncio.run(planner.send_targets({"bubble": np.array([0.0, 0.0, 0.1, 0.0, 0.0, 1.0, 0.0])}, deadline_ns))
+    asyncio.run(planner.send_targets({"bubble": np.array([0.0, 0.0, 0.1, 0.0, 0.0, 1.0, 0.0])}, time.monotonic_ns(),
+                                     goal_end="reached"))
+    (_, plan_target), (topic, halt) = sent
+    assert topic == "arm_target/bubble" and plan_target.goal_end == "" and halt.goal_end == "reached"
+    assert halt.plan_seq == plan_target.plan_seq + 1

@@ -2,7 +2,8 @@
 controller, FT 300 pty, rendered camera and depth images), the arm commander (the real ur_rtde client), the F/T
 reader (the real serial driver), the bubble camera, the tag tracker and the planner; the cube starts 6 cm to the side
 of the bubble (``sim.object_offset_m``), so the planner first re-approaches it (up, across, down onto it), then the
-client's goal pushes it; the planner is SIGKILLed during a second goal (the arm stops, the launcher restarts it)
+client's goal pushes it (and the arm's stop cause then reads "goal reached"); the planner is SIGKILLed during a
+second goal (the arm stops, the launcher restarts it)
 and the client resumes that goal on the new planner, which reaches it. The scene lies away from the base origin, turned 90 degrees
 (``scene.task_frame``), as a lab's table would: every pose on the bus is in the base frame, and the goals push the
 cube along the base's y, which is the task scene's x.
@@ -73,6 +74,25 @@ async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
     raise AssertionError("the launcher did not restart the planner")
 
 
+async def stop_cause_after(arm, expected: str, timeout_s: float = 3.0) -> tuple[str, bool]:
+    """The arm commander's stop cause and ``servo_active`` once the cause reads ``expected``, or as they are after
+    ``timeout_s`` (s)."""
+    from hydrosoft.services.bus import messages as msg
+    from hydrosoft.services.bus.sockets import Stale
+
+    deadline, seen = time.monotonic() + timeout_s, ("no fresh arm state", True)
+    while time.monotonic() < deadline:
+        await arm.wait(1.0)
+        try:
+            state = arm.latest("arm_state/bubble", 1.0, msg.ArmState).value
+        except Stale:
+            continue
+        seen = (state.stop_reason, state.servo_active)
+        if state.stop_reason == expected:
+            break
+    return seen
+
+
 def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_path):
     config_path = stack_config(tmp_path, compiled_plant=True, task_frame=TASK_FRAME, object_offset_m=OBJECT_OFFSET_M)
     stack = Stack(config_path, tmp_path / "launcher.log")
@@ -85,10 +105,12 @@ def test_the_sim_stack_pushes_the_cube_to_the_goal_and_shuts_down_in_order(tmp_p
             await client.start()
             reply = await client.wait(GOAL_TIMEOUT_S + 10)
             true = await true_error_mm(client, reply.goal.target_pose, "pushing")
-            return reply, true
+            arm = client.subscribe("arm_commander-bubble", ("arm_state/bubble",))  # subscribed now: fresh states
+            return reply, true, await stop_cause_after(arm, "goal reached")
 
-        reply, true = asyncio.run(push())
+        reply, true, (stop_reason, servo_active) = asyncio.run(push())
         assert reply.outcome == "reached", (reply.outcome, reply.outcome_reason, reply.error_mm, stack.text()[-3000:])
+        assert stop_reason == "goal reached" and not servo_active, stop_reason  # the goal's end, not the last fault
         # base frame: the task frame's y is the base's -x, so the cube started at x = 0.4 - 0.06
         assert abs(reply.goal.target_pose[0] - 0.34) < 0.005 and reply.goal.target_pose[1] > -0.1 + 0.03
         assert true is not None and true < 5.0, true

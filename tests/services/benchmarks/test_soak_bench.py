@@ -64,11 +64,13 @@ def test_windows_compare_memory_cpu_and_latency_and_the_growth_names_each():
                           "soak_seconds": 600.0, "goals": [{"outcome": "reached", "reapproaches": 1},
                                                            {"outcome": "timeout", "reapproaches": 2}],
                           "first": first, "last": last, "growth": grown,
+                          "whole": window_summary(samples, 0, 600), "replanning_hz": 9.5,
                           "errors": {"sim_world": {"physics_behind": 7, "tag_camera": 1}}})
     assert "idle: 12.5 % of one core in all (planner 12.5)" in table
     assert "idle planner: main thread 2.0, zmq 0.5, other threads 6.0 + 4.0" in table
     assert "2 goals, 1 reached, 3 re-approaches of a lost cube" in table
     assert "errors counted: sim_world physics_behind 7, tag_camera 1" in table
+    assert "replanning: 9.5 Hz over the goals' time; camera to arm targets over the whole soak: 137.0 / 137.0 ms" in table
     assert "latency solve" in table and "0.2" in table
 
 

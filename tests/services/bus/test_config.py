@@ -5,9 +5,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import msgspec
 import pytest
 
-from hydrosoft.services.bus.config import SDF_SOLVER_STEPS_MAX, ConfigError, load_config, parse_config
+from hydrosoft.services.bus.config import (PLANNER_PRESETS, SDF_SOLVER_STEPS_MAX, ConfigError, PlannerConfig,
+                                          load_config, parse_config)
 from hydrosoft.services.bus.service_cli import CACHE_ENV, use_compile_cache
 
 DEPLOY = Path(__file__).parents[3] / "deploy"
@@ -38,6 +40,7 @@ def test_the_shipped_configs_load(name):
     ('arms = [{ name = "a" }, { name = "a" }]\n', "arms"),
     (ONE_ARM + "[planner]\nsdf_solver_steps = 33\n", "planner.sdf_solver_steps"),
     (ONE_ARM + "[planner]\nworkers = 0\n", "planner.workers"),
+    (ONE_ARM + "[planner]\nnice = 20\n", "planner.nice"),
     (ONE_ARM + "[planner]\nsamples = 16\nworkers = 17\n", "planner.workers"),  # more workers than samples
     (ONE_ARM + "[planner]\nobject_update = \"implicit\"\n", "planner.object_update"),
     (ONE_ARM + "[planner]\nmodel = \"pf\"\nobject_update = \"linearly_implicit\"\n", "planner.object_update"),
@@ -205,3 +208,23 @@ def test_a_fitted_material_pasted_below_an_arm_reaches_the_planners_and_the_plan
         assert float(model.material.K[bubble]) == 1e5 and float(model.material.E[table]) == 1e6
     plain, _ = plant_model(load_config(DEPLOY / "sim.toml"))
     assert float(plain.material.E[plain.body_names.index("bubble")]) == 3e5
+
+def test_a_planner_preset_fills_the_planner_and_its_own_keys_override_it():
+    paper = parse_config(ONE_ARM + '[planner]\npreset = "paper"\n').planner
+    assert (paper.samples, paper.horizon, paper.grad_steps, paper.dtype, paper.compile) == (64, 10, 2, "float32", True)
+    assert paper.preset == "paper" and paper.workers == 2 and paper.worker_processes and paper.nice == 10
+    assert paper == msgspec.convert({**PLANNER_PRESETS["paper"], "preset": "paper"}, PlannerConfig)
+    quick = parse_config(ONE_ARM + '[planner]\npreset = "quick"\nsamples = 32\ncompile = true\n').planner
+    assert (quick.samples, quick.horizon, quick.grad_steps, quick.compile) == (32, 6, 1, True)  # the keys win
+    assert parse_config(ONE_ARM).planner == PlannerConfig()  # no preset: the defaults
+    with pytest.raises(ConfigError, match="planner.preset: must be one of paper, quick"):
+        parse_config(ONE_ARM + '[planner]\npreset = "fast"\n', "test.toml")
+    with pytest.raises(ConfigError, match="planner.workers"):  # a preset's values are checked as the keys are
+        parse_config(ONE_ARM + '[planner]\npreset = "paper"\nsamples = 1\n', "test.toml")
+
+
+def test_deploy_sim_toml_runs_the_paper_planner_and_waits_for_its_compile():
+    config = load_config(DEPLOY / "sim.toml")
+    assert config.planner.preset == "paper" and config.planner.samples == 64 and config.planner.compile
+    assert config.planner.target_lead_s <= config.limits.max_target_lead_s
+    assert config.service("planner").ready_timeout_s >= 300.0  # a cold compile on 2 busy cores takes minutes

@@ -4,7 +4,6 @@ start-ups do, rebuilds a stale one, or says why it cannot."""
 from __future__ import annotations
 
 import functools
-import json
 import re
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from hydrosoft.services.bus.config import load_config
 from hydrosoft.services.bus.service_cli import CACHE_ENV
 from hydrosoft.tasks import evaluation
 from hydrosoft.tasks.base import compiled_cost_terms
+from stack_process import quick_planner
 
 SIM_TOML = Path(__file__).parents[3] / "deploy" / "sim.toml"
 
@@ -34,7 +34,7 @@ def compiled_config(tmp_path: Path, plant: bool = True) -> Path:
     """deploy/sim.toml with the planner compiled, the plant compiled or not, and the compile cache under
     ``tmp_path``."""
     path = tmp_path / "compiled.toml"
-    text = SIM_TOML.read_text().replace("compile = false ", "compile = true ", 1)
+    text = quick_planner(SIM_TOML.read_text()).replace('preset = "quick"', 'preset = "quick"\ncompile = true', 1)
     if not plant:
         text = re.sub(r"(\[sim\][^\[]*?\n)compile = true", r"\1compile = false", text, count=1)
     path.write_text(f'compile_cache_dir = "{tmp_path}/cache"\n' + text)
@@ -46,15 +46,16 @@ def failing_backend(graph, example_inputs):
 
 
 def test_an_eager_stack_has_nothing_to_compile(tmp_path, capsys):
-    path = compiled_config(tmp_path, plant=False)
-    path.write_text(path.read_text().replace("compile = true ", "compile = false ", 1))
+    path = tmp_path / "eager.toml"
+    path.write_text(re.sub(r"(\[sim\][^\[]*?\n)compile = true", r"\1compile = false",
+                           quick_planner(SIM_TOML.read_text()), count=1))
     assert main(["compile", str(path)]) == 0
     assert "nothing to compile" in capsys.readouterr().out
 
 
 def test_a_bad_config_is_refused_by_key(tmp_path, capsys):
     path = tmp_path / "bad.toml"
-    path.write_text(SIM_TOML.read_text().replace("sdf_solver_steps = 3", "sdf_solver_steps = -1", 1))
+    path.write_text(SIM_TOML.read_text().replace('preset = "paper"', 'preset = "paper"\nsdf_solver_steps = -1', 1))
     assert main(["compile", str(path)]) == 2
     assert "planner.sdf_solver_steps" in capsys.readouterr().err
 

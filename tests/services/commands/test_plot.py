@@ -36,9 +36,9 @@ def at(topic: str, message: msg.Message, t_s: float) -> RecordedMessage:
     return RecordedMessage(topic, stamped, 0)
 
 
-def arm(servo: bool, reason: str = "") -> msg.ArmState:
+def arm(servo: bool, reason: str = "", holding: bool = False) -> msg.ArmState:
     return msg.ArmState(arm="bubble", tcp_pose=POSE, tcp_speed=np.zeros(6), running=True, protective_stop=False,
-                        emergency_stop=False, servo_active=servo, stop_reason=reason)
+                        emergency_stop=False, servo_active=servo, stop_reason=reason, holding=holding)
 
 
 def test_the_series_follow_the_messages():
@@ -56,6 +56,10 @@ def test_the_series_follow_the_messages():
         at("plan/pushing", plan, 1.25),
         at("arm_state/bubble", arm(True), 1.3),
         at("arm_state/bubble", arm(False, "deadline passed"), 1.4),
+        at("arm_state/bubble", arm(True), 1.42),
+        at("arm_state/bubble", arm(False, "hold: target deadline passed 0.012 s ago", holding=True), 1.44),
+        at("arm_state/bubble", arm(True), 1.46),
+        at("arm_state/bubble", arm(False, "hold: target deadline passed 0.034 s ago", holding=True), 1.48),
         at("status/planner", msg.ServiceStatus(state="degraded", pid=1, uptime_s=1.0, errors={"stale_input": 2}), 1.5),
         at("status/planner", msg.ServiceStatus(state="degraded", pid=1, uptime_s=2.0, errors={"stale_input": 3}), 2.5),
     ]
@@ -73,8 +77,10 @@ def test_the_series_follow_the_messages():
     assert points(run_series.solve_ms) == [(1.0, 150.0), (1.25, 150.0)]
     assert points(run_series.plan_hz) == [(1.25, 4.0)]
     assert {lane: points(events) for lane, events in run_series.events.items()} == {
-        "bubble stop: deadline passed": [(1.4, 1)], "planner degraded": [(1.5, 1)]}
-    assert run_series.event_totals == {"bubble stop: deadline passed": 1, "planner degraded": 1}
+        "bubble stop: deadline passed": [(1.4, 1)], "bubble hold: target deadline passed": [(1.44, 1), (1.48, 1)],
+        "planner degraded": [(1.5, 1)]}
+    assert run_series.event_totals == {"bubble stop: deadline passed": 1, "bubble hold: target deadline passed": 2,
+                                       "planner degraded": 1}
     assert points(run_series.errors["planner: stale_input"]) == [(1.5, 2), (2.5, 3)]
 
 
