@@ -31,7 +31,7 @@ def test_a_key_changes_with_the_graph_shaping_config_and_the_torch_version(confi
     assert artefacts.planner_key(config, "2.13.0") == planner  # the same config and torch: the same key
     assert artefacts.planner_key(config, "2.12.1").key != planner.key
     assert artefacts.plant_key(config, "2.12.1").key != plant.key
-    more_samples = changed(config, "planner", samples=64)
+    more_samples = changed(config, "planner", samples=2 * config.planner.samples)
     assert artefacts.planner_key(more_samples, "2.13.0").key != planner.key
     assert artefacts.plant_key(more_samples, "2.13.0") == plant  # the plant's graphs do not depend on it
     finer_plant = changed(config, "sim", spacing_factor=0.25)
@@ -58,7 +58,7 @@ def test_a_record_is_ready_for_its_key_and_stale_for_another(tmp_path, config):
     assert saved["key"] == key.key and saved["compile_s"] == 12.5
     assert artefacts.check(tmp_path, artefacts.planner_key(config, "2.14.0")) == (
         "stale artefact (torch 2.13.0 -> 2.14.0)")
-    assert artefacts.check(tmp_path, artefacts.planner_key(changed(config, "planner", horizon=10), "2.13.0")) == (
+    assert artefacts.check(tmp_path, artefacts.planner_key(changed(config, "planner", horizon=config.planner.horizon + 1), "2.13.0")) == (
         "stale artefact (config changed)")
     assert artefacts.check(tmp_path, artefacts.plant_key(config, "2.13.0")) == "missing artefact"  # per part
 

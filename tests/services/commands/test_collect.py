@@ -26,6 +26,7 @@ from hydrosoft.bench.wrench_scenes import bench_object
 from hydrosoft.services.commands import cli
 from hydrosoft.services.bus.config import load_config
 from loopback import free_ur_host
+from stack_process import quick_planner
 
 SIM_TOML = Path(__file__).parents[3] / "deploy" / "sim.toml"
 COLLECT_TIMEOUT_S = 240.0  # two plant start-ups and 2 x 2 x 6 samples take ~25 s; a loaded machine is slower
@@ -39,7 +40,8 @@ def free_loopback_host() -> str:
 
 def private_config(tmp_path: Path, **replacements: str) -> Path:
     run_dir = tmp_path / "run"
-    text = SIM_TOML.read_text().replace('"/tmp/hydrosoft-sim/ft300-bubble"', f'"{run_dir}/ft300-bubble"')
+    text = quick_planner(SIM_TOML.read_text())  # the quick planner's 12.5 mm spacing: a 6.25 mm plant
+    text = text.replace('"/tmp/hydrosoft-sim/ft300-bubble"', f'"{run_dir}/ft300-bubble"')
     text = text.replace('"/tmp/hydrosoft-sim"', f'"{run_dir}"').replace('"127.0.0.2"', f'"{free_loopback_host()}"')
     for old, new in replacements.items():
         assert old in text
