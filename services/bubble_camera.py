@@ -214,7 +214,7 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
         except msg.MessageError as error:
             service.count_error(error.kind, f"cannot publish: {error}")
             continue
-        if service.state != "ready":
+        if service.state != service.effective_state("ready"):
             await service.set_state("ready")
 
 

@@ -288,7 +288,7 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
                 service.count_error(error.kind, f"cannot publish the wrench: {error}")
                 continue
             healthy = "ready" if current.stored is not None else "degraded"
-            if service.state != healthy:
+            if service.state != service.effective_state(healthy):
                 service.note = current.note()
                 await service.set_state(healthy)
     finally:

@@ -395,7 +395,7 @@ async def report_health(service: Service, note: str) -> None:
     with no note; a change of state is logged and published at once."""
     service.note = note
     state = "degraded" if note else "ready"
-    if service.state != state:
+    if service.state != service.effective_state(state):
         if note:
             service.log.warning("%s", note)
         await service.set_state(state)

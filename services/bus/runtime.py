@@ -213,11 +213,15 @@ class Service:
         await self.set_state("ready")
         print(f"READY {self.name} {self.pid}", flush=True)
 
+    def effective_state(self, state: ServiceState) -> ServiceState:
+        """The state ``set_state(state)`` would set: ``ready`` reads ``degraded`` once a supervised task ended. A
+        loop that sets its state only on a change compares with this, so it does not publish at every sample."""
+        return "degraded" if state == "ready" and self._degraded_by else state
+
     async def set_state(self, state: ServiceState) -> None:
         """Change the state (starting, ready, degraded, stopping) and publish the status at once. A service
         whose supervised task ended stays ``degraded`` (it may still go to ``stopping``)."""
-        if state == "ready" and self._degraded_by:
-            state = "degraded"
+        state = self.effective_state(state)
         if state != self.state:
             self.log.info("state %s -> %s", self.state, state)
         self.state = state

@@ -115,7 +115,8 @@ def test_a_supervised_task_that_ends_leaves_the_service_degraded_and_counted(ipc
             await asyncio.sleep(0.05)
             assert service.state == "degraded" and service.errors.counts == {"task_ended": 1}
             await service.set_state("ready")  # a degraded service does not claim to be ready again
-            assert service.state == "degraded"
+            assert service.state == "degraded" and service.effective_state("ready") == "degraded"
+            assert service.effective_state("stopping") == "stopping"
             cancelled = service.supervise(asyncio.create_task(asyncio.sleep(10), name="tester.other"))
             cancelled.cancel()
             await asyncio.sleep(0.05)
