@@ -119,26 +119,38 @@ def _digest(data: bytes) -> str:
 # --- records ----------------------------------------------------------------------------------------------------
 
 
-def record_path(cache: Path, part: str) -> Path:
-    """Where ``part``'s record lies in the compile cache ``cache``."""
-    return cache / RECORDS / f"{part}.json"
+def record_path(cache: Path, key: ArtefactKey) -> Path:
+    """Where ``key``'s record lies in the compile cache ``cache``: one file per part and key, so the artefacts of
+    several configs (a lab's and the tests', the sim and the lab stack) stay warm side by side."""
+    return cache / RECORDS / f"{key.part}-{key.key}.json"
+
+
+def _built_for(path: Path) -> ArtefactKey | None:
+    """The key a record was built for, or None when it cannot be read."""
+    try:
+        return ArtefactKey(**json.loads(path.read_text())["built_for"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def check(cache: Path, key: ArtefactKey) -> str:
     """``ready`` when ``cache`` holds ``key``'s part, built; else why it must be compiled: ``missing artefact``
-    (no record, or one that cannot be read) or ``stale artefact (WHAT CHANGED)``."""
-    try:
-        built = ArtefactKey(**json.loads(record_path(cache, key.part).read_text())["built_for"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return "missing artefact"
-    changed = key.differences(built)
-    return f"stale artefact ({', '.join(changed)})" if changed else "ready"
+    (no readable record of that part) or ``stale artefact (WHAT CHANGED)`` against the part's newest record."""
+    if _built_for(record_path(cache, key)) == key:
+        return "ready"
+    others = sorted((cache / RECORDS).glob(f"{key.part}-*.json"), key=lambda path: path.stat().st_mtime,
+                    reverse=True)
+    for path in others:
+        built = _built_for(path)
+        if built is not None:
+            return f"stale artefact ({', '.join(key.differences(built))})"
+    return "missing artefact"
 
 
 def record(cache: Path, key: ArtefactKey, seconds: float) -> Path:
     """Record that ``key``'s part compiled completely into ``cache`` in ``seconds``; the record's path. Written to a
     temporary file and renamed, so a reader never sees half a record."""
-    path = record_path(cache, key.part)
+    path = record_path(cache, key)
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps({"key": key.key, "built_for": asdict(key), "compile_s": round(seconds, 1),
                        "built_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}, indent=1)

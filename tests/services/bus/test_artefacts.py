@@ -54,19 +54,22 @@ def test_a_record_is_ready_for_its_key_and_stale_for_another(tmp_path, config):
     assert artefacts.check(tmp_path, key) == "missing artefact"
     artefacts.record(tmp_path, key, 12.5)
     assert artefacts.check(tmp_path, key) == "ready"
-    saved = json.loads(artefacts.record_path(tmp_path, "planner").read_text())
+    saved = json.loads(artefacts.record_path(tmp_path, key).read_text())
     assert saved["key"] == key.key and saved["compile_s"] == 12.5
     assert artefacts.check(tmp_path, artefacts.planner_key(config, "2.14.0")) == (
         "stale artefact (torch 2.13.0 -> 2.14.0)")
     assert artefacts.check(tmp_path, artefacts.planner_key(changed(config, "planner", horizon=config.planner.horizon + 1), "2.13.0")) == (
         "stale artefact (config changed)")
     assert artefacts.check(tmp_path, artefacts.plant_key(config, "2.13.0")) == "missing artefact"  # per part
+    other = artefacts.planner_key(changed(config, "scene", task="rotation"), "2.13.0")
+    artefacts.record(tmp_path, other, 3.0)  # another config's planner beside it
+    assert artefacts.check(tmp_path, other) == "ready" and artefacts.check(tmp_path, key) == "ready"
 
 
 def test_an_unreadable_record_is_missing(tmp_path, config):
     key = artefacts.plant_key(config, "2.13.0")
-    artefacts.record_path(tmp_path, "plant").parent.mkdir(parents=True)
-    artefacts.record_path(tmp_path, "plant").write_text('{"key": "abc"')
+    artefacts.record_path(tmp_path, key).parent.mkdir(parents=True)
+    artefacts.record_path(tmp_path, key).write_text('{"key": "abc"')
     assert artefacts.check(tmp_path, key) == "missing artefact"
 
 
@@ -85,7 +88,7 @@ def test_a_stale_artefact_is_rebuilt_with_progress_and_recorded(tmp_path, config
 
     assert build.run(compile_slowly, lines.append, period_s=0.1)
     assert calls == [1] and build.status == f"compiled (artefact {key.key})"
-    assert lines[0].startswith(f"planner: compiling: stale artefact") and "building its artefact" in lines[0]
+    assert lines[0].startswith("planner: compiling: stale artefact") and "building its artefact" in lines[0]
     assert sum("still compiling" in line for line in lines) >= 1  # progress while it compiles
     assert lines[-1].startswith(f"planner: compiled (artefact {key.key}) in ")
     assert artefacts.check(tmp_path, key) == "ready"
