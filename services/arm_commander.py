@@ -231,18 +231,22 @@ class ServoLogic:
 
     def _planner_lost(self, now_ns: int, heartbeat_ns: int | None) -> str:
         """Why the planner counts as lost at ``now_ns``, or "": its heartbeat (stamp ``heartbeat_ns``, ns; None:
-        none) was fresh at the last decision and is older than ``limits.heartbeat_timeout_s`` now (a dead or frozen
-        planner, a cut link). Then every goal started before ``now_ns`` has ended: a planner that runs on does not
-        resume it. A heartbeat never seen since the start ends nothing (the watchdog holds the arm)."""
-        alive = heartbeat_ns is not None and (now_ns - heartbeat_ns) * 1e-9 <= self.limits.heartbeat_timeout_s
-        was_alive, self._planner_alive = self._planner_alive, alive
-        if alive or not was_alive:
+        none) was fresh (within ``limits.heartbeat_timeout_s``) at an earlier decision and is now gone or older than
+        ``limits.planner_lost_s`` (a dead or frozen planner, a cut link). Then every goal started before ``now_ns``
+        has ended: a planner that runs on does not resume it. A shorter gap only stops the arm (the watchdog) until
+        the goal's next fresh target, and a heartbeat never seen since the start ends nothing."""
+        age_s = None if heartbeat_ns is None else (now_ns - heartbeat_ns) * 1e-9
+        if age_s is not None and age_s <= self.limits.heartbeat_timeout_s:
+            self._planner_alive = True
             return ""
+        if not self._planner_alive or (age_s is not None and age_s <= self.limits.planner_lost_s):
+            return ""
+        self._planner_alive = False
         if now_ns > self.goal_floor_ns:
             self.goal_floor_ns, self.goal_floor_cause = now_ns, PLANNER_LOST
         self.target = None
-        seen = "gone" if heartbeat_ns is None else f"{(now_ns - heartbeat_ns) * 1e-9:.3f} s old"
-        return (f"planner lost: its heartbeat is {seen} (limit {self.limits.heartbeat_timeout_s} s); its goal ended, "
+        seen = "gone" if age_s is None else f"{age_s:.3f} s old"
+        return (f"planner lost: its heartbeat is {seen} (limit {self.limits.planner_lost_s} s); its goal ended, "
                 "a new goal must be started")
 
     @staticmethod

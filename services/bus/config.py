@@ -226,6 +226,7 @@ LIMIT_BOUNDS = {
     "servo_rate_hz": 500.0,  # an e-Series controller's cycle
     "idle_rate_hz": 500.0,  # at most servo_rate_hz (checked there)
     "heartbeat_timeout_s": 2.0,  # longer, a dead planner's last target would steer the arm for seconds
+    "planner_lost_s": 10.0,  # longer, a planner silent for many seconds could still resume its goal
     "state_timeout_s": 1.0,  # longer, the arm would move blind past ur_rtde's own 2.5 s read deadline
     "max_target_lead_s": 5.0,  # a target is a plan step, valid for a fraction of a second, not a program
     "max_plan_age_s": 10.0,  # a planner that solved nothing for this long is hung, not slow
@@ -260,6 +261,7 @@ class LimitsConfig(Strict):
     servo_rate_hz: float = 125.0
     idle_rate_hz: float = 25.0
     heartbeat_timeout_s: float = 0.5
+    planner_lost_s: float = 1.0
     state_timeout_s: float = 0.2
     max_target_lead_s: float = 1.0
     max_plan_age_s: float = 2.0
@@ -268,7 +270,7 @@ class LimitsConfig(Strict):
 
     def __post_init__(self) -> None:
         _positive(self, "limits", "max_speed_m_s", "max_angular_speed_rad_s", "max_force_n", "servo_rate_hz",
-                  "idle_rate_hz", "heartbeat_timeout_s", "state_timeout_s", "max_target_lead_s",
+                  "idle_rate_hz", "heartbeat_timeout_s", "planner_lost_s", "state_timeout_s", "max_target_lead_s",
                   "max_plan_age_s", "max_tilt_deg")
         for name, bound in LIMIT_BOUNDS.items():
             if name != "max_yaw_deg":
@@ -277,6 +279,8 @@ class LimitsConfig(Strict):
         _require(self.release_force_n is None or 0 <= self.release_force_n < self.max_force_n,
                  "limits.release_force_n",
                  f"must be >= 0 and below max_force_n ({self.max_force_n} N), got {self.release_force_n}")
+        _require(self.planner_lost_s >= self.heartbeat_timeout_s, "limits.planner_lost_s",
+                 f"must be at least heartbeat_timeout_s ({self.heartbeat_timeout_s} s), got {self.planner_lost_s}")
         _require(self.idle_rate_hz <= self.servo_rate_hz, "limits.idle_rate_hz",
                  f"must be at most servo_rate_hz ({self.servo_rate_hz} Hz), got {self.idle_rate_hz}")
         _require(all(math.isfinite(v) for v in (*self.workspace_min, *self.workspace_max)), "limits.workspace_min",

@@ -38,7 +38,7 @@ from loopback import free_ur_host
 
 LIMITS = LimitsConfig(workspace_min=(0.1, -0.4, 0.1), workspace_max=(0.5, 0.0, 0.5), max_speed_m_s=0.1,
                       max_angular_speed_rad_s=1.0, max_force_n=40.0, servo_rate_hz=125.0, heartbeat_timeout_s=0.3,
-                      state_timeout_s=0.2, max_target_lead_s=0.5, max_plan_age_s=0.6)
+                      planner_lost_s=0.6, state_timeout_s=0.2, max_target_lead_s=0.5, max_plan_age_s=0.6)
 HOME = np.array([0.3, -0.2, 0.4, 0.0, 0.0, 1.0, 0.0])  # the simulator's default TCP: 0.4 m up, tool down
 S = 1_000_000_000
 PERIOD_NS = S // 125
@@ -251,7 +251,7 @@ def test_a_refused_target_holds_the_arm_for_the_rest_of_its_goal():
 def test_a_lost_planner_heartbeat_ends_the_goal_and_only_a_new_goal_moves_the_arm():
     logic = servoing_logic()
     now = T0 + PERIOD_NS
-    decision = step(logic, now, heartbeat_ns=T0 - int(0.31 * S))  # fresh at T0, stale now: the planner is lost
+    decision = step(logic, now, heartbeat_ns=T0 - int(0.61 * S))  # fresh at T0, past planner_lost_s now: lost
     assert decision.stop and decision.command is None
     assert "planner lost" in decision.reason and "heartbeat" in decision.planner_lost
     assert logic.goal_floor_ns == now and logic.goal_floor_cause == PLANNER_LOST
@@ -274,11 +274,25 @@ def test_a_planner_frozen_past_its_targets_deadline_still_ends_its_goal():
     assert step(logic, T0, heartbeat_ns=T0).command is not None
     expired = step(logic, T0 + int(0.25 * S), heartbeat_ns=T0)
     assert expired.stop and "deadline passed" in expired.reason and not expired.planner_lost
-    lost = step(logic, T0 + int(0.35 * S), heartbeat_ns=T0)  # no target, and the heartbeat went stale
+    stale = step(logic, T0 + int(0.35 * S), heartbeat_ns=T0)  # stale, not yet lost: the goal still stands
+    assert not stale.planner_lost and logic.goal_floor_cause != PLANNER_LOST
+    lost = step(logic, T0 + int(0.65 * S), heartbeat_ns=T0)  # no target, and the heartbeat past planner_lost_s
     assert lost.planner_lost and "planner lost" in lost.reason and logic.owner == "stack"
-    thawed = T0 + int(0.5 * S)
+    thawed = T0 + int(0.8 * S)
     assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], thawed), thawed)[0] == "old_goal"
     assert step(logic, thawed).command is None
+
+
+def test_a_heartbeat_gap_shorter_than_planner_lost_s_stops_the_arm_and_the_goals_next_target_resumes_it():
+    """A planner starved for a moment (its heartbeat stale past ``heartbeat_timeout_s``, back before
+    ``limits.planner_lost_s``) stops the arm as the watchdog says, but its goal stands."""
+    logic = servoing_logic()
+    now = T0 + int(0.4 * S)
+    gap = step(logic, now, heartbeat_ns=T0)
+    assert gap.stop and gap.command is None and "heartbeat" in gap.reason and not gap.planner_lost
+    now += PERIOD_NS
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now), now) is None  # the same goal's next target
+    assert step(logic, now, heartbeat_ns=now).command is not None and logic.goal_floor_cause != PLANNER_LOST
 
 
 def test_a_heartbeat_not_seen_yet_holds_the_arm_without_ending_the_goal():
@@ -502,6 +516,7 @@ max_speed_m_s = {LIMITS.max_speed_m_s}
 max_force_n = {LIMITS.max_force_n}
 servo_rate_hz = {LIMITS.servo_rate_hz}
 heartbeat_timeout_s = {LIMITS.heartbeat_timeout_s}
+planner_lost_s = {LIMITS.planner_lost_s}
 state_timeout_s = {LIMITS.state_timeout_s}
 max_target_lead_s = {LIMITS.max_target_lead_s}
 max_plan_age_s = {LIMITS.max_plan_age_s}

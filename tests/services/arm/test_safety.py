@@ -173,6 +173,8 @@ def test_moving_is_judged_on_linear_and_angular_speed():
 def test_every_limit_has_an_upper_bound(name):
     bound = LIMIT_BOUNDS[name]
     others = {"idle_rate_hz": 1.0} if name == "servo_rate_hz" else {}
+    if name == "heartbeat_timeout_s":  # planner_lost_s may not lie below it
+        others = {"planner_lost_s": LIMIT_BOUNDS["planner_lost_s"]}
     LimitsConfig(**{name: bound, **others, **({"servo_rate_hz": bound} if name == "idle_rate_hz" else {})})
     with pytest.raises(ConfigError, match=f"limits.{name}: must be at most {bound}"):
         LimitsConfig(**{name: bound * 1.01, **others})
@@ -187,3 +189,9 @@ def test_the_release_level_lies_below_the_force_limit_and_the_yaw_range_is_order
         LimitsConfig(yaw_range_deg=(10.0, -10.0))
     with pytest.raises(ConfigError, match="workspace_max"):
         LimitsConfig(workspace_min=(-1.0, 0.0, 0.0), workspace_max=(1.0, 0.1, 0.1))
+
+
+def test_planner_lost_s_lies_at_or_above_the_heartbeat_timeout():
+    assert LimitsConfig(heartbeat_timeout_s=0.5, planner_lost_s=0.5).planner_lost_s == 0.5
+    with pytest.raises(ConfigError, match="limits.planner_lost_s: must be at least heartbeat_timeout_s"):
+        LimitsConfig(heartbeat_timeout_s=0.5, planner_lost_s=0.4)
