@@ -34,11 +34,11 @@ from mcap.reader import make_reader
 
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.benchmarks.launched_stack import (
-    STACK_READY_S,
     Child,
     add_config_argument,
     cpu_time_s,
     private_config,
+    stack_ready_s,
     start_goal,
 )
 from hydrosoft.services.bus.sockets import Bus
@@ -116,7 +116,7 @@ def measure(config: Path, seconds: float, keep: Path | None = None) -> dict[str,
         stack = Child([sys.executable, "-m", "hydrosoft.services.commands.launch", str(config_path)],
                       root / "launcher.log")
         children.append(stack)
-        stack.wait_for("stack ready", STACK_READY_S)
+        stack.wait_for("stack ready", stack_ready_s(stack_config))
 
         async def goal() -> None:
             (await start_goal(config_path, stack_config.scene.task, dx_m=GOAL_DX_M, timeout_s=GOAL_TIMEOUT_S)).close()
