@@ -31,8 +31,9 @@ arm with the cause "goal OUTCOME" ("goal reached"), which stays the arm's report
 
 No motion the person did not start: a target is acted on only when its goal (``ArmTarget.goal_started_ns``) started
 after this commander's start, its last reconnect to the controller, its last ``arm enable`` and the last loss of the
-planner (a heartbeat that was fresh and went older than ``limits.heartbeat_timeout_s``: a dead, frozen or cut-off
-planner ends its goal, counted once as ``planner_lost``; one that runs on does not resume it); the others are
+planner (a heartbeat that was fresh and went older than ``limits.planner_lost_s``: a dead, frozen or cut-off
+planner ends its goal, counted once as ``planner_lost``; one that runs on does not resume it; a shorter gap past
+``limits.heartbeat_timeout_s`` only stops the arm until the goal's next fresh target); the others are
 counted (``old_goal``) and the arm holds. ``ArmState.goal_floor_ns`` and ``goal_floor_cause`` publish that floor, so
 the planner ends a goal the commander no longer acts on.
 
@@ -138,7 +139,8 @@ class ServoLogic:
     (a person's ``arm enable``), even once the controller runs again. A ``stack`` stop is one of the commander's
     own rules; the transient ones (deadline, a heartbeat not seen yet, state, F/T, driver errors, the force limit)
     clear on the next fresh target, a refused target holds the arm for the rest of its goal, a lost planner (its
-    heartbeat fresh at one decision, stale or gone at a later one) ends every goal started before the loss. A stop
+    heartbeat fresh at one decision, gone or older than ``limits.planner_lost_s`` at a later one) ends every goal
+    started before the loss. A stop
     for the servoed target's passed deadline alone is a hold (``holding``): a late planner, not a fault (the module
     docstring).
 

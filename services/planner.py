@@ -8,8 +8,8 @@ planner's own prediction of the last plan (the solver's rollout of it, ``PlanRes
 the plan's first actions, applied to the arms' current TCP poses, are the absolute TCP targets sent to the
 commanders, each with a deadline: ``target_lead`` after it is sent, twice the p90 of the planner's recent cycles
 plus a margin, within ``planner.target_lead_s`` .. ``limits.max_target_lead_s`` (so the next target comes before it
-lapses; a lapsed one makes the commander hold the arm). When a goal ends, a halt names its outcome. Stale inputs mean no solve and no target, also when an input went stale during the
-solve: the commander's watchdog then stops the arm.
+lapses; a lapsed one makes the commander hold the arm). When a goal ends, a halt names its outcome. Stale inputs mean no
+solve and no target, also when an input went stale during the solve: the commander's watchdog then stops the arm.
 
 The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. A goal set for another stack
 launch (``Goal.instance``, not this service's ``instance``) is refused. ``Start`` is refused without

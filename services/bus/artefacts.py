@@ -4,11 +4,12 @@ it eager without saying so.
 
 What torch compiles (inductor's C++ kernels, AOT autograd's forward and backward graphs) it keeps in its compile
 cache directory (``cache_dir``), found again by the graphs themselves; dynamo's tracing it repeats in every
-process (seconds, then the cache answers). An artefact is the record ``CACHE/hydrosoft-artefacts/PART.json``
-written once PART compiled completely into that cache, under a key (``ArtefactKey``): a hash of the config keys
-that shape PART's graphs, torch's version, and the model library's source. A launch whose key matches the record
-loads the part from the cache; one without a record (``missing``) or with another key (``stale``: a config, torch
-or code change) compiles it, saying so in its log and status, and records the new key when it is done.
+process (seconds, then the cache answers). An artefact is the record ``CACHE/hydrosoft-artefacts/PART-KEY.json``
+written once PART compiled completely into that cache, under its key (``ArtefactKey``): a hash of the config keys
+that shape PART's graphs, torch's version, and the model library's source. A launch whose key has a record loads
+the part from the cache; one without any record of PART (``missing``) or with records of other keys only
+(``stale``: a config, torch or code change) compiles it, saying so in its log and status, and records its key
+when it is done. Records of several keys lie side by side, so several configs stay warm in one cache.
 ``hydrosoft-stack compile CONFIG`` builds every compiled part of a config ahead of the launch.
 """
 
