@@ -200,6 +200,11 @@ class Service:
 
     # --- health ---
 
+    def degrade(self, cause: str) -> None:
+        """Report the service ``degraded`` from its next state change on (``ready()`` included), for ``cause`` (a short
+        name): a service that runs and reports but cannot do its job (a planner whose GPU is missing)."""
+        self._degraded_by.add(cause)
+
     def count_error(self, kind: str, text: str) -> None:
         """Count one error of ``kind`` (short, e.g. ``"driver_timeout"``) with its explanation ``text``."""
         self.errors.count(kind, text)
