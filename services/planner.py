@@ -56,6 +56,7 @@ import torch
 
 from hydrosoft.compilation import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
+from hydrosoft.control import device_unavailable as control_device_unavailable
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import State, with_object_update
@@ -121,18 +122,12 @@ def target_lead(floor_s: float, cycles_s: Sequence[float], ceiling_s: float) -> 
 
 def device_unavailable(device: str) -> str | None:
     """Why the torch device ``device`` (``planner.device``: ``cpu``, ``cuda`` or ``cuda:N``) cannot run the planner
-    here, or None when it can."""
-    where = torch.device(device)
-    if where.type != "cuda":
+    here (``control.device_unavailable``), naming the key, or None when it can."""
+    problem = control_device_unavailable(device)
+    if problem is None:
         return None
-    if not torch.cuda.is_available():
-        return (f"planner.device = {device!r}, but CUDA is not available on this machine (torch "
-                f"{torch.__version__}, built with CUDA {torch.version.cuda or 'none'}): the planner plans nothing; "
-                f"set planner.device = \"cpu\" or run the planner on a host with a GPU")
-    if where.index is not None and where.index >= torch.cuda.device_count():
-        return (f"planner.device = {device!r}, but this machine has {torch.cuda.device_count()} CUDA device(s) "
-                f"(0..{torch.cuda.device_count() - 1}): the planner plans nothing")
-    return None
+    return (f"planner.device = {device!r}, but {problem}: the planner plans nothing (set planner.device = \"cpu\" or "
+            f"run the planner on a host with that GPU)")
 
 
 def planner_scene(task: Task, config: StackConfig) -> Scene:
