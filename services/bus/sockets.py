@@ -106,10 +106,13 @@ SUB_RCVHWM = 4
 #: never one of ours, as ``encode`` refuses them) drops the link, and memory stays bounded. libzmq says nothing
 #: when it does: a subscriber watches its socket's monitor and counts every dropped link as ``link_dropped``.
 MAX_RECEIVE_BYTES = 4 * MAX_FRAME_BYTES
-#: Longest a subscriber waits without checking its socket's monitor for dropped links, ms.
-LINK_CHECK_MS = 1000
+#: Longest a subscriber waits without checking its socket's monitor for dropped links, s.
+LINK_CHECK_S = 1.0
 #: Most messages one ``drain`` call decodes (~10 us each), so that a flood cannot hold the event loop for long.
 MAX_DRAIN_MESSAGES = 1000
+#: ``zmq.EVENTS`` and ``zmq.POLLIN`` as plain ints: the receive path tests them per message, and each operation on
+#: pyzmq's enum members makes new enum objects (a tenth of a subscriber's Python time per message).
+_EVENTS, _POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)
 #: A received ``stamp_ns`` may lie this far in the future of the receiver's clock (same host: scheduling only).
 FUTURE_STAMP_TOLERANCE_NS = 5_000_000
 #: Default time a client waits for a reply, s.
@@ -544,9 +547,14 @@ class LatestSubscriber:
     coroutine may wait on a subscriber at a time. ``drain`` (called by both and by ``latest``) reads everything
     queued without blocking; invalid messages (and those stamped in the future, or before the newest one held
     for their topic) are counted in ``errors`` by kind (logged once per ``LOG_EVERY_N``) and dropped, never
-    raised; so are the links it lost (``link_dropped``, checked at least every ``LINK_CHECK_MS`` while it waits).
+    raised; so are the links it lost (``link_dropped``, checked at least every ``LINK_CHECK_S`` while it waits).
     ``received`` counts valid messages per topic. Topics are matched by prefix, as ZeroMQ subscriptions are
     (``""``: all).
+
+    Receive path. ``wait`` sleeps on the socket's file descriptor through the event loop's own ``add_reader`` and
+    reads with a blocking-free plain pyzmq socket that shadows it, not through ``zmq.asyncio``'s poller and futures:
+    one loop callback per wake-up and no future per message (the bus's latency tail, docs/benchmarks.md). The file
+    descriptor only says that the socket's state may have changed, so every wake-up reads all that is queued.
 
     A subscriber that is not reading when a publisher exits can lose that publisher's last messages: libzmq
     discards what it had not yet read from a closed connection (seen with a final ``stopping`` status). Read
@@ -573,13 +581,15 @@ class LatestSubscriber:
         options: list[tuple[int, int | bytes]] = [(zmq.RCVHWM, rcvhwm), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)]
         options += [(zmq.SUBSCRIBE, topic.encode()) for topic in topics]
         self._sock = bus.socket(zmq.SUB, endpoints, bind=False, curve=curve, options=options)
+        self._plain = zmq.Socket.shadow(self._sock.underlying)  # the same socket, read without futures
+        self._fd = self._sock.getsockopt(zmq.FD)
         self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
 
     def _count_dropped_links(self) -> None:
         """Count (``link_dropped``) and log every connection the socket lost since the last call: its publisher
         exited (libzmq connects again when it is back), or it sent a frame over ``MAX_RECEIVE_BYTES`` (libzmq
         drops the link for good and would say nothing)."""
-        while self._monitor.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+        while self._monitor.getsockopt(_EVENTS) & _POLLIN:
             event = parse_monitor_message(self._monitor.recv_multipart(zmq.NOBLOCK).result())
             endpoint = event["endpoint"].decode(errors="replace")
             self.errors.count("link_dropped", f"the link to {endpoint} dropped: its publisher exited, its host "
@@ -592,9 +602,9 @@ class LatestSubscriber:
         self._count_dropped_links()
         updated: set[str] = set()
         for _ in range(MAX_DRAIN_MESSAGES):
-            if not self._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a recv that fails with Again
+            if not self._plain.getsockopt(_EVENTS) & _POLLIN:  # cheaper than a recv that fails with Again
                 break
-            frames = self._sock.recv_multipart(zmq.NOBLOCK, copy=False).result()
+            frames = self._plain.recv_multipart(zmq.NOBLOCK, copy=False)
             received_ns = self._bus.clock_ns()
             try:
                 topic, msg = decode(frames)
@@ -637,15 +647,36 @@ class LatestSubscriber:
             updated = self.drain()
             while not updated:
                 if deadline_s is None:
-                    await self._sock.poll(LINK_CHECK_MS)  # then drain, which counts links dropped meanwhile
+                    await self._readable(LINK_CHECK_S)  # then drain, which counts links dropped meanwhile
                 else:
                     remaining_s = deadline_s - loop.time()
-                    if remaining_s <= 0 or not await self._sock.poll(math.ceil(remaining_s * 1000)):
+                    if remaining_s <= 0 or not await self._readable(remaining_s):
                         return self.drain()
                 updated = self.drain()
             return updated
         finally:
             self._waiting = False
+
+    async def _readable(self, timeout_s: float) -> bool:
+        """Wait until the socket holds a message (True) or ``timeout_s`` (s) passed (False): the event loop watches
+        the socket's file descriptor, which signals a change of its state, not each message."""
+        loop = asyncio.get_running_loop()
+        woken = loop.create_future()
+
+        def on_signal() -> None:
+            if not woken.done() and self._plain.getsockopt(_EVENTS) & _POLLIN:
+                woken.set_result(True)  # reading EVENTS also re-arms the descriptor
+
+        loop.add_reader(self._fd, on_signal)
+        try:
+            if self._plain.getsockopt(_EVENTS) & _POLLIN:  # arrived before the reader was added
+                return True
+            async with asyncio.timeout(timeout_s):
+                return await woken
+        except TimeoutError:
+            return False
+        finally:
+            loop.remove_reader(self._fd)
 
     async def run(self) -> None:
         """Read every message as it arrives, until cancelled (start it as a task; then use only ``latest``)."""
