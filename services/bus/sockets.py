@@ -380,6 +380,7 @@ class Bus:
         self._authenticator: _CountingAuthenticator | None = None
         self._zap_domains: dict[Path, str] = {}
         self._sockets: list[zmq.asyncio.Socket] = []
+        self._watches: list[tuple[asyncio.AbstractEventLoop, int]] = []  # (loop, file descriptor) of ``watch``
 
     def socket(
         self,
@@ -473,9 +474,18 @@ class Bus:
         """How many peers this bus's CURVE servers refused (an unauthorised key, or none)."""
         return self._authenticator.refused if self._authenticator is not None else 0
 
+    def watch(self, loop: asyncio.AbstractEventLoop, fd: int, callback: Callable[[], None]) -> None:
+        """Call ``callback()`` on ``loop`` whenever file descriptor ``fd`` (a socket's ``zmq.FD``) signals, until the
+        bus closes."""
+        loop.add_reader(fd, callback)
+        self._watches.append((loop, fd))
+
     def close(self, linger_ms: int = 0) -> None:
         """Close every socket made here, stop the authenticator and end the context. linger_ms: how long queued
         outgoing messages may still be sent, ms (a clean shutdown's last status); 0 drops them."""
+        for loop, fd in self._watches:
+            loop.remove_reader(fd)  # before its socket closes (a closed loop has none left)
+        self._watches.clear()
         for sock in self._sockets:
             sock.close(linger=linger_ms)
         self._sockets.clear()
@@ -539,6 +549,12 @@ class Publisher:
         return stamped
 
 
+def _resolve(future: asyncio.Future[bool], value: bool) -> None:
+    """Set ``future``'s result unless it is done."""
+    if not future.done():
+        future.set_result(value)
+
+
 class LatestSubscriber:
     """A SUB socket that keeps the newest valid message per topic.
 
@@ -551,10 +567,11 @@ class LatestSubscriber:
     ``received`` counts valid messages per topic. Topics are matched by prefix, as ZeroMQ subscriptions are
     (``""``: all).
 
-    Receive path. ``wait`` sleeps on the socket's file descriptor through the event loop's own ``add_reader`` and
-    reads with a blocking-free plain pyzmq socket that shadows it, not through ``zmq.asyncio``'s poller and futures:
-    one loop callback per wake-up and no future per message (the bus's latency tail, docs/benchmarks.md). The file
-    descriptor only says that the socket's state may have changed, so every wake-up reads all that is queued.
+    Receive path. The event loop watches the socket's file descriptor from the first ``wait`` on until the bus
+    closes (``Bus.watch``), and a wake-up reads through a plain pyzmq socket that shadows this one, not through
+    ``zmq.asyncio``'s poller and futures: one loop callback per wake-up and no future per message, 0.66 of the
+    poller's CPU time per message (the bus's latency tail, docs/benchmarks.md). The descriptor only says that the
+    socket's state may have changed, so every wake-up reads all that is queued.
 
     A subscriber that is not reading when a publisher exits can lose that publisher's last messages: libzmq
     discards what it had not yet read from a closed connection (seen with a final ``stopping`` status). Read
@@ -583,6 +600,8 @@ class LatestSubscriber:
         self._sock = bus.socket(zmq.SUB, endpoints, bind=False, curve=curve, options=options)
         self._plain = zmq.Socket.shadow(self._sock.underlying)  # the same socket, read without futures
         self._fd = self._sock.getsockopt(zmq.FD)
+        self._watched: asyncio.AbstractEventLoop | None = None  # the loop that watches the descriptor
+        self._woken: asyncio.Future[bool] | None = None  # what a waiting ``_readable`` awaits
         self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
 
     def _count_dropped_links(self) -> None:
@@ -657,26 +676,29 @@ class LatestSubscriber:
         finally:
             self._waiting = False
 
+    def _on_signal(self) -> None:
+        """The socket's descriptor signalled: wake the waiting ``_readable`` when a message is queued. Reading
+        ``EVENTS`` re-arms the descriptor, also when no one waits (then the next ``wait`` drains first)."""
+        queued = self._plain.getsockopt(_EVENTS) & _POLLIN
+        woken = self._woken
+        if queued and woken is not None and not woken.done():
+            woken.set_result(True)
+
     async def _readable(self, timeout_s: float) -> bool:
-        """Wait until the socket holds a message (True) or ``timeout_s`` (s) passed (False): the event loop watches
-        the socket's file descriptor, which signals a change of its state, not each message."""
+        """Wait until the socket holds a message (True) or ``timeout_s`` (s) passed (False)."""
         loop = asyncio.get_running_loop()
-        woken = loop.create_future()
-
-        def on_signal() -> None:
-            if not woken.done() and self._plain.getsockopt(_EVENTS) & _POLLIN:
-                woken.set_result(True)  # reading EVENTS also re-arms the descriptor
-
-        loop.add_reader(self._fd, on_signal)
+        if self._watched is not loop:
+            self._bus.watch(loop, self._fd, self._on_signal)
+            self._watched = loop
+        if self._plain.getsockopt(_EVENTS) & _POLLIN:  # queued since the last drain
+            return True
+        woken = self._woken = loop.create_future()
+        timer = loop.call_later(timeout_s, _resolve, woken, False)
         try:
-            if self._plain.getsockopt(_EVENTS) & _POLLIN:  # arrived before the reader was added
-                return True
-            async with asyncio.timeout(timeout_s):
-                return await woken
-        except TimeoutError:
-            return False
+            return await woken
         finally:
-            loop.remove_reader(self._fd)
+            timer.cancel()
+            self._woken = None
 
     async def run(self) -> None:
         """Read every message as it arrives, until cancelled (start it as a task; then use only ``latest``)."""
