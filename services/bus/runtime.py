@@ -300,9 +300,10 @@ class Service:
 def settle_garbage_collector() -> None:
     """Collect once, then move every object left (the imports', the sockets', a model's) out of the collector's
     generations for good (``gc.freeze``): ``Service.ready`` calls it, so that no later collection walks a service's
-    start-up objects again. A full collection walked them all: 14 ms for a service without torch and 220 ms with it
-    on two busy cores, a pause of the event loop that no message could outrun (docs/benchmarks.md, the bus's tail).
-    The first generation's threshold stays Python's: its collections took under 0.4 ms in ``bench bus --tail``."""
+    start-up objects again. A full collection walked them all: 14-32 ms for a service without torch and 140-220 ms
+    with it on two busy cores, a pause of the event loop that no message could outrun (docs/benchmarks.md, the bus's
+    tail). The first generation's threshold stays Python's: with the objects frozen its collections took 0.14 ms at
+    most in ``bench bus --tail``."""
     gc.collect()
     gc.freeze()
 

@@ -41,6 +41,13 @@ def config(endpoint: str) -> RuntimeConfig:
                          shutdown_timeout_s=SHUTDOWN_TIMEOUT_S)
 
 
+@pytest.fixture(autouse=True)
+def unfrozen_collector():
+    """A service made here freezes the test process's objects when it is ready: unfreeze them after each test."""
+    yield
+    gc.unfreeze()
+
+
 @pytest.fixture
 def ipc_dir():
     with tempfile.TemporaryDirectory(prefix="hs-rt-") as path:
@@ -67,10 +74,7 @@ def test_a_ready_service_froze_its_start_up_objects_and_one_degraded_for_a_cause
             await service.ready()
             return service.state, gc.get_freeze_count()
 
-    try:
-        state, frozen = run(scenario())
-    finally:
-        gc.unfreeze()  # the test process's collector as it was
+    state, frozen = run(scenario())
     assert state == "degraded" and frozen > 0
     assert f"READY tester {os.getpid()}" in capsys.readouterr().out
 
