@@ -24,6 +24,11 @@ object out of contact for ``reapproach.LOST_AFTER_S`` is lost, and the planner d
 (``services/arm/reapproach.py``: up, across, down to the scene's pressing pose) before it plans again, at most
 ``planner.max_reapproaches`` times per goal.
 
+Device (``planner.device``): the model, the solver and its worker processes compute there; each solve's state moves
+there once (``PlannerCore.observation``), and its plan, targets and Plan message come back to the CPU. A device that is
+not available (``device_unavailable``) is no reason to plan on the CPU instead: the planner then reports it in its
+status (``degraded``, ``device_unavailable``), refuses every goal, and sends no target.
+
 Frames: the bus carries base-frame poses; the planner works in the task scene's frame (``scene.task_frame``,
 ``services/arm/task_frame.py``). Its inputs are converted on arrival (``fresh_inputs``), its targets, goal and
 predictions back to the base frame on the way out.
@@ -51,6 +56,7 @@ import torch
 
 from hydrosoft.compilation import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
+from hydrosoft.control import device_unavailable as control_device_unavailable
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import State, with_object_update
@@ -114,6 +120,16 @@ def target_lead(floor_s: float, cycles_s: Sequence[float], ceiling_s: float) -> 
     return min(lead, ceiling_s)
 
 
+def device_unavailable(device: str) -> str | None:
+    """Why the torch device ``device`` (``planner.device``: ``cpu``, ``cuda`` or ``cuda:N``) cannot run the planner
+    here (``control.device_unavailable``), naming the key, or None when it can."""
+    problem = control_device_unavailable(device)
+    if problem is None:
+        return None
+    return (f"planner.device = {device!r}, but {problem}: the planner plans nothing (set planner.device = \"cpu\" or "
+            f"run the planner on a host with that GPU)")
+
+
 def planner_scene(task: Task, config: StackConfig) -> Scene:
     """``task``'s scene as the planner of ``config`` models it: its contact model, surface spacing, bubble SDF solve
     and the arms' bubble materials (``[arms.material]``)."""
@@ -132,7 +148,8 @@ class PlannerCore:
     points (5 mm spacing) on which the ADD error is measured. frame: the task frame in the base frame.
     grasp_offset: ``(3,)`` m, the one arm's TCP position relative to the object in the scene (``reapproach``), or
     ``None`` in a scene with several arms (no re-approach). cost_terms: what evaluates the costs of every goal
-    (``Task.costs``), compiled with the step. Poses are in the task frame unless a name says base.
+    (``Task.costs``), compiled with the step. Poses are in the task frame unless a name says base. The model, the
+    sensors and the solvers are on ``planner.device``; the geometry (poses, points, offset) stays on the CPU.
     """
 
     config: StackConfig
@@ -152,15 +169,19 @@ class PlannerCore:
 
     @classmethod
     def build(cls, config: StackConfig) -> PlannerCore:
-        """Compile the planner's model for ``config`` (raises ValueError naming an arm that is not a scene body)."""
+        """Compile the planner's model for ``config`` on ``planner.device`` (raises ValueError naming an arm that is not
+        a scene body, RuntimeError with ``device_unavailable``'s reason for a device this machine lacks)."""
         pc = config.planner
+        unavailable = device_unavailable(pc.device)
+        if unavailable is not None:
+            raise RuntimeError(unavailable)
         task = make_task(config.scene.task)
         settings = PlannerSettings(model=pc.model, spacing=pc.spacing, samples=pc.samples, elites=pc.elites,
                                    horizon=pc.horizon, grad_steps=pc.grad_steps, dtype=getattr(torch, pc.dtype),
                                    seed=pc.seed, sdf_solver_steps=pc.sdf_solver_steps, compile=pc.compile,
                                    workers=pc.workers, object_update=pc.object_update)
         model, state, _ = compile_scene(planner_scene(task, config), dtype=settings.dtype)
-        model = with_object_update(model, pc.object_update)
+        model = with_object_update(model.to(device=torch.device(pc.device)), pc.object_update)
         arms = {}
         for arm in config.arms:
             if arm.name not in model.body_names:
@@ -180,7 +201,7 @@ class PlannerCore:
             # by its module's name: run as a service this module is __main__, which a worker cannot import
             build = importlib.import_module("hydrosoft.services.planner").core_problem
             processes = WorkerProcesses(build, pc.workers, low, high, settings.config(settings.horizon, 1),
-                                        settings.dtype, threads=pc.threads)
+                                        settings.dtype, threads=pc.threads, device=model.device)
             # each worker builds its core now, at start, not at the first goal (on the service's event loop)
             arm_poses = {name: state.body_poses[0, index].double() for name, index in arms.items()}
             processes.set_problem(worker_problem(config, task.initial_pose(), state.object_pose[0].double(),
@@ -191,8 +212,10 @@ class PlannerCore:
     def problem(self, goal_pose: torch.Tensor, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor]
                 ) -> tuple[Callable, Callable, Callable]:
         """``(dynamics, stage_cost, terminal_cost)`` towards ``goal_pose (7,)``, the drift cost anchored at the object
-        pose ``(7,)`` and TCP poses ``(7,)`` the goal starts from (``Task.costs``)."""
-        stage, terminal = self.task.costs(self.model, goal_pose, anchor=(object_pose, self.body_poses(arm_poses)),
+        pose ``(7,)`` and TCP poses ``(7,)`` the goal starts from (``Task.costs``), all moved to the model's device."""
+        device = self.model.device
+        stage, terminal = self.task.costs(self.model, goal_pose.to(device),
+                                          anchor=(object_pose.to(device), self.body_poses(arm_poses).to(device)),
                                           terms=self.cost_terms)
         return self.dynamics, stage, terminal
 
@@ -204,7 +227,7 @@ class PlannerCore:
             self.processes.set_problem(worker_problem(self.config, goal_pose, object_pose, arm_poses))
         return CemGd(*self.problem(goal_pose, object_pose, arm_poses), low, high,
                      config=self.settings.config(self.settings.horizon, 1), dtype=self.model.dtype,
-                     processes=self.processes)
+                     device=self.model.device, processes=self.processes)
 
     def close(self) -> None:
         """Stop the worker processes, if any."""
@@ -224,15 +247,15 @@ class PlannerCore:
 
     def observation(self, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor],
                     penetration: torch.Tensor) -> TactileObservation:
-        """The ``TactileObservation`` (B = 1, the model's dtype) of a tag pose, TCP poses and per-sensor
-        penetration depths ``(S, N)`` (m, in ``sensors`` order)."""
-        dtype = self.model.dtype
-        return TactileObservation(object_pose.to(dtype).unsqueeze(0), self.body_poses(arm_poses).to(dtype).unsqueeze(0),
-                                  penetration.to(dtype).unsqueeze(0))
+        """The ``TactileObservation`` (B = 1, the model's dtype and device) of a tag pose, TCP poses and per-sensor
+        penetration depths ``(S, N)`` (m, in ``sensors`` order): a solve's inputs, moved to the device once."""
+        dtype, device = self.model.dtype, self.model.device
+        return TactileObservation(*(t.to(device=device, dtype=dtype).unsqueeze(0)
+                                    for t in (object_pose, self.body_poses(arm_poses), penetration)))
 
     def points_in_bubble(self, object_pose: torch.Tensor, arm_pose: torch.Tensor) -> np.ndarray:
         """The planner's surface points ``(N, 3)`` (m) in an arm's bubble frame, at the sensed poses."""
-        world = se3.transform_points(object_pose, self.model.points.double())
+        world = se3.transform_points(object_pose, self.model.points.to(object_pose.device, torch.float64))
         return se3.transform_points(se3.inverse(arm_pose), world).numpy()
 
 
@@ -265,7 +288,7 @@ def targets_from_plan(core: PlannerCore, arm_poses: dict[str, torch.Tensor], pla
     for name, index in core.arms.items():
         pose = arm_poses[name].clone()
         for k in range(min(steps, plan.shape[0])):
-            pose = se3.retract(pose, plan[k, index].double())
+            pose = se3.retract(pose, plan[k, index].to(pose))  # from the solver's device and dtype
         targets[name] = core.frame.to_base(pose)
     return targets
 
@@ -581,13 +604,13 @@ class Planner:
     def plan_message(self, result: PlanResult, stamps: dict[str, int]) -> msg.Plan:
         """The Plan message of a solve, base frame: actions, predicted object poses (``result.states``, the solver's
         rollout of its plan) and the first step's contact forces, with the ``stamps`` (ns) of its way from the camera
-        to the targets (``msg.Plan``)."""
+        to the targets (``msg.Plan``); the solver's tensors come to the CPU here."""
         dtype = np.float32 if self.core.model.dtype == torch.float32 else np.float64
         frame = self.core.frame
-        poses = frame.to_base(torch.stack([s.object_pose[0] for s in result.states]))
-        forces = result.states[0].forces[0].detach()
+        poses = frame.to_base(torch.stack([s.object_pose[0] for s in result.states]).detach().cpu())
+        forces = result.states[0].forces[0].detach().cpu()
         poses[:, 3:] = torch.nn.functional.normalize(poses[:, 3:], dim=-1)
-        actions = frame.vectors_to_base(result.plan.detach().unflatten(-1, (2, 3))).flatten(-2)
+        actions = frame.vectors_to_base(result.plan.detach().cpu().unflatten(-1, (2, 3))).flatten(-2)
         return msg.Plan(task=self.config.scene.task, actions=actions.numpy().astype(dtype),
                         predicted_object_poses=poses.numpy().astype(dtype),
                         predicted_forces=frame.vectors_to_base(forces).numpy().astype(dtype),
@@ -640,9 +663,37 @@ def compile_planner(core: PlannerCore) -> str | None:
     return "; ".join(failed) if failed else None
 
 
+async def serve_without_device(service: Service, config: StackConfig, reason: str) -> None:
+    """A planner whose ``planner.device`` is not available (``reason``): it reports ``degraded`` with the reason in its
+    status (note, ``device_unavailable`` error), answers ``GetStatus``, refuses every other request with the reason,
+    and never plans nor sends a target, until it is stopped."""
+    service.log.error("%s", reason)
+    service.count_error("device_unavailable", reason)
+    service.note = reason
+    service.degrade("device_unavailable")
+
+    async def refuse(request: msg.Request) -> msg.Reply:
+        if isinstance(request, msg.GetStatus):
+            return msg.StatusReply(ok=True, status=service.status())
+        service.count_error("device_unavailable", reason)
+        return msg.CommandReply(ok=False, error=reason)
+
+    server = service.request_server(config.endpoint("planner", "cmd"), refuse)
+    serving = service.supervise(asyncio.create_task(server.serve(), name="planner.serve"))
+    await service.ready()
+    try:
+        await asyncio.Event().wait()  # until the service is stopped
+    finally:
+        serving.cancel()
+
+
 async def run(service: Service, config: StackConfig) -> None:
     """The planner's loop: lower its priority (``planner.nice``), build (and compile) the model, serve the client
-    API, plan while a goal runs."""
+    API, plan while a goal runs; without its device, ``serve_without_device``."""
+    unavailable = device_unavailable(config.planner.device)
+    if unavailable is not None:
+        await serve_without_device(service, config, unavailable)
+        return
     loop = asyncio.get_running_loop()
     if config.planner.nice:
         os.nice(config.planner.nice)  # before the worker processes start: they inherit it

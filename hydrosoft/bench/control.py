@@ -42,6 +42,13 @@ fixed 20-40 step episodes (1,440 steps) and rolling at 2 sub-steps. The full set
 processes sharing 2 cores: rolling 50 min, the other three tasks 41 min (NH and PFF, docs/results-table3.md). Run
 tasks as separate processes (``--tasks pushing`` ...) to use both cores.
 
+GPU. ``--device cuda`` (or ``cuda:N``) measures the replanning rate with the planner's model, step, costs and solver
+on that GPU (the plant and its observation stay on the CPU; the state estimate moves to the GPU once per solve, the
+action back), ``--rate-samples 64,1024`` with the paper's B = 64 samples and 16 times more in the same run: the
+measurement a lab with a GPU runs (docs/lab-setup.md). The episodes stay on the CPU; on CUDA the rows give the most
+GPU memory the solves held (``gpu_memory_mib``), and no ``step_forward_ms``/``cost_forward_ms`` (a call returns
+before its kernels end). Worker processes take no ``--device``.
+
 ``--episodes FILE`` makes a run resumable (``hydrosoft.bench.episode_log``): each finished episode is appended
 to FILE as one JSON line, and a later run with the same FILE and settings reuses those episodes and runs only the
 rest, so a table of many hours can be run in pieces (stopped with Ctrl-C, on several machines, across days).
@@ -144,6 +151,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-costs", type=_csv, default=["compiled"], metavar="C1,C2",
                         help="with --compile: the planner's costs for the replanning rate, 'compiled' (the default, "
                              "as the planner runs them) or 'eager', one measurement each in the same run")
+    parser.add_argument("--device", default="cpu",
+                        help="where the replanning rate's planner computes: cpu (default), cuda or cuda:N; the "
+                             "episodes and the plant stay on the CPU")
+    parser.add_argument("--rate-samples", type=_csv, default=["64"], metavar="B1,B2",
+                        help="sample counts B for the replanning rate, one measurement each in the same run "
+                             "(default 64, the paper's; 64,1024 for B and 16 B)")
     parser.add_argument("--object-update", default="explicit",
                         help="the episode planners' object update (PlannerSettings.object_update): explicit, "
                              "sub-stepped as the scene needs (default), or linearly_implicit, one sub-step per "
@@ -195,8 +208,9 @@ def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
 def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
                     sdf_solver_steps: int | None = None, workers: int = 1,
                     activation_budget: float = 0.0, object_update: str = "explicit", compiled_costs: bool = True,
-                    worker_kind: str = "threads") -> dict:
-    """Closed-loop planar pushing with the full planner (B = 64, K = 10, G = 2, 216 surface points of which the
+                    worker_kind: str = "threads", device: str = "cpu", samples: int = 64) -> dict:
+    """Closed-loop planar pushing with the full planner (B = ``samples``, 64 by default, K = 10, G = 2, 216 surface
+    points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
     first solve (a warm-up; with ``compile`` it also compiles the step, reported as ``first_solve_ms``), with
     several workers a second warm-up solve (``warmup_solves_ms`` lists both: a worker's compiled copy of the step
@@ -223,7 +237,10 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     started from), through the setup's cost terms (compiled with ``compile``). ``plan_costs``:
     each timed solve's plan cost ``J``, in order, so that two settings' plans can be compared along the same loop.
     ``worker_kind``: ``threads`` or ``processes`` (``PlannerSettings.worker_processes``); with processes the step and
-    cost calls run there, and ``step_forward_ms`` and ``cost_forward_ms`` are None."""
+    cost calls run there, and ``step_forward_ms`` and ``cost_forward_ms`` are None. ``device``: where the planner's
+    model, step, costs and solver compute (``on_device``; threads only); on CUDA ``step_forward_ms`` and
+    ``cost_forward_ms`` are None too (the calls return before their kernels end) and ``gpu_memory_mib`` is the most
+    memory the solves held."""
     import torch
 
     from hydrosoft.tasks import make_task
@@ -232,15 +249,46 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     if worker_kind not in ("threads", "processes"):
         raise ValueError(f"worker_kind is threads or processes, got {worker_kind!r}")
     task = make_task("pushing")
-    settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=64, elites=8, horizon=10, grad_steps=2,
+    if device != "cpu" and worker_kind != "threads":
+        raise ValueError(f"worker processes compute on the CPU; --device {device} takes worker threads")
+    settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=samples, elites=8, horizon=10, grad_steps=2,
                                compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps,
                                workers=workers, object_update=object_update,
                                worker_processes=worker_kind == "processes")
-    setup = prepare(task, settings, compile_options={"activation_memory_budget": activation_budget})
+    options = {"activation_memory_budget": activation_budget}
+    setup = on_device(prepare(task, settings, compile_options=options), torch.device(device), options)
+    if setup.planner_model.device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(setup.planner_model.device)
     try:
         return _timed_solves(setup, solves, compile, dtype, sdf_solver_steps, activation_budget, compiled_costs)
     finally:
         setup.close()
+
+
+def on_device(setup, device, compile_options: dict):
+    """``setup`` (``evaluation.Setup``) with the planner's model, step, costs and sensor indices on ``device`` (a
+    ``torch.device``); the plant stays on the CPU. The same setup on the CPU."""
+    from hydrosoft.tasks.evaluation import planner_calls
+
+    if setup.planner_model.device == device:
+        return setup
+    model = setup.planner_model.to(device=device)
+    dynamics, cost_terms = planner_calls(model, setup.planner, compile_options)
+    return replace(setup, planner_model=model, dynamics=dynamics, cost_terms=cost_terms,
+                   sensors=setup.sensors.to(device))
+
+
+def observed_state_on_device(setup, prediction):
+    """``evaluation.observed_state`` for a planner on any device: the plant observes on the CPU, and its observation
+    moves to the planner's device once (``on_device``)."""
+    import torch
+
+    from hydrosoft.tactile import TactileObservation, estimate_state
+
+    model, cpu = setup.planner_model, torch.device("cpu")
+    seen = setup.plant.observe(model.points.to(cpu), setup.body_index, setup.sensors.to(cpu))
+    seen = TactileObservation(*(t.to(device=model.device, dtype=model.dtype) for t in seen))
+    return estimate_state(model, seen, setup.sensors, prediction)
 
 
 def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_steps: int | None,
@@ -255,22 +303,24 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
     from hydrosoft.scene import build_surface
     from hydrosoft.tactile import carry_over
     from hydrosoft.tasks.base import EAGER_COST_TERMS
-    from hydrosoft.tasks.evaluation import observed_state, solver_processes
+    from hydrosoft.tasks.evaluation import solver_processes
 
     task, settings = setup.task, setup.planner
     workers, kind = settings.workers, "processes" if settings.worker_processes else "threads"
     model = setup.planner_model
+    device, cuda = model.device, model.device.type == "cuda"
     surface_points = build_surface(msgspec.structs.replace(task.scene.object, spacing=settings.spacing)).n_points
     pairs = sum(pair_counts(model))
     low, high = task.bounds(model.body_names, model.dtype)
     plant = setup.plant
-    anchor = (plant.initial.object_pose[0], plant.initial.body_poses[0, setup.body_index])  # as run_episode's
+    anchor = (plant.initial.object_pose[0].to(device),  # as run_episode's
+              plant.initial.body_poses[0, setup.body_index].to(device))
     terms = setup.cost_terms if compiled_costs else EAGER_COST_TERMS
-    goal = task.sample_goal(0)
+    goal = task.sample_goal(0).to(device)
     stage, terminal = task.costs(model, goal, anchor=anchor, terms=terms)
     step_calls, stage_calls, terminal_calls = Stopwatch(setup.dynamics), Stopwatch(stage), Stopwatch(terminal)
     solver = CemGd(step_calls, stage_calls, terminal_calls, low, high,
-                   config=settings.config(settings.horizon, 1), dtype=model.dtype,
+                   config=settings.config(settings.horizon, 1), dtype=model.dtype, device=device,
                    processes=solver_processes(setup, goal, anchor, eager_costs=not compiled_costs))
     warmups = 1 if workers == 1 else 2
     warmup_s, times, prediction = [], [], None
@@ -278,14 +328,14 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
         for watch in (step_calls, stage_calls, terminal_calls):
             watch.seconds = 0.0
         tic = time.perf_counter()
-        state = observed_state(setup, prediction)
+        state = observed_state_on_device(setup, prediction)
         estimated = time.perf_counter()
         result = solver.solve(state)
         solved = time.perf_counter()
         prediction = carry_over(result.states, 1)
         wall = time.perf_counter() - tic
         setup.plant.apply(torch.zeros(setup.plant.model.n_bodies, 6, dtype=torch.float64).index_copy(
-            0, setup.body_index, result.action.double()))
+            0, setup.body_index, result.action.to("cpu", torch.float64)))  # the solver's output, to the plant
         if k < warmups:
             warmup_s.append(wall)
             if k == warmups - 1:
@@ -294,12 +344,13 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
                           "cost_s": stage_calls.seconds + terminal_calls.seconds, "estimate_s": estimated - tic,
                           "predict_s": wall - (solved - tic), "plan_cost": result.cost})
-        _log(f"[rate] {dtype}, {workers} worker {kind}, {settings.object_update} object update, solve {k}"
+        _log(f"[rate] {device}, B = {settings.samples}, {dtype}, {workers} worker {kind}, {settings.object_update} object update, solve {k}"
              f"{' (warm-up)' if k < warmups else ''}: {1e3 * wall:.0f} ms")
     mean = {key: sum(t[key] for t in times) / len(times) for key in times[0]}
     compiled = getattr(setup.dynamics, "compiled", False)
     return {
-        "task": "pushing", "dtype": dtype, "samples": 64, "horizon": 10, "grad_steps": 2,
+        "task": "pushing", "dtype": dtype, "samples": settings.samples, "device": str(device),
+        "gpu_memory_mib": torch.cuda.max_memory_allocated(device) / 2**20 if cuda else None, "horizon": 10, "grad_steps": 2,
         "surface_points": surface_points, "points": model.n_points, "pairs": pairs, "substeps": model.substeps,
         "sdf_solver_steps": sdf_solver_steps, "solves": solves, "compiled": compiled,
         "first_solve_ms": 1e3 * warmup_s[0], "warmup_solves_ms": [1e3 * t for t in warmup_s],
@@ -310,11 +361,29 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
         "preloaded": os.environ.get("LD_PRELOAD") or None, "workers": workers, "worker_kind": kind,
         "activation_budget": activation_budget if compile else None, "object_update": settings.object_update,
         "compiled_costs": compiled and compiled_costs,
-        "step_forward_ms": None if settings.worker_processes else 1e3 * mean["step_s"],
-        "cost_forward_ms": None if settings.worker_processes else 1e3 * mean["cost_s"],
+        "step_forward_ms": None if settings.worker_processes or cuda else 1e3 * mean["step_s"],
+        "cost_forward_ms": None if settings.worker_processes or cuda else 1e3 * mean["cost_s"],
         "estimate_ms": 1e3 * mean["estimate_s"], "predict_ms": 1e3 * mean["predict_s"],
         "plan_costs": [t["plan_cost"] for t in times],
     }
+
+
+def _device_problem(device: str) -> str | None:
+    """Why ``device`` (``--device``) cannot run here, or None."""
+    import torch
+
+    from hydrosoft.control import device_unavailable
+
+    try:
+        torch.device(device)
+    except (RuntimeError, ValueError):
+        return "not a torch device (cpu, cuda or cuda:N)"
+    return device_unavailable(device)
+
+
+def _gpu_memory(row: dict) -> str:
+    """`` (N MiB of GPU memory at most)`` of a replanning row on CUDA, or nothing."""
+    return "" if row["gpu_memory_mib"] is None else f" ({row['gpu_memory_mib']:.0f} MiB of GPU memory at most)"
 
 
 def _call_split(row: dict) -> str:
@@ -457,6 +526,17 @@ def run(args: argparse.Namespace) -> int:
         _log(f"bench control: --object-update {args.object_update} needs NH or SNH planners, got models "
              f"{','.join(args.models)}")
         return 2
+    problem = _device_problem(args.device)
+    if problem is not None:
+        _log(f"bench control: --device {args.device}: {problem}")
+        return 2
+    if args.device != "cpu" and "processes" in args.rate_worker_kinds:
+        _log(f"bench control: --device {args.device} takes worker threads only (--rate-worker-kinds threads)")
+        return 2
+    if not all(text.isdigit() and int(text) >= 8 for text in args.rate_samples):
+        _log(f"bench control: --rate-samples takes counts of at least 8 (the elites), got "
+             f"{','.join(args.rate_samples)!r}")
+        return 2
     torch.set_num_threads(args.threads)
     preset = QUICK if args.quick else FULL
     goals = args.goals if args.goals is not None else preset["goals"]
@@ -530,7 +610,8 @@ def run(args: argparse.Namespace) -> int:
                              f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
                     rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
     replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers), budget, update,
-                                  costs == "compiled", kind)
+                                  costs == "compiled", kind, args.device, int(samples))
+                  for samples in args.rate_samples
                   for costs in (args.rate_costs if args.compile else ["eager"]) for update in rate_updates
                   for budget in (budgets if args.compile else budgets[:1]) for kind in args.rate_worker_kinds
                   for workers in args.rate_workers for sdf in rate_sdf for dtype in args.rate_dtypes
@@ -560,7 +641,8 @@ def run(args: argparse.Namespace) -> int:
             sdf = "converged" if r["sdf_solver_steps"] is None else f"in {r['sdf_solver_steps']} solver steps"
             budget = "" if r["activation_budget"] is None else f"activation budget {r['activation_budget']:g}, "
             costs = "compiled costs, " if r["compiled_costs"] else ""
-            print(f"\nreplanning rate, closed-loop planar pushing, {r['dtype']}, B={r['samples']}, K={r['horizon']}, "
+            print(f"\nreplanning rate on {r['device']}{_gpu_memory(r)}, closed-loop planar pushing, {r['dtype']}, "
+                  f"B={r['samples']}, K={r['horizon']}, "
                   f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
                   f"point-body pairs), {r['substeps']} sub-steps, bubble SDF {sdf}, {r['threads']} thread(s), "
                   f"{'LD_PRELOAD ' + r['preloaded'] if r['preloaded'] else 'system malloc'}, "

@@ -33,6 +33,11 @@ Worker processes. Given ``processes`` (``worker_processes.WorkerProcesses``, one
 instead, each on the process's own copy of the problem: no interpreter lock or allocator is shared. Each share sends
 back its sequences, their costs, and the states along its lowest-cost sequence only (``ShareResult``), which are the
 returned states whenever that share holds the winner. The plan is the threads' plan (the same arithmetic per row).
+
+Device. The solver's tensors (bounds, Gaussian, elites, samples, its random generator) live on ``device``; ``solve``
+moves its start state there once, and its result stays there (the caller moves what it sends on to the CPU). A CUDA
+generator draws other numbers than a CPU one from the same seed, so plans on two devices differ; on one device they
+repeat. ``device_unavailable`` says why a device cannot be used here.
 """
 from __future__ import annotations
 
@@ -48,6 +53,19 @@ from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 
 State = Any
 """A tensor or a pytree (tuple, NamedTuple, dict) of tensors, each with a leading batch axis."""
+
+
+def device_unavailable(device: torch.device | str) -> str | None:
+    """Why torch cannot compute on ``device`` (``cpu``, ``cuda``, ``cuda:N``) on this machine, or None when it can."""
+    where = torch.device(device)
+    if where.type != "cuda":
+        return None
+    if not torch.cuda.is_available():
+        return (f"CUDA is not available on this machine (torch {torch.__version__}, built with CUDA "
+                f"{torch.version.cuda or 'none'})")
+    if where.index is not None and where.index >= torch.cuda.device_count():
+        return f"this machine has {torch.cuda.device_count()} CUDA device(s), none with index {where.index}"
+    return None
 
 
 @dataclass(frozen=True)

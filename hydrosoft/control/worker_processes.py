@@ -66,8 +66,8 @@ def _to_numpy(tree: Any) -> Any:
     return tree_map(lambda t: t.detach().cpu().numpy() if isinstance(t, Tensor) else t, tree)
 
 
-def _to_torch(tree: Any) -> Any:
-    return tree_map(lambda a: torch.from_numpy(a) if isinstance(a, np.ndarray) else a, tree)
+def _to_torch(tree: Any, device: torch.device) -> Any:
+    return tree_map(lambda a: torch.from_numpy(a).to(device) if isinstance(a, np.ndarray) else a, tree)
 
 
 class WorkerProcesses:
@@ -75,11 +75,14 @@ class WorkerProcesses:
 
     ``low, high``: the action bounds, ``config``: the solver's settings and ``dtype`` its float type (each process's
     own solver has them, with one worker); ``threads``: torch's intra-op threads per process; ``timeout_s``: how long
-    to wait for a process to start (build and compile) and for each answer.
+    to wait for a process to start (build and compile) and for each answer. ``device``: where each process's solver
+    computes (its ``build`` puts the problem's model there too); the per-solve messages between the processes are
+    NumPy arrays, so the states and sequences cross on the CPU and each side moves them to its own device once.
     """
 
     def __init__(self, build: Callable[[Any], Problem], workers: int, low: Tensor, high: Tensor,
-                 config: CemGdConfig, dtype: torch.dtype, threads: int = 1, timeout_s: float = 900.0) -> None:
+                 config: CemGdConfig, dtype: torch.dtype, threads: int = 1, timeout_s: float = 900.0,
+                 device: torch.device | str = "cpu") -> None:
         if getattr(build, "__module__", "__main__") == "__main__":
             raise ValueError(f"build {build!r} must be importable by its module's name, not defined in __main__ (a "
                              f"worker process runs another main module)")
@@ -88,7 +91,8 @@ class WorkerProcesses:
         self._pipes: list[Connection] = []
         self._processes: list[subprocess.Popen] = []
         self._finalizer = weakref.finalize(self, _stop, self._pipes, self._processes)
-        solver = (build, low.cpu().numpy(), high.cpu().numpy(), replace(config, workers=1), dtype, threads)
+        solver = (build, low.cpu().numpy(), high.cpu().numpy(), replace(config, workers=1), dtype, threads,
+                  str(device))
         for _ in range(workers):
             ours, theirs = socket.socketpair()
             with theirs:
@@ -114,7 +118,7 @@ class WorkerProcesses:
         start = _to_numpy(x0)
         results = self._broadcast("improve", [(start, share.cpu().numpy()) for share in shares])
         return [ShareResult(torch.from_numpy(u).to(share), torch.from_numpy(cost).to(share.device), best,
-                            _to_torch(states), timings)
+                            _to_torch(states, share.device), timings)
                 for (u, cost, best, states, timings), share in zip(results, shares)]
 
     def close(self) -> None:
@@ -170,11 +174,12 @@ def _reply(pipe: Connection, message: tuple) -> None:
 def _serve(pipe: Connection) -> None:
     """A worker process: take the ``start`` message, then answer ``problem`` and ``improve`` messages until the
     socket closes."""
-    kind, (build, low, high, config, dtype, threads) = pickle.loads(pipe.recv_bytes())
+    kind, (build, low, high, config, dtype, threads, device) = pickle.loads(pipe.recv_bytes())
     torch.set_num_threads(threads)
 
     def make(description: Any) -> CemGd:
-        return CemGd(*build(description), torch.from_numpy(low), torch.from_numpy(high), config=config, dtype=dtype)
+        return CemGd(*build(description), torch.from_numpy(low), torch.from_numpy(high), config=config, dtype=dtype,
+                     device=device)
 
     cem, unsettled = None, 0
     _reply(pipe, ("ok", None) if kind == "start" else ("error", f"expected start, got {kind!r}"))
@@ -192,13 +197,13 @@ def _serve(pipe: Connection) -> None:
                 _reply(pipe, ("error", "improve before any problem was set (set_problem)"))
             elif kind == "improve":
                 start, u = payload
-                u = torch.from_numpy(u)
-                share = cem.improve(cem.expand_state(_to_torch(start), u.shape[0]), u)
+                u = torch.from_numpy(u).to(cem.device)
+                share = cem.improve(cem.expand_state(_to_torch(start, cem.device), u.shape[0]), u)
                 if unsettled:
                     unsettled -= 1
                     if not unsettled:
                         settle_garbage_collector()
-                _reply(pipe, ("ok", (share.u.numpy(), share.cost.numpy(), share.best, _to_numpy(share.best_states),
+                _reply(pipe, ("ok", (*_to_numpy((share.u, share.cost)), share.best, _to_numpy(share.best_states),
                                   share.timings)))
             else:
                 _reply(pipe, ("error", f"unknown message {kind!r}"))

@@ -13,6 +13,10 @@ messages per second the subscriber received. Targets: small messages p99 < 1 ms,
 (``tcp-peer-curve``: a fresh key pair in a temporary folder, as ``hydrosoft-stack keys generate`` writes it, and the
 ZAP handshake the stack's services do). Both processes still run here, so their ages share one clock.
 
+``--tail [--rounds N]`` explains a small message's latency tail instead (``bus_tail``): raw pyzmq against the
+stack's receive paths and garbage-collector settings, in turns within one run, with each process's collections,
+the sender's pacing and the load average.
+
 Each row's two processes run ``python -m hydrosoft.services.benchmarks.bus publish|subscribe ...``; they are
 stopped by pid when they overrun their time limits.
 """
@@ -31,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hydrosoft.services.benchmarks import bus_tail
 from hydrosoft.services.bus.sockets import Bus, CurveKeys, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.commands.keys import generate_key_pair
 from hydrosoft.services.bus.messages import DepthFrame, Message, Wrench
@@ -232,6 +237,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=2.0,
                         help="measured seconds per payload and transport, after a 0.3 s warm-up (default 2)")
     parser.add_argument("--json", action="store_true", help='print {"rows": [...]} as JSON instead of a table')
+    parser.add_argument("--tail", action="store_true",
+                        help="explain the small-message latency tail: raw pyzmq vs the stack's receive paths and "
+                             "garbage-collector settings, in turns within one run (services/benchmarks/bus_tail.py)")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="with --tail: rounds of every variant in turn (default 3)")
     parser.add_argument("--tcp-peer", default="", metavar="ADDRESS",
                         help="measure tcp to this address (another 127.0.0.N simulates a second host), without and "
                         "with CURVE, instead of tcp and ipc on loopback")
@@ -242,6 +252,11 @@ def run(args: argparse.Namespace) -> int:
     if not args.seconds > 0:
         print(f"--seconds must be > 0, got {args.seconds}", file=sys.stderr)
         return 2
+    if getattr(args, "tail", False):
+        if args.rounds < 1:
+            print(f"--rounds must be >= 1, got {args.rounds}", file=sys.stderr)
+            return 2
+        return bus_tail.run(args.seconds, args.rounds, args.json)
     rows = asyncio.run(measure_all(args.seconds, getattr(args, "tcp_peer", "")))
     if args.json:
         print(json.dumps({"rows": [asdict(row) for row in rows]}))

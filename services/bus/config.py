@@ -45,6 +45,7 @@ from __future__ import annotations
 import ipaddress
 import math
 import os
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -60,6 +61,8 @@ ENDPOINT_KINDS = ("data", "status", "cmd")
 #: Environment variable naming the host a process runs on (the launcher's ``--host`` sets it for its services).
 HOST_ENV = "HYDROSOFT_HOST"
 SDF_SOLVER_STEPS_MAX = 32  # hydrosoft.geometry.sdf.Ellipsoid.MAX_SOLVER_STEPS, not imported: config loads no torch
+#: The planner devices a config may name (``planner.device``): the CPU, the current CUDA GPU, or CUDA GPU N.
+PLANNER_DEVICE = re.compile(r"cpu|cuda(:[0-9]+)?")
 
 
 class ConfigError(ValueError):
@@ -357,7 +360,9 @@ class PlannerConfig(Strict):
     planner lengthens it to twice its recent p90 cycle plus a margin, within ``limits.max_target_lead_s``. nice:
     the planner process's (and its worker processes') scheduling niceness, 0-19 (``os.nice``): on cores it shares
     with the arm commander and the sensor services, a positive one lets them run first whenever they are ready,
-    so a solve or a compile never starves the commander's servo loop or the controller link."""
+    so a solve or a compile never starves the commander's servo loop or the controller link. device: where the
+    planner's model, solver and worker processes compute, ``cpu`` (the default), ``cuda`` or ``cuda:N`` (a torch
+    device); a planner whose GPU is not available says so in its status and plans nothing (no fallback to the CPU)."""
 
     preset: Literal["paper", "quick"] | None = None
 
@@ -381,8 +386,11 @@ class PlannerConfig(Strict):
     max_reapproaches: int = 3
     worker_processes: bool = False
     nice: int = 0
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
+        _require(PLANNER_DEVICE.fullmatch(self.device) is not None, "planner.device",
+                 f"must be cpu, cuda or cuda:N (N a GPU index), got {self.device!r}")
         _require(self.max_reapproaches >= 0, "planner.max_reapproaches",
                  f"must be >= 0, got {self.max_reapproaches}")
         _require(self.sdf_solver_steps is None or 0 <= self.sdf_solver_steps <= SDF_SOLVER_STEPS_MAX,

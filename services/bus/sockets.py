@@ -106,10 +106,13 @@ SUB_RCVHWM = 4
 #: never one of ours, as ``encode`` refuses them) drops the link, and memory stays bounded. libzmq says nothing
 #: when it does: a subscriber watches its socket's monitor and counts every dropped link as ``link_dropped``.
 MAX_RECEIVE_BYTES = 4 * MAX_FRAME_BYTES
-#: Longest a subscriber waits without checking its socket's monitor for dropped links, ms.
-LINK_CHECK_MS = 1000
+#: Longest a subscriber waits without checking its socket's monitor for dropped links, s.
+LINK_CHECK_S = 1.0
 #: Most messages one ``drain`` call decodes (~10 us each), so that a flood cannot hold the event loop for long.
 MAX_DRAIN_MESSAGES = 1000
+#: ``zmq.EVENTS`` and ``zmq.POLLIN`` as plain ints: the receive path tests them per message, and each operation on
+#: pyzmq's enum members makes new enum objects (a tenth of a subscriber's Python time per message).
+_EVENTS, _POLLIN = int(zmq.EVENTS), int(zmq.POLLIN)
 #: A received ``stamp_ns`` may lie this far in the future of the receiver's clock (same host: scheduling only).
 FUTURE_STAMP_TOLERANCE_NS = 5_000_000
 #: Default time a client waits for a reply, s.
@@ -377,6 +380,7 @@ class Bus:
         self._authenticator: _CountingAuthenticator | None = None
         self._zap_domains: dict[Path, str] = {}
         self._sockets: list[zmq.asyncio.Socket] = []
+        self._watches: list[tuple[asyncio.AbstractEventLoop, int]] = []  # (loop, file descriptor) of ``watch``
 
     def socket(
         self,
@@ -470,9 +474,18 @@ class Bus:
         """How many peers this bus's CURVE servers refused (an unauthorised key, or none)."""
         return self._authenticator.refused if self._authenticator is not None else 0
 
+    def watch(self, loop: asyncio.AbstractEventLoop, fd: int, callback: Callable[[], None]) -> None:
+        """Call ``callback()`` on ``loop`` whenever file descriptor ``fd`` (a socket's ``zmq.FD``) signals, until the
+        bus closes."""
+        loop.add_reader(fd, callback)
+        self._watches.append((loop, fd))
+
     def close(self, linger_ms: int = 0) -> None:
         """Close every socket made here, stop the authenticator and end the context. linger_ms: how long queued
         outgoing messages may still be sent, ms (a clean shutdown's last status); 0 drops them."""
+        for loop, fd in self._watches:
+            loop.remove_reader(fd)  # before its socket closes (a closed loop has none left)
+        self._watches.clear()
         for sock in self._sockets:
             sock.close(linger=linger_ms)
         self._sockets.clear()
@@ -536,6 +549,12 @@ class Publisher:
         return stamped
 
 
+def _resolve(future: asyncio.Future[bool], value: bool) -> None:
+    """Set ``future``'s result unless it is done."""
+    if not future.done():
+        future.set_result(value)
+
+
 class LatestSubscriber:
     """A SUB socket that keeps the newest valid message per topic.
 
@@ -544,9 +563,15 @@ class LatestSubscriber:
     coroutine may wait on a subscriber at a time. ``drain`` (called by both and by ``latest``) reads everything
     queued without blocking; invalid messages (and those stamped in the future, or before the newest one held
     for their topic) are counted in ``errors`` by kind (logged once per ``LOG_EVERY_N``) and dropped, never
-    raised; so are the links it lost (``link_dropped``, checked at least every ``LINK_CHECK_MS`` while it waits).
+    raised; so are the links it lost (``link_dropped``, checked at least every ``LINK_CHECK_S`` while it waits).
     ``received`` counts valid messages per topic. Topics are matched by prefix, as ZeroMQ subscriptions are
     (``""``: all).
+
+    Receive path. The event loop watches the socket's file descriptor from the first ``wait`` on until the bus
+    closes (``Bus.watch``), and a wake-up reads through a plain pyzmq socket that shadows this one, not through
+    ``zmq.asyncio``'s poller and futures: one loop callback per wake-up and no future per message, 0.66 of the
+    poller's CPU time per message (the bus's latency tail, docs/benchmarks.md). The descriptor only says that the
+    socket's state may have changed, so every wake-up reads all that is queued.
 
     A subscriber that is not reading when a publisher exits can lose that publisher's last messages: libzmq
     discards what it had not yet read from a closed connection (seen with a final ``stopping`` status). Read
@@ -573,13 +598,17 @@ class LatestSubscriber:
         options: list[tuple[int, int | bytes]] = [(zmq.RCVHWM, rcvhwm), (zmq.MAXMSGSIZE, MAX_RECEIVE_BYTES)]
         options += [(zmq.SUBSCRIBE, topic.encode()) for topic in topics]
         self._sock = bus.socket(zmq.SUB, endpoints, bind=False, curve=curve, options=options)
+        self._plain = zmq.Socket.shadow(self._sock.underlying)  # the same socket, read without futures
+        self._fd = self._sock.getsockopt(zmq.FD)
+        self._watched: asyncio.AbstractEventLoop | None = None  # the loop that watches the descriptor
+        self._woken: asyncio.Future[bool] | None = None  # what a waiting ``_readable`` awaits
         self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
 
     def _count_dropped_links(self) -> None:
         """Count (``link_dropped``) and log every connection the socket lost since the last call: its publisher
         exited (libzmq connects again when it is back), or it sent a frame over ``MAX_RECEIVE_BYTES`` (libzmq
         drops the link for good and would say nothing)."""
-        while self._monitor.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+        while self._monitor.getsockopt(_EVENTS) & _POLLIN:
             event = parse_monitor_message(self._monitor.recv_multipart(zmq.NOBLOCK).result())
             endpoint = event["endpoint"].decode(errors="replace")
             self.errors.count("link_dropped", f"the link to {endpoint} dropped: its publisher exited, its host "
@@ -592,9 +621,9 @@ class LatestSubscriber:
         self._count_dropped_links()
         updated: set[str] = set()
         for _ in range(MAX_DRAIN_MESSAGES):
-            if not self._sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:  # cheaper than a recv that fails with Again
+            if not self._plain.getsockopt(_EVENTS) & _POLLIN:  # cheaper than a recv that fails with Again
                 break
-            frames = self._sock.recv_multipart(zmq.NOBLOCK, copy=False).result()
+            frames = self._plain.recv_multipart(zmq.NOBLOCK, copy=False)
             received_ns = self._bus.clock_ns()
             try:
                 topic, msg = decode(frames)
@@ -637,15 +666,39 @@ class LatestSubscriber:
             updated = self.drain()
             while not updated:
                 if deadline_s is None:
-                    await self._sock.poll(LINK_CHECK_MS)  # then drain, which counts links dropped meanwhile
+                    await self._readable(LINK_CHECK_S)  # then drain, which counts links dropped meanwhile
                 else:
                     remaining_s = deadline_s - loop.time()
-                    if remaining_s <= 0 or not await self._sock.poll(math.ceil(remaining_s * 1000)):
+                    if remaining_s <= 0 or not await self._readable(remaining_s):
                         return self.drain()
                 updated = self.drain()
             return updated
         finally:
             self._waiting = False
+
+    def _on_signal(self) -> None:
+        """The socket's descriptor signalled: wake the waiting ``_readable`` when a message is queued. Reading
+        ``EVENTS`` re-arms the descriptor, also when no one waits (then the next ``wait`` drains first)."""
+        queued = self._plain.getsockopt(_EVENTS) & _POLLIN
+        woken = self._woken
+        if queued and woken is not None and not woken.done():
+            woken.set_result(True)
+
+    async def _readable(self, timeout_s: float) -> bool:
+        """Wait until the socket holds a message (True) or ``timeout_s`` (s) passed (False)."""
+        loop = asyncio.get_running_loop()
+        if self._watched is not loop:
+            self._bus.watch(loop, self._fd, self._on_signal)
+            self._watched = loop
+        if self._plain.getsockopt(_EVENTS) & _POLLIN:  # queued since the last drain
+            return True
+        woken = self._woken = loop.create_future()
+        timer = loop.call_later(timeout_s, _resolve, woken, False)
+        try:
+            return await woken
+        finally:
+            timer.cancel()
+            self._woken = None
 
     async def run(self) -> None:
         """Read every message as it arrives, until cancelled (start it as a task; then use only ``latest``)."""

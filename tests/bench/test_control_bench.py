@@ -96,6 +96,28 @@ def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost
         assert "--rate-activation-budgets" in capsys.readouterr().err
 
 
+def test_the_rate_is_measured_per_sample_count_on_the_named_device_in_one_run(tmp_path, capsys):
+    """``--rate-samples`` gives one replanning row per sample count, ``--device cpu`` (the default) names the CPU in
+    each; a device that is not a torch device, worker processes with a GPU, and fewer samples than elites are
+    refused (exit 2) before anything runs."""
+    assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
+                             "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
+                             "--rate-samples", "16,32", "--device", "cpu", "--json", "--out", str(tmp_path))) == 0
+    rates = json.loads(capsys.readouterr().out)["replanning"]
+    assert [(r["samples"], r["device"], r["gpu_memory_mib"]) for r in rates] == [(16, "cpu", None), (32, "cpu", None)]
+    assert all(r["rate_hz"] > 0 and r["step_forward_ms"] > 0 for r in rates)
+    for argv, text in ((("--device", "tpu"), "not a torch device"), (("--rate-samples", "4"), "--rate-samples"),
+                       (("--device", "cuda", "--rate-worker-kinds", "processes"), "--device cuda")):
+        assert control.run(parse(*argv, "--out", str(tmp_path))) == 2
+        assert text in capsys.readouterr().err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks a machine without CUDA")
+def test_a_gpu_rate_on_a_machine_without_cuda_is_refused_with_the_reason(tmp_path, capsys):
+    assert control.run(parse("--device", "cuda", "--out", str(tmp_path))) == 2
+    assert "--device cuda: CUDA is not available on this machine" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_the_rate_is_measured_with_worker_threads_and_worker_processes_alike(tmp_path, capsys):
     """The same loop with its two shares on threads and in processes of their own: the same plans, bit for bit (the
@@ -172,6 +194,7 @@ def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp
         torch._dynamo.reset()
     out = capsys.readouterr().out
     assert "float32" in out and "sub-steps, bubble SDF in 3 solver steps, 1 thread(s), " in out
+    assert "replanning rate on cpu, closed-loop planar pushing" in out
     assert "1 solver worker(s) (threads), explicit object update, activation budget 0, compiled costs, compiled:" in out
     assert "explicit object update, activation budget 0, compiled:" in out  # --rate-costs eager
     assert "compiling the step" in out

@@ -344,3 +344,23 @@ def test_workers_are_validated():
         CemGdConfig(samples=4, elites=2, workers=5)
     with pytest.raises(ValueError, match="workers"):
         CemGdConfig(workers=0)
+
+
+TENSOR_FACTORIES = {"tensor", "as_tensor", "zeros", "ones", "empty", "full", "arange", "linspace", "eye", "rand",
+                    "randn", "randint", "Generator"}
+
+
+@pytest.mark.parametrize("module", ["hydrosoft/control/cem_gd.py", "hydrosoft/control/worker_processes.py"])
+def test_the_solver_makes_every_new_tensor_on_a_named_device(module):
+    """Each ``torch.<factory>(...)`` call in the solver and its worker processes names its ``device``: a tensor made
+    without one lands on the CPU, and a solver on a GPU would then mix devices. (``*_like`` and ``.to`` follow their
+    input; ``from_numpy`` is always moved on with ``.to``.)"""
+    import ast
+    from pathlib import Path
+
+    tree = ast.parse((Path(__file__).parents[2] / module).read_text())
+    missing = [f"line {node.lineno}: torch.{node.func.attr}" for node in ast.walk(tree)
+               if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+               and isinstance(node.func.value, ast.Name) and node.func.value.id == "torch"
+               and node.func.attr in TENSOR_FACTORIES and "device" not in {k.arg for k in node.keywords}]
+    assert not missing, missing

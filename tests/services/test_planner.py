@@ -28,6 +28,7 @@ from hydrosoft.services.planner import (
     Planner,
     PlannerCore,
     arm_end_positions,
+    device_unavailable,
     ended_by_commander,
     planner_scene,
     resolve_target,
@@ -35,7 +36,10 @@ from hydrosoft.services.planner import (
     targets_from_plan,
 )
 from hydrosoft.tasks import make_task
+from service_process import ServiceProcess
 from stack_process import quick_planner
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber
+from hydrosoft.services.client import ClientError, StackClient
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 SIM_TEXT = quick_planner(SIM_TOML.read_text())  # deploy/sim.toml with the quick planner: no worker processes
@@ -187,6 +191,84 @@ def test_worker_processes_plan_what_threads_plan_and_stop_with_the_core(tmp_path
     for pid in pids:
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
+
+
+def test_a_planner_told_to_use_the_cpu_plans_what_the_default_plans(core, tmp_path):
+    """``planner.device = "cpu"`` is the default: its core's model and solver are on the CPU and two solves of a goal
+    give the default core's plans, bit for bit."""
+    path = tmp_path / "cpu.toml"
+    path.write_text(SIM_TEXT.replace("[planner]", '[planner]\ndevice = "cpu"\n', 1))
+    explicit = PlannerCore.build(load_config(path))
+    _, initial, _ = compile_scene(planner_scene(core.task, core.config), dtype=core.model.dtype)
+    arms = {name: initial.body_poses[0, index].double() for name, index in core.arms.items()}
+    goal = core.task.initial_pose().clone()
+    goal[0] += 0.02
+    plans = []
+    for built in (core, explicit):
+        solver = built.solver(goal, initial.object_pose[0].double(), arms)
+        assert built.model.device == solver.device == torch.device("cpu")
+        plans.append([solver.solve(initial).plan for _ in range(2)])
+    for default, got in zip(*plans, strict=True):
+        torch.testing.assert_close(got, default, rtol=0, atol=0)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks a machine without CUDA")
+def test_a_cuda_planner_on_a_machine_without_cuda_is_refused_with_the_reason(tmp_path):
+    """``planner.device = "cuda"`` where torch has no CUDA: the core is not built on the CPU instead, it raises the
+    reason, which names the key; the CPU is always available."""
+    assert device_unavailable("cpu") is None
+    for device in ("cuda", "cuda:1"):
+        assert "planner.device" in device_unavailable(device) and "CUDA is not available" in device_unavailable(device)
+    path = tmp_path / "cuda.toml"
+    path.write_text(SIM_TEXT.replace("[planner]", '[planner]\ndevice = "cuda"\n', 1))
+    with pytest.raises(RuntimeError, match=r"planner\.device = 'cuda', but CUDA is not available"):
+        PlannerCore.build(load_config(path))
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks a machine without CUDA")
+def test_a_planner_service_without_its_gpu_reports_it_refuses_goals_and_sends_no_target(tmp_path):
+    """The planner service with ``planner.device = "cuda"`` on a machine without CUDA: it does not crash nor plan on
+    the CPU; it reports READY (the launch goes on: the arms stay held by their commanders), its status reads
+    ``degraded`` with the reason and a ``device_unavailable`` error, SetGoal and Start are refused with the reason,
+    it publishes no arm target, and it stops cleanly (exit 0)."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    path = tmp_path / "cuda.toml"
+    path.write_text(f'run_dir = "{run_dir}"\nmode = "sim"\n[[arms]]\nname = "bubble"\n[planner]\ndevice = "cuda"\n')
+    config = load_config(path)
+
+    async def scenario() -> dict:
+        bus = Bus()
+        targets = LatestSubscriber(bus, config.endpoint("planner"), topics=["arm_target/"])
+        seen = {}
+        try:
+            async with StackClient(config) as client:
+                seen["status"] = (await client.status()).status
+                for name, request in (("set_goal", client.set_goal("pushing", dx_m=0.02)), ("start", client.start())):
+                    try:
+                        await request
+                    except ClientError as err:
+                        seen[name] = str(err)
+                seen["targets"] = await targets.wait(1.0)  # the topics that got a message within 1 s
+                seen["after"] = (await client.status()).status
+        finally:
+            bus.close()
+        return seen
+
+    process = ServiceProcess("planner", "planner", path, tmp_path / "planner.log")
+    try:
+        process.wait_ready()
+        seen = asyncio.run(asyncio.wait_for(scenario(), 30.0))
+    finally:
+        rc = process.stop()
+    assert rc == 0, process.log()
+    status = seen["status"]
+    assert status.state == "degraded" and "CUDA is not available" in status.note, status
+    assert status.errors.get("device_unavailable") == 1, status
+    for name in ("set_goal", "start"):
+        assert "planner.device = 'cuda', but CUDA is not available" in seen.get(name, ""), seen
+    assert seen["targets"] == set()
+    assert seen["after"].errors["device_unavailable"] == 3, seen["after"]
 
 
 class ServiceOfLaunch:

@@ -41,6 +41,8 @@ def test_the_shipped_configs_load(name):
     (ONE_ARM + "[planner]\nsdf_solver_steps = 33\n", "planner.sdf_solver_steps"),
     (ONE_ARM + "[planner]\nworkers = 0\n", "planner.workers"),
     (ONE_ARM + "[planner]\nnice = 20\n", "planner.nice"),
+    (ONE_ARM + "[planner]\ndevice = \"gpu\"\n", "planner.device"),
+    (ONE_ARM + "[planner]\ndevice = \"cuda:x\"\n", "planner.device"),
     (ONE_ARM + "[planner]\nsamples = 16\nworkers = 17\n", "planner.workers"),  # more workers than samples
     (ONE_ARM + "[planner]\nobject_update = \"implicit\"\n", "planner.object_update"),
     (ONE_ARM + "[planner]\nmodel = \"pf\"\nobject_update = \"linearly_implicit\"\n", "planner.object_update"),
@@ -55,6 +57,12 @@ def test_the_shipped_configs_load(name):
 def test_a_bad_key_is_named(text, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         parse_config(text, "test.toml")
+
+
+def test_the_planner_device_is_the_cpu_unless_a_gpu_is_named():
+    assert parse_config(ONE_ARM, "test.toml").planner.device == "cpu"
+    for device in ("cpu", "cuda", "cuda:1"):
+        assert parse_config(ONE_ARM + f'[planner]\ndevice = "{device}"\n', "test.toml").planner.device == device
 
 
 def test_a_non_local_endpoint_needs_curve_keys():

@@ -5,6 +5,7 @@ Run as a script, this file is that tiny service: ``python test_runtime.py MODE S
 """
 
 import asyncio
+import gc
 import os
 import signal
 import sys
@@ -40,6 +41,13 @@ def config(endpoint: str) -> RuntimeConfig:
                          shutdown_timeout_s=SHUTDOWN_TIMEOUT_S)
 
 
+@pytest.fixture(autouse=True)
+def unfrozen_collector():
+    """A service made here freezes the test process's objects when it is ready: unfreeze them after each test."""
+    yield
+    gc.unfreeze()
+
+
 @pytest.fixture
 def ipc_dir():
     with tempfile.TemporaryDirectory(prefix="hs-rt-") as path:
@@ -53,6 +61,22 @@ def test_config_rejects_bad_values():
         RuntimeConfig(status_endpoint="ipc:///tmp/x", log_level="LOUD")
     with pytest.raises(msgspec.ValidationError, match="heartbeat_period_s must be > 0"):
         msgspec.toml.decode(b'status_endpoint = "ipc:///tmp/x"\nheartbeat_period_s = -1', type=RuntimeConfig)
+
+
+def test_a_ready_service_froze_its_start_up_objects_and_one_degraded_for_a_cause_says_so(ipc_dir, capsys):
+    """``ready`` settles the garbage collector (start-up objects collected once and frozen: no later collection walks
+    them) before it prints READY; a service degraded for a cause before it is ready reports ``degraded``."""
+    async def scenario():
+        with Bus() as bus:
+            service = Service("tester", config(f"ipc://{ipc_dir}/status"), bus)
+            gc.unfreeze()
+            service.degrade("device_unavailable")
+            await service.ready()
+            return service.state, gc.get_freeze_count()
+
+    state, frozen = run(scenario())
+    assert state == "degraded" and frozen > 0
+    assert f"READY tester {os.getpid()}" in capsys.readouterr().out
 
 
 def test_status_reports_state_errors_and_rates(ipc_dir):

@@ -491,6 +491,37 @@ def test_a_request_without_a_server_times_out(ipc_dir):
     run(scenario())
 
 
+def test_a_waiting_subscriber_wakes_on_a_message_and_its_bus_takes_the_reader_off_the_loop(ipc_dir):
+    """The event loop watches a subscriber's file descriptor from its first ``wait`` on (``Bus.watch``): a message
+    sent while it waits wakes it at once, every queued message is read per wake-up (the newest kept), a wait with
+    nothing queued times out empty, and closing the bus takes the descriptor off the loop (before its socket closes:
+    a closed socket's descriptor number can be reused)."""
+    async def scenario():
+        bus = b.Bus()
+        with bus:
+            endpoint = f"ipc://{ipc_dir}/wake"
+            publisher = b.Publisher(bus, endpoint, source="sender")
+            subscriber = b.LatestSubscriber(bus, endpoint, ["heartbeat/", "wrench"])
+            assert await connected(publisher, subscriber)
+            loop = asyncio.get_running_loop()
+            fd = subscriber._sock.getsockopt(zmq.FD)
+            assert await subscriber.wait(0.05) == set()
+            sending = loop.call_later(0.05, lambda: asyncio.ensure_future(publisher.send(WRENCH)))
+            tic = time.monotonic()
+            assert await subscriber.wait(CONNECT_TIMEOUT_S) == {"wrench"}
+            woke_s = time.monotonic() - tic
+            sending.cancel()
+            for _ in range(3):
+                await publisher.send(WRENCH)
+            await asyncio.sleep(0.05)
+            assert await subscriber.wait(CONNECT_TIMEOUT_S) == {"wrench"}  # all three in one wake-up
+            assert subscriber.received["wrench"] == 4 and subscriber.latest("wrench", 1.0).value.seq == 4
+        assert not loop.remove_reader(fd)  # the bus closed: nothing of it is left on the loop
+        return woke_s
+
+    assert run(scenario()) < 1.0  # sent after 0.05 s; the wait's limit was CONNECT_TIMEOUT_S
+
+
 def test_an_oversized_frame_is_counted_the_link_stays_up_and_older_stamps_are_dropped(ipc_dir):
     async def scenario():
         with b.Bus() as bus:
@@ -711,7 +742,7 @@ def test_a_background_reader_counts_a_dropped_link_without_new_messages(ipc_dir)
                 await raw.send_multipart(frames)
                 await asyncio.sleep(0.02)
             raw.close(linger=0)  # the publisher goes away
-            deadline_s = time.monotonic() + b.LINK_CHECK_MS * 1e-3 + CONNECT_TIMEOUT_S
+            deadline_s = time.monotonic() + b.LINK_CHECK_S + CONNECT_TIMEOUT_S
             while subscriber.errors.counts["link_dropped"] == 0:
                 assert time.monotonic() < deadline_s, "the dropped link was not counted"
                 await asyncio.sleep(0.05)
