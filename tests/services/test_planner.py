@@ -25,11 +25,14 @@ from hydrosoft.services.planner import (
     LEAD_CYCLES,
     LEAD_MARGIN_S,
     LEAD_WINDOW,
+    OBJECT_POSE_TOPIC,
+    Episode,
     Planner,
     PlannerCore,
     arm_end_positions,
     ended_by_commander,
     planner_scene,
+    pose_wait_s,
     resolve_target,
     target_lead,
     targets_from_plan,
@@ -263,3 +266,52 @@ def test_a_goal_end_sends_a_halt_naming_its_outcome_and_the_deadline_follows_the
     (_, plan_target), (topic, halt) = sent
     assert topic == "arm_target/bubble" and plan_target.goal_end == "" and halt.goal_end == "reached"
     assert halt.plan_seq == plan_target.plan_seq + 1
+
+
+def test_a_solve_waits_for_a_pose_newer_than_the_last_solves_within_a_limit():
+    assert pose_wait_s(2_000, 1_000, 0.0, 0.1) == 0.0  # a newer pose: solve at once
+    assert pose_wait_s(5_000, 0, 0.0, 0.1) == 0.0  # the goal's first solve
+    assert pose_wait_s(1_000, 1_000, 0.03, 0.1) == pytest.approx(0.07)  # the same pose: wait for the next
+    assert pose_wait_s(1_000, 1_000, 0.1, 0.1) == 0.0  # none came within the limit: solve on the newest
+    assert pose_wait_s(0, 1_000, 0.5, 0.1) == 0.0  # no pose at all (fresh_inputs then says it is stale)
+
+
+class PoseInputs:
+    """The planner's subscriber as ``Planner.wait_for_new_pose`` reads it: the newest object pose's stamp and the
+    event a new one sets."""
+
+    def __init__(self, stamp_ns: int) -> None:
+        self.stamp_ns, self.event = stamp_ns, asyncio.Event()
+
+    def arrival(self, topic: str) -> asyncio.Event:
+        assert topic == OBJECT_POSE_TOPIC
+        return self.event
+
+    def latest(self, topic: str, max_age_s: float):
+        return collections.namedtuple("Received", "stamp_ns")(self.stamp_ns)
+
+    def publish(self, stamp_ns: int) -> None:
+        self.stamp_ns = stamp_ns
+        self.event.set()
+
+
+def test_the_planner_starts_a_solve_when_a_new_pose_arrives_or_the_wait_limit_passes():
+    planner = Planner.__new__(Planner)
+    planner.inputs, planner.pose_wait_limit_s = PoseInputs(1_000), 0.5
+    episode = Episode(msg.Goal(task="pushing", tolerance_mm=3.0, timeout_s=60.0), torch.zeros(7), None, time.monotonic(), solved_pose_ns=1_000,
+                      solved_at_s=time.monotonic())
+
+    async def new_pose_after(delay_s: float) -> float:
+        started = time.monotonic()
+        asyncio.get_running_loop().call_later(delay_s, planner.inputs.publish, 2_000)
+        await planner.wait_for_new_pose(episode)
+        return time.monotonic() - started
+
+    async def scenario() -> None:
+        assert 0.05 <= await new_pose_after(0.05) < 0.3  # woken by the pose, well before the limit
+        episode.solved_at_s = time.monotonic()
+        assert await new_pose_after(0.0) < 0.3  # a newer pose is there already: no wait
+        episode.solved_pose_ns, episode.solved_at_s = 2_000, time.monotonic()
+        assert 0.5 <= await new_pose_after(5.0) < 0.8  # none comes: it goes on after the limit
+
+    asyncio.run(scenario())
