@@ -7,7 +7,8 @@ membrane), which ``hydrosoft.tactile.estimate_state`` turns into the planner's s
 planner's own prediction of the last plan (the solver's rollout of it, ``PlanResult.states``). Each solve starts on
 an object pose newer than the last solve's (``pose_wait_s``): the planner waits for the tag tracker's next pose
 instead of solving again on one it solved on, at most ``POSE_WAIT_PERIODS`` camera periods after its last solve
-ended (then it solves on the newest it has), so the camera's image is not left waiting in a queue. ``CemGd`` plans;
+ended (then it solves on the newest it has), and it waits for the next pose too when that is due within
+``NEXT_DUE_PERIODS`` of a period, so a solve seldom starts on a pose that waited long. ``CemGd`` plans;
 the plan's first actions, applied to the arms' current TCP poses, are the absolute TCP targets sent to the
 commanders, each with a deadline: ``target_lead`` after it is sent, twice the p90 of the planner's recent cycles
 plus a margin, within ``planner.target_lead_s`` .. ``limits.max_target_lead_s`` (so the next target comes before it
@@ -88,6 +89,11 @@ LEAD_WINDOW = 20
 #: A solve waits for an object pose newer than the last solve's, at most this many tag camera periods
 #: (``camera.fps``) after that solve ended (``pose_wait_s``): then it plans on the newest pose it has.
 POSE_WAIT_PERIODS = 1.0
+#: A solve also waits for the next pose when that is due (one period after the newest was published) within this
+#: many periods, and for at most ``LATE_PERIODS`` past its due time: a queue of up to half a period becomes almost
+#: none, for a wait of an eighth of a period per solve on average.
+NEXT_DUE_PERIODS = 0.5
+LATE_PERIODS = 0.2
 OBJECT_POSE_TOPIC = "object_pose/object"
 #: The status note while the planner compiles its step (``planner.compile``) before it reports ready.
 COMPILING_NOTE = ("compiling the planner step (planner.compile): ready in seconds with a warm compile cache, 2-5 min "
@@ -122,17 +128,26 @@ def target_lead(floor_s: float, cycles_s: Sequence[float], ceiling_s: float) -> 
     return min(lead, ceiling_s)
 
 
-def pose_wait_s(newest_pose_ns: int, solved_pose_ns: int, since_solve_s: float, limit_s: float) -> float:
+def pose_wait_s(newest_pose_ns: int, solved_pose_ns: int, solved_at_ns: int, now_ns: int, period_s: float) -> float:
     """How long (s) the planner still waits before its next solve; 0: solve now.
 
-    ``newest_pose_ns``: the publish stamp of the newest object pose (0: none). ``solved_pose_ns``: that of the pose
-    the last solve planned on (0: no solve yet). ``since_solve_s``: time since that solve ended (s). ``limit_s``:
-    the longest wait after a solve (s, ``POSE_WAIT_PERIODS`` camera periods). A newer pose is solved on at once; a
-    solve on the same pose again only once ``limit_s`` has passed (a slow camera, or images that gave no pose, never
-    stall planning)."""
-    if newest_pose_ns > solved_pose_ns:
-        return 0.0
-    return max(0.0, limit_s - since_solve_s)
+    Stamps are ``time.monotonic_ns()``: ``newest_pose_ns`` the publish stamp of the newest object pose (0: none),
+    ``solved_pose_ns`` that of the pose the last solve planned on (0: no solve yet), ``solved_at_ns`` when that solve
+    ended, ``now_ns`` now. ``period_s``: the tag camera's period (s), the time between poses.
+
+    A pose newer than the last solve's is solved on at once, unless the next one is due (one period after the newest
+    was published) within ``NEXT_DUE_PERIODS`` periods: then the wait lasts until that is ``LATE_PERIODS`` late (a
+    new pose ends it sooner). Without a newer pose, the solve waits for one at most ``POSE_WAIT_PERIODS`` periods
+    after the last solve ended, then goes on with the same pose: a slow camera, or images that gave no pose, never
+    stall planning for long."""
+    if newest_pose_ns == 0:
+        return 0.0  # no pose at all: the solve's input check says so
+    if newest_pose_ns <= solved_pose_ns:
+        return max(0.0, POSE_WAIT_PERIODS * period_s - (now_ns - solved_at_ns) * 1e-9)
+    due_in_s = period_s - (now_ns - newest_pose_ns) * 1e-9
+    if -LATE_PERIODS * period_s < due_in_s <= NEXT_DUE_PERIODS * period_s:
+        return due_in_s + LATE_PERIODS * period_s
+    return 0.0
 
 
 def planner_scene(task: Task, config: StackConfig) -> Scene:
@@ -304,7 +319,7 @@ class Episode:
     solve_s: list[float] = field(default_factory=list)
     error_mm: float = math.nan
     solved_pose_ns: int = 0  # publish stamp of the object pose the last solve planned on (0: none yet)
-    solved_at_s: float = 0.0  # when that solve ended, time.monotonic() (s)
+    solved_at_ns: int = 0  # when that solve ended, time.monotonic_ns()
     outcome: msg.Outcome = "running"
     reason: str = ""
     contact: ContactWatch | None = None
@@ -332,7 +347,7 @@ class Planner:
         self.out = service.publisher(config.endpoint("planner"))
         self.pose_stamps = (0, 0)  # (image, publish) stamps of the object pose fresh_inputs returned last, ns
         self.cycles_s: deque[float] = deque(maxlen=LEAD_WINDOW)  # recent cycles, start to targets sent (s)
-        self.pose_wait_limit_s = POSE_WAIT_PERIODS / config.camera.fps  # pose_wait_s's limit
+        self.camera_period_s = 1.0 / config.camera.fps  # the time between object poses (pose_wait_s)
 
     # --- client API ---
 
@@ -528,7 +543,7 @@ class Planner:
         stamps["solve_start_ns"] = time.monotonic_ns()
         result = await loop.run_in_executor(None, episode.solver.solve, state)
         solve_s = time.perf_counter() - tic
-        episode.solved_pose_ns, episode.solved_at_s = stamps["pose_stamp_ns"], time.monotonic()
+        episode.solved_pose_ns, episode.solved_at_ns = stamps["pose_stamp_ns"], time.monotonic_ns()
         if self.episode is not episode or episode.outcome != "running":
             return  # stopped while solving: send nothing
         episode.solve_s.append(solve_s)
@@ -549,11 +564,10 @@ class Planner:
         episode.prediction = carry_over(result.states, steps)
 
     async def wait_for_new_pose(self, episode: Episode) -> None:
-        """Wait until ``pose_wait_s`` says solve: an object pose newer than the last solve's arrived, or
-        ``pose_wait_limit_s`` passed since that solve ended."""
+        """Wait until ``pose_wait_s`` says solve (re-asked whenever an object pose arrives)."""
         arrival = self.inputs.arrival(OBJECT_POSE_TOPIC)
-        while (wait_s := pose_wait_s(self.newest_pose_ns(), episode.solved_pose_ns,
-                                     time.monotonic() - episode.solved_at_s, self.pose_wait_limit_s)) > 0:
+        while (wait_s := pose_wait_s(self.newest_pose_ns(), episode.solved_pose_ns, episode.solved_at_ns,
+                                     time.monotonic_ns(), self.camera_period_s)) > 0:
             arrival.clear()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(arrival.wait(), wait_s)

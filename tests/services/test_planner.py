@@ -24,8 +24,11 @@ from hydrosoft.services.bus.sockets import ErrorCounter
 from hydrosoft.services.planner import (
     LEAD_CYCLES,
     LEAD_MARGIN_S,
+    LATE_PERIODS,
     LEAD_WINDOW,
+    NEXT_DUE_PERIODS,
     OBJECT_POSE_TOPIC,
+    POSE_WAIT_PERIODS,
     Episode,
     Planner,
     PlannerCore,
@@ -269,11 +272,20 @@ def test_a_goal_end_sends_a_halt_naming_its_outcome_and_the_deadline_follows_the
 
 
 def test_a_solve_waits_for_a_pose_newer_than_the_last_solves_within_a_limit():
-    assert pose_wait_s(2_000, 1_000, 0.0, 0.1) == 0.0  # a newer pose: solve at once
-    assert pose_wait_s(5_000, 0, 0.0, 0.1) == 0.0  # the goal's first solve
-    assert pose_wait_s(1_000, 1_000, 0.03, 0.1) == pytest.approx(0.07)  # the same pose: wait for the next
-    assert pose_wait_s(1_000, 1_000, 0.1, 0.1) == 0.0  # none came within the limit: solve on the newest
-    assert pose_wait_s(0, 1_000, 0.5, 0.1) == 0.0  # no pose at all (fresh_inputs then says it is stale)
+    ms = 1_000_000  # ns
+    period_s = 0.05  # 20 images/s
+    # the newest pose (published at 1000 ms) is newer than the last solve's (900 ms), the next is due at 1050 ms
+    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1010 * ms, period_s) == 0.0  # due in 40 ms: solve now
+    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1030 * ms, period_s) == pytest.approx(
+        0.02 + LATE_PERIODS * period_s)  # due in 20 ms, within NEXT_DUE_PERIODS: wait for it, a little past its time
+    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1060 * ms, period_s) == 0.0  # it came not: the newest then
+    assert pose_wait_s(5000 * ms, 0, 0, 5001 * ms, period_s) == 0.0  # the goal's first solve
+    # the last solve (ended at 1080 ms) planned on the newest pose: wait for the next, at most a period after it
+    assert pose_wait_s(1000 * ms, 1000 * ms, 1080 * ms, 1090 * ms, period_s) == pytest.approx(
+        POSE_WAIT_PERIODS * period_s - 0.01)
+    assert pose_wait_s(1000 * ms, 1000 * ms, 1080 * ms, 1200 * ms, period_s) == 0.0  # none came: solve on it again
+    assert pose_wait_s(0, 1000 * ms, 1080 * ms, 1090 * ms, period_s) == 0.0  # no pose (the input check says stale)
+    assert NEXT_DUE_PERIODS <= 0.5 and POSE_WAIT_PERIODS <= 1.5  # the waits stay short against a solve
 
 
 class PoseInputs:
@@ -297,21 +309,21 @@ class PoseInputs:
 
 def test_the_planner_starts_a_solve_when_a_new_pose_arrives_or_the_wait_limit_passes():
     planner = Planner.__new__(Planner)
-    planner.inputs, planner.pose_wait_limit_s = PoseInputs(1_000), 0.5
-    episode = Episode(msg.Goal(task="pushing", tolerance_mm=3.0, timeout_s=60.0), torch.zeros(7), None, time.monotonic(), solved_pose_ns=1_000,
-                      solved_at_s=time.monotonic())
+    planner.inputs, planner.camera_period_s = PoseInputs(1_000), 0.5
+    episode = Episode(msg.Goal(task="pushing", tolerance_mm=3.0, timeout_s=60.0), torch.zeros(7), None,
+                      time.monotonic(), solved_pose_ns=1_000, solved_at_ns=time.monotonic_ns())
 
     async def new_pose_after(delay_s: float) -> float:
         started = time.monotonic()
-        asyncio.get_running_loop().call_later(delay_s, planner.inputs.publish, 2_000)
+        loop = asyncio.get_running_loop()
+        loop.call_later(delay_s, lambda: planner.inputs.publish(time.monotonic_ns()))
         await planner.wait_for_new_pose(episode)
         return time.monotonic() - started
 
     async def scenario() -> None:
         assert 0.05 <= await new_pose_after(0.05) < 0.3  # woken by the pose, well before the limit
-        episode.solved_at_s = time.monotonic()
-        assert await new_pose_after(0.0) < 0.3  # a newer pose is there already: no wait
-        episode.solved_pose_ns, episode.solved_at_s = 2_000, time.monotonic()
+        assert await new_pose_after(5.0) < 0.1  # a newer pose is there already and the next not due soon: no wait
+        episode.solved_pose_ns, episode.solved_at_ns = planner.inputs.stamp_ns, time.monotonic_ns()
         assert 0.5 <= await new_pose_after(5.0) < 0.8  # none comes: it goes on after the limit
 
     asyncio.run(scenario())
