@@ -118,9 +118,9 @@ def resolve_target(goal: msg.Goal, start_pose: torch.Tensor) -> torch.Tensor:
 
 def target_lead(floor_s: float, cycles_s: Sequence[float], ceiling_s: float) -> float:
     """How long (s) a target sent now stays valid: ``LEAD_CYCLES`` times the p90 of the recent planning cycles
-    ``cycles_s`` (s, a cycle's start, its wait for a new pose included, to its targets sent) plus ``LEAD_MARGIN_S``, at least ``floor_s``
-    (``planner.target_lead_s``; alone while no cycle was measured) and at most ``ceiling_s`` (the commander's
-    ``limits.max_target_lead_s``, which it enforces anyway)."""
+    ``cycles_s`` (s, a cycle's start, its wait for a new pose included, to its targets sent) plus ``LEAD_MARGIN_S``,
+    at least ``floor_s`` (``planner.target_lead_s``; alone while no cycle was measured) and at most ``ceiling_s``
+    (the commander's ``limits.max_target_lead_s``, which it enforces anyway)."""
     lead = floor_s
     if len(cycles_s) > 0:
         lead = max(floor_s, LEAD_CYCLES * float(np.percentile(np.asarray(cycles_s, dtype=np.float64), 90))
