@@ -4,7 +4,11 @@ Inputs (each refused when older than ``planner.max_age_s``): the object pose fro
 pose from its commander, and each bubble's membrane deformation image from its bubble camera. They become a
 ``hydrosoft.tactile.TactileObservation`` (the membrane deformation turned into per-point depths inside the nominal
 membrane), which ``hydrosoft.tactile.estimate_state`` turns into the planner's state, carrying shear over from the
-planner's own prediction of the last plan (the solver's rollout of it, ``PlanResult.states``). ``CemGd`` then plans;
+planner's own prediction of the last plan (the solver's rollout of it, ``PlanResult.states``). Each solve starts on
+an object pose newer than the last solve's (``pose_wait_s``): the planner waits for the tag tracker's next pose
+instead of solving again on one it solved on, at most ``POSE_WAIT_PERIODS`` camera periods after its last solve
+ended (then it solves on the newest it has), and it waits for the next pose too when that is due within
+``NEXT_DUE_PERIODS`` of a period, so a solve seldom starts on a pose that waited long. ``CemGd`` plans;
 the plan's first actions, applied to the arms' current TCP poses, are the absolute TCP targets sent to the
 commanders, each with a deadline: ``target_lead`` after it is sent, twice the p90 of the planner's recent cycles
 plus a margin, within ``planner.target_lead_s`` .. ``limits.max_target_lead_s`` (so the next target comes before it
@@ -41,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import functools
 import importlib
 import math
@@ -87,6 +92,15 @@ LEAD_CYCLES = 2.0
 LEAD_MARGIN_S = 0.05
 #: How many recent cycles the lead's p90 is taken over.
 LEAD_WINDOW = 20
+#: A solve waits for an object pose newer than the last solve's, at most this many tag camera periods
+#: (``camera.fps``) after that solve ended (``pose_wait_s``): then it plans on the newest pose it has.
+POSE_WAIT_PERIODS = 1.0
+#: A solve also waits for the next pose when that is due (one period after the newest was published) within this
+#: many periods, and for at most ``LATE_PERIODS`` past its due time: a queue of up to half a period becomes almost
+#: none, for a wait of an eighth of a period per solve on average.
+NEXT_DUE_PERIODS = 0.5
+LATE_PERIODS = 0.2
+OBJECT_POSE_TOPIC = "object_pose/object"
 #: The status note while the planner compiles its step (``planner.compile``) before it reports ready.
 COMPILING_NOTE = ("compiling the planner step (planner.compile): ready in seconds with a warm compile cache, 2-5 min "
                   "with a cold one on 2 busy cores")
@@ -110,9 +124,9 @@ def resolve_target(goal: msg.Goal, start_pose: torch.Tensor) -> torch.Tensor:
 
 def target_lead(floor_s: float, cycles_s: Sequence[float], ceiling_s: float) -> float:
     """How long (s) a target sent now stays valid: ``LEAD_CYCLES`` times the p90 of the recent planning cycles
-    ``cycles_s`` (s, inputs read to targets sent) plus ``LEAD_MARGIN_S``, at least ``floor_s``
-    (``planner.target_lead_s``; alone while no cycle was measured) and at most ``ceiling_s`` (the commander's
-    ``limits.max_target_lead_s``, which it enforces anyway)."""
+    ``cycles_s`` (s, a cycle's start, its wait for a new pose included, to its targets sent) plus ``LEAD_MARGIN_S``,
+    at least ``floor_s`` (``planner.target_lead_s``; alone while no cycle was measured) and at most ``ceiling_s``
+    (the commander's ``limits.max_target_lead_s``, which it enforces anyway)."""
     lead = floor_s
     if len(cycles_s) > 0:
         lead = max(floor_s, LEAD_CYCLES * float(np.percentile(np.asarray(cycles_s, dtype=np.float64), 90))
@@ -128,6 +142,27 @@ def device_unavailable(device: str) -> str | None:
         return None
     return (f"planner.device = {device!r}, but {problem}: the planner plans nothing (set planner.device = \"cpu\" or "
             f"run the planner on a host with that GPU)")
+
+def pose_wait_s(newest_pose_ns: int, solved_pose_ns: int, solved_at_ns: int, now_ns: int, period_s: float) -> float:
+    """How long (s) the planner still waits before its next solve; 0: solve now.
+
+    Stamps are ``time.monotonic_ns()``: ``newest_pose_ns`` the publish stamp of the newest object pose (0: none),
+    ``solved_pose_ns`` that of the pose the last solve planned on (0: no solve yet), ``solved_at_ns`` when that solve
+    ended, ``now_ns`` now. ``period_s``: the tag camera's period (s), the time between poses.
+
+    A pose newer than the last solve's is solved on at once, unless the next one is due (one period after the newest
+    was published) within ``NEXT_DUE_PERIODS`` periods: then the wait lasts until that is ``LATE_PERIODS`` late (a
+    new pose ends it sooner). Without a newer pose, the solve waits for one at most ``POSE_WAIT_PERIODS`` periods
+    after the last solve ended, then goes on with the same pose: a slow camera, or images that gave no pose, never
+    stall planning for long."""
+    if newest_pose_ns == 0:
+        return 0.0  # no pose at all: the solve's input check says so
+    if newest_pose_ns <= solved_pose_ns:
+        return max(0.0, POSE_WAIT_PERIODS * period_s - (now_ns - solved_at_ns) * 1e-9)
+    due_in_s = period_s - (now_ns - newest_pose_ns) * 1e-9
+    if -LATE_PERIODS * period_s < due_in_s <= NEXT_DUE_PERIODS * period_s:
+        return due_in_s + LATE_PERIODS * period_s
+    return 0.0
 
 
 def planner_scene(task: Task, config: StackConfig) -> Scene:
@@ -305,6 +340,8 @@ class Episode:
     within_since: float | None = None
     solve_s: list[float] = field(default_factory=list)
     error_mm: float = math.nan
+    solved_pose_ns: int = 0  # publish stamp of the object pose the last solve planned on (0: none yet)
+    solved_at_ns: int = 0  # when that solve ended, time.monotonic_ns()
     outcome: msg.Outcome = "running"
     reason: str = ""
     contact: ContactWatch | None = None
@@ -331,7 +368,8 @@ class Planner:
             topics=["object_pose/", "arm_state/", "deformation/"], background=True)
         self.out = service.publisher(config.endpoint("planner"))
         self.pose_stamps = (0, 0)  # (image, publish) stamps of the object pose fresh_inputs returned last, ns
-        self.cycles_s: deque[float] = deque(maxlen=LEAD_WINDOW)  # recent cycles, inputs read to targets sent (s)
+        self.cycles_s: deque[float] = deque(maxlen=LEAD_WINDOW)  # recent cycles, start to targets sent (s)
+        self.camera_period_s = 1.0 / config.camera.fps  # the time between object poses (pose_wait_s)
 
     # --- client API ---
 
@@ -444,7 +482,7 @@ class Planner:
         """The newest object pose, TCP poses (task frame) and deformation images, each within its maximum age
         (else Stale). ``pose_stamps`` keeps the object pose's image and publish stamps (ns) for the Plan."""
         to_task = self.core.frame.to_task
-        tracked = self.inputs.latest("object_pose/object", self.max_age["object_pose"]).value
+        tracked = self.inputs.latest(OBJECT_POSE_TOPIC, self.max_age["object_pose"]).value
         self.pose_stamps = (tracked.hw_stamp_ns or 0, tracked.stamp_ns)
         object_pose = to_task(as_pose(tracked.pose))
         arms, deformations = {}, {}
@@ -484,6 +522,10 @@ class Planner:
             self.service.count_error("goal_ended", ended)
             self._end_episode()
             return
+        cycle_start_ns = time.monotonic_ns()
+        await self.wait_for_new_pose(episode)
+        if self.episode is not episode:
+            return  # stopped meanwhile
         try:
             object_pose, arm_poses, deformations = self.fresh_inputs()
         except Stale as err:
@@ -523,6 +565,7 @@ class Planner:
         stamps["solve_start_ns"] = time.monotonic_ns()
         result = await loop.run_in_executor(None, episode.solver.solve, state)
         solve_s = time.perf_counter() - tic
+        episode.solved_pose_ns, episode.solved_at_ns = stamps["pose_stamp_ns"], time.monotonic_ns()
         if self.episode is not episode or episode.outcome != "running":
             return  # stopped while solving: send nothing
         episode.solve_s.append(solve_s)
@@ -538,9 +581,25 @@ class Planner:
         targets = targets_from_plan(self.core, arm_poses, result.plan.detach(), steps)
         await self.send_targets({name: pose.numpy() for name, pose in targets.items()}, self.target_deadline_ns())
         stamps["targets_ns"] = time.monotonic_ns()
-        self.cycles_s.append((stamps["targets_ns"] - stamps["inputs_ns"]) * 1e-9)
+        self.cycles_s.append((stamps["targets_ns"] - cycle_start_ns) * 1e-9)
         await self.out.send(self.plan_message(result, stamps), topic=f"plan/{self.config.scene.task}")
         episode.prediction = carry_over(result.states, steps)
+
+    async def wait_for_new_pose(self, episode: Episode) -> None:
+        """Wait until ``pose_wait_s`` says solve (re-asked whenever an object pose arrives)."""
+        arrival = self.inputs.arrival(OBJECT_POSE_TOPIC)
+        while (wait_s := pose_wait_s(self.newest_pose_ns(), episode.solved_pose_ns, episode.solved_at_ns,
+                                     time.monotonic_ns(), self.camera_period_s)) > 0:
+            arrival.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(arrival.wait(), wait_s)
+
+    def newest_pose_ns(self) -> int:
+        """The publish stamp (ns) of the newest object pose, at any age (0: none yet)."""
+        try:
+            return self.inputs.latest(OBJECT_POSE_TOPIC, math.inf).stamp_ns
+        except Stale:
+            return 0
 
     async def out_of_contact(self, episode: Episode, decision: Decision, object_pose: torch.Tensor,
                              arm_poses: dict[str, torch.Tensor]) -> None:

@@ -59,7 +59,8 @@ INTRINSICS = dict(width=1280, height=720, fx=900.0, fy=900.0, cx=639.5, cy=359.5
 AIM_JITTER = 0.1  # aim point off the cube centre, as a fraction of the distance (about 6 deg off the optical axis)
 FULL = {"distances_m": "0.3,0.5,0.75,1.0", "angles_deg": "0,20,40,60", "samples": 30, "sequence_images": 40}
 QUICK = {"distances_m": "0.3,1.0", "angles_deg": "0,60", "samples": 3, "sequence_images": 12}
-SEQUENCE_FPS = 10.0  # images/s of the sequences, as deploy/sim.toml's tag camera
+SEQUENCE_FPS = 10.0  # images/s of the sequences: half deploy/sim.toml's tag camera rate, so twice its motion per
+# image (the harder case for the region of interest)
 SEQUENCE_ANGLE_DEG = 40.0  # view angle of the sequences: two or three faces in view
 SEQUENCE_SPEED_M_S = 0.02  # the cube slides this fast (a slow push; the sim arm moves at most 0.05 m/s) ...
 SEQUENCE_YAW_RATE_RAD_S = 0.2  # ... and turns this fast, so faces turn into and out of view over a sequence

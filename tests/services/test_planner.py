@@ -24,13 +24,19 @@ from hydrosoft.services.bus.sockets import ErrorCounter
 from hydrosoft.services.planner import (
     LEAD_CYCLES,
     LEAD_MARGIN_S,
+    LATE_PERIODS,
     LEAD_WINDOW,
+    NEXT_DUE_PERIODS,
+    OBJECT_POSE_TOPIC,
+    POSE_WAIT_PERIODS,
+    Episode,
     Planner,
     PlannerCore,
     arm_end_positions,
     device_unavailable,
     ended_by_commander,
     planner_scene,
+    pose_wait_s,
     resolve_target,
     target_lead,
     targets_from_plan,
@@ -345,3 +351,61 @@ def test_a_goal_end_sends_a_halt_naming_its_outcome_and_the_deadline_follows_the
     (_, plan_target), (topic, halt) = sent
     assert topic == "arm_target/bubble" and plan_target.goal_end == "" and halt.goal_end == "reached"
     assert halt.plan_seq == plan_target.plan_seq + 1
+
+
+def test_a_solve_waits_for_a_pose_newer_than_the_last_solves_within_a_limit():
+    ms = 1_000_000  # ns
+    period_s = 0.05  # 20 images/s
+    # the newest pose (published at 1000 ms) is newer than the last solve's (900 ms), the next is due at 1050 ms
+    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1010 * ms, period_s) == 0.0  # due in 40 ms: solve now
+    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1030 * ms, period_s) == pytest.approx(
+        0.02 + LATE_PERIODS * period_s)  # due in 20 ms, within NEXT_DUE_PERIODS: wait for it, a little past its time
+    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1060 * ms, period_s) == 0.0  # it came not: the newest then
+    assert pose_wait_s(5000 * ms, 0, 0, 5001 * ms, period_s) == 0.0  # the goal's first solve
+    # the last solve (ended at 1080 ms) planned on the newest pose: wait for the next, at most a period after it
+    assert pose_wait_s(1000 * ms, 1000 * ms, 1080 * ms, 1090 * ms, period_s) == pytest.approx(
+        POSE_WAIT_PERIODS * period_s - 0.01)
+    assert pose_wait_s(1000 * ms, 1000 * ms, 1080 * ms, 1200 * ms, period_s) == 0.0  # none came: solve on it again
+    assert pose_wait_s(0, 1000 * ms, 1080 * ms, 1090 * ms, period_s) == 0.0  # no pose (the input check says stale)
+    assert NEXT_DUE_PERIODS <= 0.5 and POSE_WAIT_PERIODS <= 1.5  # the waits stay short against a solve
+
+
+class PoseInputs:
+    """The planner's subscriber as ``Planner.wait_for_new_pose`` reads it: the newest object pose's stamp and the
+    event a new one sets."""
+
+    def __init__(self, stamp_ns: int) -> None:
+        self.stamp_ns, self.event = stamp_ns, asyncio.Event()
+
+    def arrival(self, topic: str) -> asyncio.Event:
+        assert topic == OBJECT_POSE_TOPIC
+        return self.event
+
+    def latest(self, topic: str, max_age_s: float):
+        return collections.namedtuple("Received", "stamp_ns")(self.stamp_ns)
+
+    def publish(self, stamp_ns: int) -> None:
+        self.stamp_ns = stamp_ns
+        self.event.set()
+
+
+def test_the_planner_starts_a_solve_when_a_new_pose_arrives_or_the_wait_limit_passes():
+    planner = Planner.__new__(Planner)
+    planner.inputs, planner.camera_period_s = PoseInputs(1_000), 0.5
+    episode = Episode(msg.Goal(task="pushing", tolerance_mm=3.0, timeout_s=60.0), torch.zeros(7), None,
+                      time.monotonic(), solved_pose_ns=1_000, solved_at_ns=time.monotonic_ns())
+
+    async def new_pose_after(delay_s: float) -> float:
+        started = time.monotonic()
+        loop = asyncio.get_running_loop()
+        loop.call_later(delay_s, lambda: planner.inputs.publish(time.monotonic_ns()))
+        await planner.wait_for_new_pose(episode)
+        return time.monotonic() - started
+
+    async def scenario() -> None:
+        assert 0.05 <= await new_pose_after(0.05) < 0.3  # woken by the pose, well before the limit
+        assert await new_pose_after(5.0) < 0.1  # a newer pose is there already and the next not due soon: no wait
+        episode.solved_pose_ns, episode.solved_at_ns = planner.inputs.stamp_ns, time.monotonic_ns()
+        assert 0.5 <= await new_pose_after(5.0) < 0.8  # none comes: it goes on after the limit
+
+    asyncio.run(scenario())
