@@ -143,6 +143,7 @@ def device_unavailable(device: str) -> str | None:
     return (f"planner.device = {device!r}, but {problem}: the planner plans nothing (set planner.device = \"cpu\" or "
             f"run the planner on a host with that GPU)")
 
+
 def pose_wait_s(newest_pose_ns: int, solved_pose_ns: int, solved_at_ns: int, now_ns: int, period_s: float) -> float:
     """How long (s) the planner still waits before its next solve; 0: solve now.
 
