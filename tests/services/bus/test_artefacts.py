@@ -113,3 +113,12 @@ def test_the_cache_is_the_environments_then_the_configs_then_torchs(tmp_path, co
     assert artefacts.cache_dir(named) == tmp_path / "named"
     monkeypatch.setenv(artefacts.CACHE_ENV, str(tmp_path / "env"))
     assert artefacts.cache_dir(named) == tmp_path / "env"
+
+
+@pytest.mark.parametrize("name", ["sim.toml", "sim-bimanual.toml"])
+def test_a_shipped_compiled_plant_is_loop_free_so_its_artefact_loads(name):
+    """A plant solved to convergence is a ``torch.while_loop``, which torch's compile cache refuses: it would compile
+    at every launch, its artefact never loaded. The shipped sim configs fix the solver's steps, as their planners do."""
+    config = load_config(SIM_TOML.parent / name)
+    assert config.sim.compile
+    assert config.sim.sdf_solver_steps is not None
