@@ -632,12 +632,30 @@ def compile_step(core: PlannerCore) -> float:
 
 
 def compile_planner(core: PlannerCore) -> str | None:
-    """Compile the planner's step and costs (``compile_step``); None when all of them run compiled, else each that
-    fell back to eager with its reason."""
+    """Compile the planner's step and costs (``compile_step``); None when all of them run compiled, in this process
+    and in each solver worker process, else each that fell back to eager with its reason."""
     compile_step(core)
     parts = {"step": core.dynamics, "stage cost": core.cost_terms.stage, "terminal cost": core.cost_terms.terminal}
     failed = [f"{name}: {part.fallback_reason}" for name, part in parts.items() if not part.compiled]
+    if core.processes is not None:
+        failed += [worker_fallback(index, why) for index, why in sorted(core.processes.fallbacks.items())]
     return "; ".join(failed) if failed else None
+
+
+def worker_fallback(index: int, why: str) -> str:
+    """A solver worker process's parts that run eager (``WorkerProcesses.fallbacks``), in words."""
+    return f"solver worker process {index}: {why}"
+
+
+def watch_worker_fallbacks(service: Service, core: PlannerCore) -> None:
+    """Once the planner runs, a solver worker process whose parts fall back to eager (a new input signature that
+    fails to compile) shows in the service's status (``eager: ...``) and its log, as the planner's own would."""
+    def fell_back(index: int, why: str) -> None:
+        service.compilation = f"eager: {worker_fallback(index, why)}"
+        service.log.warning("the planner runs eager in part: %s", worker_fallback(index, why))
+
+    if core.processes is not None:
+        core.processes.on_fallback = fell_back
 
 
 async def run(service: Service, config: StackConfig) -> None:
@@ -648,6 +666,8 @@ async def run(service: Service, config: StackConfig) -> None:
         os.nice(config.planner.nice)  # before the worker processes start: they inherit it
         service.log.info("running at niceness %d (planner.nice): the other services go first", os.nice(0))
     torch.set_num_threads(config.planner.threads)
+    if config.planner.compile:  # before the step, the costs and the worker processes are made
+        artefacts.use_precompiled(config, artefacts.planner_key(config))
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
@@ -657,6 +677,7 @@ async def run(service: Service, config: StackConfig) -> None:
             service.log.warning("the planner runs eager: %s", build.fallback)
         service.note = ""
         service.compilation = build.status
+        watch_worker_fallbacks(service, core)
     else:
         service.compilation = "eager (planner.compile = false)"
     planner = Planner(service, config, core)

@@ -3,10 +3,13 @@ this config and this torch, so that a launch loads it (seconds) or says it compi
 it eager without saying so.
 
 What torch compiles (inductor's C++ kernels, AOT autograd's forward and backward graphs) it keeps in its compile
-cache directory (``cache_dir``), found again by the graphs themselves; dynamo's tracing it repeats in every
-process (seconds, then the cache answers). An artefact is the record ``CACHE/hydrosoft-artefacts/PART-KEY.json``
-written once PART compiled completely into that cache, under its key (``ArtefactKey``): a hash of the config keys
-that shape PART's graphs, torch's version, and the model library's source. A launch whose key has a record loads
+cache directory (``cache_dir``), found again by the graphs themselves; dynamo's tracing it would repeat in every
+process (most of a warm start). So each part's compiled functions are precompiled (``compilation.Precompiled``):
+saved whole, guards and graphs, in ``CACHE/hydrosoft-artefacts/PART-KEY/`` (``precompiled_dir``), which the part's
+processes load from without tracing (``use_precompiled``, set before the part's model is built). An artefact is the
+record ``CACHE/hydrosoft-artefacts/PART-KEY.json`` written once PART compiled completely into that cache, under its
+key (``ArtefactKey``): a hash of the config keys that shape PART's graphs, torch's version, and the model library's
+source. A launch whose key has a record loads
 the part from the cache; one without any record of PART (``missing``) or with records of other keys only
 (``stale``: a config, torch or code change) compiles it, saying so in its log and status, and records its key
 when it is done. Records of several keys lie side by side, so several configs stay warm in one cache.
@@ -148,6 +151,20 @@ def check(cache: Path, key: ArtefactKey) -> str:
     return "missing artefact"
 
 
+def precompiled_dir(cache: Path, key: ArtefactKey) -> Path:
+    """Where ``key``'s part keeps its precompiled functions in the compile cache ``cache``."""
+    return cache / RECORDS / f"{key.part}-{key.key}"
+
+
+def use_precompiled(config: StackConfig, key: ArtefactKey) -> Path:
+    """Have the compiled functions this process (and the processes it starts) makes from now on load and save
+    ``key``'s precompiled functions (``compilation.use_precompiled``); their directory."""
+    from hydrosoft.compilation import use_precompiled as use
+    directory = precompiled_dir(cache_dir(config), key)
+    use(directory)
+    return directory
+
+
 def record(cache: Path, key: ArtefactKey, seconds: float) -> Path:
     """Record that ``key``'s part compiled completely into ``cache`` in ``seconds``; the record's path. Written to a
     temporary file and renamed, so a reader never sees half a record."""
@@ -236,14 +253,19 @@ def _progress(tick: Callable[[], None], period_s: float) -> Iterator[None]:
         thread.join()
 
 
-def _graph_counts() -> tuple[int, int]:
-    """Inductor's graphs so far in this process: (compiled, loaded from the compile cache)."""
+def _graph_counts() -> tuple[int, int, int, int]:
+    """This process's graphs so far: inductor's (compiled, loaded from the compile cache) and the precompiled
+    functions (built, loaded: ``compilation.PRECOMPILED``)."""
     from torch._dynamo.utils import counters
+
+    from hydrosoft.compilation import PRECOMPILED
     inductor = counters["inductor"]
-    return inductor["fxgraph_cache_miss"] + inductor["fxgraph_cache_bypass"], inductor["fxgraph_cache_hit"]
+    return (inductor["fxgraph_cache_miss"] + inductor["fxgraph_cache_bypass"], inductor["fxgraph_cache_hit"],
+            PRECOMPILED["built"], PRECOMPILED["loaded"])
 
 
-def _graphs(before: tuple[int, int]) -> str:
-    """Inductor's graphs since ``before`` (``_graph_counts``), in words."""
-    compiled, loaded = (now - then for now, then in zip(_graph_counts(), before))
-    return f"{compiled} graphs compiled, {loaded} loaded from the cache"
+def _graphs(before: tuple[int, int, int, int]) -> str:
+    """The graphs since ``before`` (``_graph_counts``), in words."""
+    compiled, loaded, built, precompiled = (now - then for now, then in zip(_graph_counts(), before))
+    return (f"{compiled} graphs compiled, {loaded} loaded from the cache; {built} precompiled functions built, "
+            f"{precompiled} loaded")

@@ -34,13 +34,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def compiled_parts(config: StackConfig) -> list[tuple[artefacts.ArtefactKey, int, Callable[[], str | None]]]:
     """The config's compiled parts, in launch order: each part's key, its torch threads and what compiles it (None
-    once compiled, or why it fell back to eager). Building a part's model here raises ValueError for a config whose
-    arms the scene lacks."""
+    once compiled, or why it fell back to eager). Each part's model is built with its precompiled directory set
+    (``artefacts.use_precompiled``), so that its compiled functions are saved there whole. Building a part's model
+    here raises ValueError for a config whose arms the scene lacks."""
     parts = []
     if config.mode == "sim" and config.sim.compile:
+        artefacts.use_precompiled(config, artefacts.plant_key(config))
         plant = SimPlant.from_config(config)
         parts.append((artefacts.plant_key(config), TORCH_THREADS, plant.compile))
     if config.planner.compile:
+        artefacts.use_precompiled(config, artefacts.planner_key(config))
         core = PlannerCore.build(config)
         parts.append((artefacts.planner_key(config), config.planner.threads, functools.partial(compile_planner, core)))
     return parts
