@@ -40,7 +40,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from hydrosoft.compilation import (CompiledCopies, FallsBack, compiled_copy, precompiled_dir, private_copy,
+from hydrosoft.compilation import (CompiledCopies, FallsBack, compiled_copy, precompiling, private_copy,
                                   with_default_options)
 from hydrosoft.contact import ContactModel, ContactStep, Material, PressureFieldFrictionless, wrench
 from hydrosoft.geometry import se3
@@ -1078,8 +1078,8 @@ class CompiledStep(FallsBack):
     ``fallback_reason`` then says why: dynamo's own fallback past its limit would be silent. Each instance
     compiles a private copy of the sub-step's code (``compilation.private_copy``), so any number of instances (one
     per model) stay compiled. With a precompiled directory set (``compilation.use_precompiled``), the sub-step of a
-    model without implicit friction is precompiled there, each signature's graphs saved whole and loaded by later
-    processes without dynamo's tracing (``compilation.Precompiled``).
+    model without implicit friction loads each signature's graphs whole from there, without dynamo's tracing
+    (``compilation.Precompiled``).
     A step from the very state this instance returned last (a rollout) takes its start stability check from
     that step's end check instead of repeating it: one ``substeps_needed`` per step instead of two, the same
     sub-step counts. Nothing in the library requires it.
@@ -1101,11 +1101,11 @@ class CompiledStep(FallsBack):
         options = with_default_options(options)
         implicit_friction = getattr(model.contact, "implicit_friction", False)
 
-        directory = precompiled_dir()
+        setting = precompiling()
 
         def build() -> Callable:
             if not implicit_friction:  # one graph: precompiled when a directory is set (compilation.Precompiled)
-                return compiled_copy(_bound_substep(model), options, directory)
+                return compiled_copy(_bound_substep(model), options, setting)
             friction_move = torch.compile(private_copy(_newton_move), **options)
             return torch.compile(private_copy(_bound_substep(model, friction_move)), **options)
 

@@ -666,8 +666,6 @@ async def run(service: Service, config: StackConfig) -> None:
         os.nice(config.planner.nice)  # before the worker processes start: they inherit it
         service.log.info("running at niceness %d (planner.nice): the other services go first", os.nice(0))
     torch.set_num_threads(config.planner.threads)
-    if config.planner.compile:  # before the step, the costs and the worker processes are made
-        artefacts.use_precompiled(config, artefacts.planner_key(config))
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))

@@ -127,12 +127,15 @@ def closing_over(weights: torch.Tensor):
     return weighted
 
 
-def test_a_precompiled_function_is_saved_then_loaded_with_the_loaders_closure_and_agrees(tmp_path, monkeypatch,
+def test_a_precompiled_function_is_built_then_loaded_with_the_loaders_closure_and_agrees(tmp_path, monkeypatch,
                                                                                         fresh_dynamo):
+    """``hydrosoft-stack compile`` builds (``build``), a launch only loads: it computes with its own closure (the
+    model), agrees with eager forward and backward, and compiles a signature without a file the usual way."""
     monkeypatch.setattr(compilation, "PRECOMPILED", Counter())
-    compilation.use_precompiled(tmp_path)
     try:
+        compilation.use_precompiled(tmp_path, build=True)
         first = CompiledFunction(closing_over(torch.linspace(-1.0, 1.0, 12).reshape(3, 4)), options={})
+        compilation.use_precompiled(tmp_path)
         later_weights = torch.linspace(0.5, -0.5, 12).reshape(3, 4)  # what a later process's model holds
         later = CompiledFunction(closing_over(later_weights), options={})
     finally:
@@ -151,6 +154,7 @@ def test_a_precompiled_function_is_saved_then_loaded_with_the_loaders_closure_an
     eager.sum().backward()
     torch.testing.assert_close(out, eager)  # float32 tolerance, with the later closure's weights
     torch.testing.assert_close(grad, x.grad)
-    with torch.no_grad():  # another signature (grad mode): its own file
+    with torch.no_grad():  # another signature (grad mode) without a file: traced, nothing built
         torch.testing.assert_close(later(x, 2.0), eager.detach())
-    assert compilation.PRECOMPILED == {"built": 2, "loaded": 1} and later.compiled
+    assert compilation.PRECOMPILED == {"built": 1, "loaded": 1, "jit": 1} and later.compiled
+    assert len(list(tmp_path.glob("*.pt2"))) == 1

@@ -4,9 +4,11 @@ it eager without saying so.
 
 What torch compiles (inductor's C++ kernels, AOT autograd's forward and backward graphs) it keeps in its compile
 cache directory (``cache_dir``), found again by the graphs themselves; dynamo's tracing it would repeat in every
-process (most of a warm start). So each part's compiled functions are precompiled (``compilation.Precompiled``):
-saved whole, guards and graphs, in ``CACHE/hydrosoft-artefacts/PART-KEY/`` (``precompiled_dir``), which the part's
-processes load from without tracing (``use_precompiled``, set before the part's model is built). An artefact is the
+process. So the plant's compiled functions are also precompiled (``compilation.Precompiled``): saved whole, guards
+and graphs, in ``CACHE/hydrosoft-artefacts/PART-KEY/`` (``precompiled_dir``) by ``hydrosoft-stack compile``, and
+loaded from there at a launch without tracing (``use_precompiled``, set before the part's model is built); a launch
+that finds none compiles the usual way. (The planner's are not: building them took far longer than loading its
+graphs from inductor's cache, and their load was not measured; docs/benchmarks.md, "Stack start".) An artefact is the
 record ``CACHE/hydrosoft-artefacts/PART-KEY.json`` written once PART compiled completely into that cache, under its
 key (``ArtefactKey``): a hash of the config keys that shape PART's graphs, torch's version, and the model library's
 source. A launch whose key has a record loads
@@ -156,12 +158,13 @@ def precompiled_dir(cache: Path, key: ArtefactKey) -> Path:
     return cache / RECORDS / f"{key.part}-{key.key}"
 
 
-def use_precompiled(config: StackConfig, key: ArtefactKey) -> Path:
-    """Have the compiled functions this process (and the processes it starts) makes from now on load and save
-    ``key``'s precompiled functions (``compilation.use_precompiled``); their directory."""
+def use_precompiled(config: StackConfig, key: ArtefactKey, build: bool = False) -> Path:
+    """Have the compiled functions this process (and the processes it starts) makes from now on load ``key``'s
+    precompiled functions, and build missing ones when ``build`` (``compilation.use_precompiled``); their
+    directory."""
     from hydrosoft.compilation import use_precompiled as use
     directory = precompiled_dir(cache_dir(config), key)
-    use(directory)
+    use(directory, build)
     return directory
 
 
@@ -186,8 +189,9 @@ class PartBuild:
     (``status``), and its compilation with progress lines (``run``).
 
     ``status`` before ``run``: ``compiling: loading artefact KEY`` (ready) or ``compiling: missing artefact, building
-    KEY`` / ``compiling: stale artefact (WHAT CHANGED), building KEY``; after it: ``compiled (artefact KEY)``, or
-    ``eager: WHY`` when the part fell back to eager."""
+    KEY`` / ``compiling: stale artefact (WHAT CHANGED), building KEY``; after it: ``compiled (artefact KEY,
+    precompiled)`` when its functions were loaded (or built) whole, ``compiled (artefact KEY)`` when dynamo traced
+    them, or ``eager: WHY`` when the part fell back to eager."""
 
     def __init__(self, key: ArtefactKey, cache: Path) -> None:
         self.key = key
@@ -195,6 +199,7 @@ class PartBuild:
         self.state = check(cache, key)
         self.seconds: float | None = None
         self.fallback: str | None = None
+        self.precompiled = False  # its functions were loaded or built whole, none traced
 
     @property
     def ready(self) -> bool:
@@ -206,7 +211,7 @@ class PartBuild:
         if self.fallback is not None:
             return f"eager: {self.fallback}"
         if self.seconds is not None:
-            return f"compiled (artefact {self.key.key})"
+            return f"compiled (artefact {self.key.key}{', precompiled' if self.precompiled else ''})"
         if self.ready:
             return f"compiling: loading artefact {self.key.key}"
         return f"compiling: {self.state}, building {self.key.key}"
@@ -230,6 +235,8 @@ class PartBuild:
             return False
         if not self.ready:
             record(self.cache, self.key, seconds)
+        _, _, built, loaded, traced = (now - then for now, then in zip(_graph_counts(), before))
+        self.precompiled = bool(built + loaded) and not traced
         self.seconds = seconds
         say(f"{part}: {self.status} in {seconds:.1f} s ({_graphs(before)})")
         return True
@@ -253,19 +260,19 @@ def _progress(tick: Callable[[], None], period_s: float) -> Iterator[None]:
         thread.join()
 
 
-def _graph_counts() -> tuple[int, int, int, int]:
+def _graph_counts() -> tuple[int, int, int, int, int]:
     """This process's graphs so far: inductor's (compiled, loaded from the compile cache) and the precompiled
-    functions (built, loaded: ``compilation.PRECOMPILED``)."""
+    functions (built, loaded, and copies that traced instead: ``compilation.PRECOMPILED``)."""
     from torch._dynamo.utils import counters
 
     from hydrosoft.compilation import PRECOMPILED
     inductor = counters["inductor"]
     return (inductor["fxgraph_cache_miss"] + inductor["fxgraph_cache_bypass"], inductor["fxgraph_cache_hit"],
-            PRECOMPILED["built"], PRECOMPILED["loaded"])
+            PRECOMPILED["built"], PRECOMPILED["loaded"], PRECOMPILED["jit"])
 
 
-def _graphs(before: tuple[int, int, int, int]) -> str:
+def _graphs(before: tuple[int, int, int, int, int]) -> str:
     """The graphs since ``before`` (``_graph_counts``), in words."""
-    compiled, loaded, built, precompiled = (now - then for now, then in zip(_graph_counts(), before))
+    compiled, loaded, built, precompiled, _ = (now - then for now, then in zip(_graph_counts(), before))
     return (f"{compiled} graphs compiled, {loaded} loaded from the cache; {built} precompiled functions built, "
             f"{precompiled} loaded")
