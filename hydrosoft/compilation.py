@@ -18,15 +18,27 @@ Why private code. Dynamo keeps compiled graphs, and counts recompilations agains
 ``torch._dynamo.config.recompile_limit`` (8), per code object. Every copy compiles a private copy of the function's
 code (``private_copy``), so any number of copies and instances stay compiled; past its limit a copy raises instead
 of silently running eager (``raise_past_recompile_limit``), and the instance then falls back with a warning.
+
+Why precompiled copies. From a warm compile cache, a process still traced every compiled function again with dynamo
+before the cache answered with the graphs. With a precompiled directory set (``use_precompiled``, a variable of the
+environment so that processes started from this one inherit it), each copy is a ``Precompiled``: every input
+signature's function is loaded from one file there, guards and graphs, without tracing anything. Building the files
+(``torch.compile(fullgraph=True).aot_compile``, backward graphs included) is a compile of its own, longer than
+loading graphs from inductor's cache, so only a process that is asked to (``build``: ``hydrosoft-stack compile``)
+builds them; any other compiles a signature without a file the usual way.
 """
 from __future__ import annotations
 
 import contextlib
 import gc
+import hashlib
+import os
 import threading
 import types
 import warnings
+from collections import Counter
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any, NamedTuple, TypeVar
 
 import torch
@@ -36,6 +48,141 @@ T = TypeVar("T")
 
 DEFAULT_OPTIONS = {"cpp_wrapper": True, "assert_indirect_indexing": False, "cpp.enable_loop_tail_vec": False}
 """Inductor's options when a caller gives none (``dynamics.CompiledStep``'s docstring says why each is set)."""
+
+
+PRECOMPILED_ENV = "HYDROSOFT_PRECOMPILED_DIR"
+"""The environment variable that names the directory of precompiled functions (``use_precompiled``)."""
+
+PRECOMPILED_BUILD_ENV = "HYDROSOFT_PRECOMPILED_BUILD"
+"""The environment variable that, set to 1, has missing precompiled functions built (``use_precompiled``)."""
+
+PRECOMPILED = Counter()
+"""This process's precompiled functions so far: ``loaded`` from their files, ``built`` (compiled and saved), and
+``jit``: copies that compile the usual way, since a signature of theirs has no file (and none is built here) or
+cannot be precompiled."""
+
+AOT_RESTARTS = 3
+"""Tries of one ahead-of-time compile that dynamo asks to restart: its float specialisation (a tensorified Python
+float) restarts the analysis, which the ahead-of-time path does not do by itself; each try keeps the floats the
+last one specialised."""
+
+
+class Precompiling(NamedTuple):
+    """Where compiled functions keep their precompiled files, and whether missing ones are built."""
+
+    directory: Path
+    build: bool
+
+
+def use_precompiled(directory: Path | None, build: bool = False) -> None:
+    """Have compiled functions made from now on, in this process and in the processes it starts, load their graphs
+    from precompiled files in ``directory`` (``Precompiled``), building missing ones when ``build``; None: compile
+    them the usual way."""
+    if directory is None:
+        os.environ.pop(PRECOMPILED_ENV, None)
+        os.environ.pop(PRECOMPILED_BUILD_ENV, None)
+    else:
+        os.environ[PRECOMPILED_ENV] = str(directory)
+        os.environ[PRECOMPILED_BUILD_ENV] = "1" if build else "0"
+
+
+def precompiling() -> Precompiling | None:
+    """What ``use_precompiled`` set (here or in a parent process), or None."""
+    directory = os.environ.get(PRECOMPILED_ENV)
+    if not directory:
+        return None
+    return Precompiling(Path(directory), os.environ.get(PRECOMPILED_BUILD_ENV) == "1")
+
+
+def compiled_copy(fn: Callable, options: dict, setting: Precompiling | None) -> Callable:
+    """A compiled copy of ``fn`` with ``torch.compile``'s ``options``: a ``Precompiled`` one as ``setting`` says
+    when ``options`` name inductor (whose graphs alone can be saved), else a ``torch.compile`` of private code."""
+    if setting is None or options.get("backend", "inductor") != "inductor":
+        return torch.compile(private_copy(fn), **options)
+    return Precompiled(fn, options, setting)
+
+
+class Precompiled:
+    """``fn`` compiled whole per input signature by dynamo's ahead-of-time path, each signature's function saved in
+    ``setting.directory`` and loaded from there by the next process (no tracing); one copy for ``CompiledCopies``.
+
+    A call runs the function loaded for its ``signature`` (dtype, shape, strides, grad mode, constants). For a new
+    signature it loads ``directory/NAME-DIGEST.pt2`` (``NAME`` the function's, ``DIGEST`` a hash of the signature)
+    and checks the file's guards on the call's arguments; a missing file, or one whose guards refuse them, it
+    compiles and saves when ``setting.build``, else it compiles that signature the usual way (``torch.compile`` of
+    private code). (Later calls of a loaded signature skip the guards, which bind the arguments in Python.) The
+    objects in ``fn``'s closure (a model's tensors) are not saved: the loaded function is given this ``fn``'s, so
+    it computes with this process's values, never with those of the process that saved it. A signature that cannot
+    be compiled whole (a graph break) warns once and runs through a ``torch.compile`` of private code
+    (``jit_reason`` says why); an error there is ``CompiledCopies``' fallback to eager.
+    """
+
+    def __init__(self, fn: Callable, options: dict, setting: Precompiling) -> None:
+        self.fn = fn
+        self.options = options
+        self.directory, self.build = setting
+        self.jit_reason: str | None = None
+        self._loaded: dict[tuple, Callable] = {}  # signature -> its function
+        self._unbuilt: set[tuple] = set()  # signatures without a file, compiled the usual way
+        self._jit: Callable | None = None
+        self._closure = {f"cell{i}": cell.cell_contents for i, cell in enumerate(fn.__closure__ or ())}
+
+    def __call__(self, *args: Any) -> Any:
+        key = signature(*args)
+        loaded = self._loaded.get(key)
+        if loaded is not None:
+            return loaded(*args)
+        if self.jit_reason is None and key not in self._unbuilt:
+            try:
+                loaded = self._load_or_build(args)
+            except Exception as err:  # noqa: BLE001 - not precompilable (a graph break): compiled the usual way
+                self.jit_reason = f"{type(err).__name__}: {err}".splitlines()[0]
+                warnings.warn(f"{self.fn.__qualname__} cannot be precompiled, compiled at each start: "
+                              f"{self.jit_reason}", RuntimeWarning, stacklevel=2)
+            else:
+                if loaded is not None:
+                    loaded.disable_guard_check()
+                    self._loaded[key] = loaded
+                    return loaded(*args)
+                self._unbuilt.add(key)
+        if self._jit is None:
+            self._jit = torch.compile(private_copy(self.fn), **self.options)
+            PRECOMPILED["jit"] += 1
+        return self._jit(*args)
+
+    def path(self, args: tuple) -> Path:
+        """The file of the function for ``args``' signature (grad mode included)."""
+        digest = hashlib.sha256(repr(signature(*args)).encode()).hexdigest()[:16]
+        return self.directory / f"{self.fn.__module__}.{self.fn.__qualname__}-{digest}.pt2"
+
+    def _load_or_build(self, args: tuple) -> Callable | None:
+        """The function for ``args``: loaded from its file when that accepts them, else compiled and saved when
+        building (None when not)."""
+        path = self.path(args)
+        if path.exists():
+            try:
+                with path.open("rb") as file:
+                    loaded = torch.compiler.load_compiled_function(file, f_globals=self.fn.__globals__,
+                                                                   external_data=self._closure)
+            except Exception:  # noqa: BLE001 - an unreadable or incompatible file is built again
+                loaded = None
+            if loaded is not None and loaded.guard_check(*args):
+                PRECOMPILED["loaded"] += 1
+                return loaded
+        if not self.build:
+            return None
+        compiled = torch.compile(private_copy(self.fn), fullgraph=True, **self.options)
+        for attempt in range(AOT_RESTARTS):
+            try:
+                built = compiled.aot_compile((args, {}))
+                break
+            except torch._dynamo.exc.TensorifyScalarRestartAnalysis:
+                if attempt == AOT_RESTARTS - 1:
+                    raise
+        path.parent.mkdir(parents=True, exist_ok=True)
+        built.save_compiled_function(str(path), external_data=self._closure)
+        PRECOMPILED["built"] += 1
+        return built
 
 
 def settle_garbage_collector() -> None:
@@ -255,13 +402,15 @@ class CompiledFunction(FallsBack):
     ``signature`` of its arguments compiles once (constants are baked into the graph). ``options`` go to
     ``torch.compile``, with ``DEFAULT_OPTIONS`` for inductor when none are given (``with_default_options``);
     ``activation_memory_budget`` is AOT autograd's; ``workers`` the calls that may run at once (``CompiledCopies``).
+    Its copies are ``Precompiled`` when a precompiled directory was set when it was made (``use_precompiled``).
     """
 
     def __init__(self, fn: Callable, activation_memory_budget: float = 0.0, workers: int = 1, **options) -> None:
         self.fn = fn
         options = with_default_options(options)
-        self._copies = CompiledCopies(lambda: torch.compile(private_copy(fn), **options), _call,
-                                      activation_memory_budget, workers=workers)
+        setting = precompiling()
+        self._copies = CompiledCopies(lambda: compiled_copy(fn, options, setting), _call, activation_memory_budget,
+                                      workers=workers)
 
     def __call__(self, *args: Any) -> Any:
         return self._copies.run(args, _call, self.fn)

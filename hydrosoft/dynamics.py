@@ -40,7 +40,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from hydrosoft.compilation import CompiledCopies, FallsBack, private_copy, with_default_options
+from hydrosoft.compilation import (CompiledCopies, FallsBack, compiled_copy, precompiling, private_copy,
+                                  with_default_options)
 from hydrosoft.contact import ContactModel, ContactStep, Material, PressureFieldFrictionless, wrench
 from hydrosoft.geometry import se3
 
@@ -1076,7 +1077,9 @@ class CompiledStep(FallsBack):
     input signatures on one instance), it warns once and runs the eager ``step`` from then on;
     ``fallback_reason`` then says why: dynamo's own fallback past its limit would be silent. Each instance
     compiles a private copy of the sub-step's code (``compilation.private_copy``), so any number of instances (one
-    per model) stay compiled.
+    per model) stay compiled. With a precompiled directory set (``compilation.use_precompiled``), the sub-step of a
+    model without implicit friction loads each signature's graphs whole from there, without dynamo's tracing
+    (``compilation.Precompiled``).
     A step from the very state this instance returned last (a rollout) takes its start stability check from
     that step's end check instead of repeating it: one ``substeps_needed`` per step instead of two, the same
     sub-step counts. Nothing in the library requires it.
@@ -1098,8 +1101,12 @@ class CompiledStep(FallsBack):
         options = with_default_options(options)
         implicit_friction = getattr(model.contact, "implicit_friction", False)
 
+        setting = precompiling()
+
         def build() -> Callable:
-            friction_move = torch.compile(private_copy(_newton_move), **options) if implicit_friction else None
+            if not implicit_friction:  # one graph: precompiled when a directory is set (compilation.Precompiled)
+                return compiled_copy(_bound_substep(model), options, setting)
+            friction_move = torch.compile(private_copy(_newton_move), **options)
             return torch.compile(private_copy(_bound_substep(model, friction_move)), **options)
 
         def warm(substep: Callable, state: State, u: Tensor) -> State:

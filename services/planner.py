@@ -715,11 +715,13 @@ def compile_step(core: PlannerCore) -> float:
 
 
 def compile_planner(core: PlannerCore) -> str | None:
-    """Compile the planner's step and costs (``compile_step``); None when all of them run compiled, else each that
-    fell back to eager with its reason."""
+    """Compile the planner's step and costs (``compile_step``); None when all of them run compiled, in this process
+    and in each solver worker process, else each that fell back to eager with its reason."""
     compile_step(core)
     parts = {"step": core.dynamics, "stage cost": core.cost_terms.stage, "terminal cost": core.cost_terms.terminal}
     failed = [f"{name}: {part.fallback_reason}" for name, part in parts.items() if not part.compiled]
+    if core.processes is not None:
+        failed += [worker_fallback(index, why) for index, why in sorted(core.processes.fallbacks.items())]
     return "; ".join(failed) if failed else None
 
 
@@ -747,6 +749,22 @@ async def serve_without_device(service: Service, config: StackConfig, reason: st
         serving.cancel()
 
 
+def worker_fallback(index: int, why: str) -> str:
+    """A solver worker process's parts that run eager (``WorkerProcesses.fallbacks``), in words."""
+    return f"solver worker process {index}: {why}"
+
+
+def watch_worker_fallbacks(service: Service, core: PlannerCore) -> None:
+    """Once the planner runs, a solver worker process whose parts fall back to eager (a new input signature that
+    fails to compile) shows in the service's status (``eager: ...``) and its log, as the planner's own would."""
+    def fell_back(index: int, why: str) -> None:
+        service.compilation = f"eager: {worker_fallback(index, why)}"
+        service.log.warning("the planner runs eager in part: %s", worker_fallback(index, why))
+
+    if core.processes is not None:
+        core.processes.on_fallback = fell_back
+
+
 async def run(service: Service, config: StackConfig) -> None:
     """The planner's loop: lower its priority (``planner.nice``), build (and compile) the model, serve the client
     API, plan while a goal runs; without its device, ``serve_without_device``."""
@@ -768,6 +786,7 @@ async def run(service: Service, config: StackConfig) -> None:
             service.log.warning("the planner runs eager: %s", build.fallback)
         service.note = ""
         service.compilation = build.status
+        watch_worker_fallbacks(service, core)
     else:
         service.compilation = "eager (planner.compile = false)"
     planner = Planner(service, config, core)

@@ -458,6 +458,8 @@ async def serve(service: Service, config: StackConfig) -> None:
         raise ConfigError(f"sim_world runs only in mode = 'sim', the config says {config.mode!r}")
     torch.set_num_threads(TORCH_THREADS)
     loop = asyncio.get_running_loop()
+    if config.sim.compile:
+        artefacts.use_precompiled(config, artefacts.plant_key(config))  # before the plant's compiled step is made
     plant = await loop.run_in_executor(None, SimPlant.from_config, config)
     service.log.info("plant: %s task, %d surface points, %s bodies, %.0f Hz, %d sub-steps", config.scene.task,
                      plant.model.n_points, list(plant.model.body_names), 1.0 / plant.model.dt, plant.model.substeps)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import threading
 import warnings
+from collections import Counter
 
 import pytest
 import torch
 
+from hydrosoft import compilation
 from hydrosoft.compilation import CompiledFunction, signature
 
 
@@ -115,3 +117,44 @@ def test_each_signature_compiles_on_as_many_copies_as_workers_when_it_first_appe
     fast(x, pair, 2.0)
     assert counters["stats"]["unique_graphs"] == before and len(fast._copies.copies) == 3
     fast._copies._idle.extend(held)
+
+
+def closing_over(weights: torch.Tensor):
+    """A function of ``x`` that closes over ``weights`` (as the compiled step closes over its model)."""
+    def weighted(x: torch.Tensor, gain: float) -> torch.Tensor:
+        return gain * torch.tanh(x @ weights).square().sum(-1)
+
+    return weighted
+
+
+def test_a_precompiled_function_is_built_then_loaded_with_the_loaders_closure_and_agrees(tmp_path, monkeypatch,
+                                                                                        fresh_dynamo):
+    """``hydrosoft-stack compile`` builds (``build``), a launch only loads: it computes with its own closure (the
+    model), agrees with eager forward and backward, and compiles a signature without a file the usual way."""
+    monkeypatch.setattr(compilation, "PRECOMPILED", Counter())
+    try:
+        compilation.use_precompiled(tmp_path, build=True)
+        first = CompiledFunction(closing_over(torch.linspace(-1.0, 1.0, 12).reshape(3, 4)), options={})
+        compilation.use_precompiled(tmp_path)
+        later_weights = torch.linspace(0.5, -0.5, 12).reshape(3, 4)  # what a later process's model holds
+        later = CompiledFunction(closing_over(later_weights), options={})
+    finally:
+        compilation.use_precompiled(None)
+    x = torch.randn(5, 3, requires_grad=True)
+    first(x, 2.0).sum().backward()
+    assert compilation.PRECOMPILED == {"built": 1}
+    assert len(list(tmp_path.glob("*.pt2"))) == 1
+    x.grad = None
+    torch._dynamo.reset()  # nothing of dynamo's is left to trace from: the file alone serves
+    out = later(x, 2.0)
+    out.sum().backward()
+    assert compilation.PRECOMPILED == {"built": 1, "loaded": 1}
+    grad, x.grad = x.grad, None
+    eager = closing_over(later_weights)(x, 2.0)
+    eager.sum().backward()
+    torch.testing.assert_close(out, eager)  # float32 tolerance, with the later closure's weights
+    torch.testing.assert_close(grad, x.grad)
+    with torch.no_grad():  # another signature (grad mode) without a file: traced, nothing built
+        torch.testing.assert_close(later(x, 2.0), eager.detach())
+    assert compilation.PRECOMPILED == {"built": 1, "loaded": 1, "jit": 1} and later.compiled
+    assert len(list(tmp_path.glob("*.pt2"))) == 1

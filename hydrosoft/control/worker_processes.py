@@ -19,6 +19,10 @@ start state and one share of the sequences to each, whose solver's ``improve`` r
 standard pickler and sent as bytes through the sockets, the per-solve tensors as NumPy arrays (multiprocessing's own
 pickler would move each tensor through a shared-memory file, slower for a few kilobytes).
 
+A worker's compiled parts (the problem's step and costs, when they are ``compilation.FallsBack``) may fall back to
+eager in the worker, where the parent would not see it: each ``improve`` answer says which of them run eager and
+why, which the parent keeps in ``fallbacks`` (worker index -> reason) and reports once through ``on_fallback``.
+
 A worker's error is raised in the parent as ``WorkerError`` with the worker's message; a worker that dies, or does
 not answer within ``timeout_s``, raises it too, and ``close`` (also on garbage collection and at exit) stops all
 of them. A worker exits by itself when its socket closes, so none outlives its parent, even one killed.
@@ -78,6 +82,8 @@ class WorkerProcesses:
     to wait for a process to start (build and compile) and for each answer. ``device``: where each process's solver
     computes (its ``build`` puts the problem's model there too); the per-solve messages between the processes are
     NumPy arrays, so the states and sequences cross on the CPU and each side moves them to its own device once.
+    ``fallbacks``: for each process whose compiled parts fell back to eager, which and why (``on_fallback(index,
+    reason)`` is called when one first does).
     """
 
     def __init__(self, build: Callable[[Any], Problem], workers: int, low: Tensor, high: Tensor,
@@ -88,6 +94,8 @@ class WorkerProcesses:
                              f"worker process runs another main module)")
         self.workers = workers
         self.timeout_s = timeout_s
+        self.fallbacks: dict[int, str] = {}
+        self.on_fallback: Callable[[int, str], None] | None = None
         self._pipes: list[Connection] = []
         self._processes: list[subprocess.Popen] = []
         self._finalizer = weakref.finalize(self, _stop, self._pipes, self._processes)
@@ -117,9 +125,14 @@ class WorkerProcesses:
             raise ValueError(f"{len(shares)} shares for {self.workers} worker processes")
         start = _to_numpy(x0)
         results = self._broadcast("improve", [(start, share.cpu().numpy()) for share in shares])
+        for index, (*_, eager) in enumerate(results):
+            if eager and self.fallbacks.get(index) != eager:
+                self.fallbacks[index] = eager
+                if self.on_fallback is not None:
+                    self.on_fallback(index, eager)
         return [ShareResult(torch.from_numpy(u).to(share), torch.from_numpy(cost).to(share.device), best,
                             _to_torch(states, share.device), timings)
-                for (u, cost, best, states, timings), share in zip(results, shares)]
+                for (u, cost, best, states, timings, _), share in zip(results, shares)]
 
     def close(self) -> None:
         """Stop the processes (their pipes close; any still running after 5 s is killed)."""
@@ -167,6 +180,17 @@ def _stop(pipes: list[Connection], processes: list[subprocess.Popen]) -> None:
             process.wait(5.0)
 
 
+PART_NAMES = ("step", "stage cost", "terminal cost")
+"""The problem's parts, as ``build`` returns them."""
+
+
+def eager_parts(parts: Problem) -> str:
+    """Which of a problem's compiled parts (``compilation.FallsBack``) fell back to eager, and why: '' when none
+    did (plain functions are eager by design and not named)."""
+    return "; ".join(f"{name}: {part.fallback_reason}" for name, part in zip(PART_NAMES, parts)
+                     if getattr(part, "fallback_reason", None) is not None)
+
+
 def _reply(pipe: Connection, message: tuple) -> None:
     pipe.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
 
@@ -177,11 +201,12 @@ def _serve(pipe: Connection) -> None:
     kind, (build, low, high, config, dtype, threads, device) = pickle.loads(pipe.recv_bytes())
     torch.set_num_threads(threads)
 
-    def make(description: Any) -> CemGd:
-        return CemGd(*build(description), torch.from_numpy(low), torch.from_numpy(high), config=config, dtype=dtype,
-                     device=device)
+    def make(description: Any) -> tuple[CemGd, Problem]:
+        parts = build(description)
+        return CemGd(*parts, torch.from_numpy(low), torch.from_numpy(high), config=config, dtype=dtype,
+                     device=device), parts
 
-    cem, unsettled = None, 0
+    cem, parts, unsettled = None, (), 0
     _reply(pipe, ("ok", None) if kind == "start" else ("error", f"expected start, got {kind!r}"))
     while True:
         try:
@@ -190,7 +215,7 @@ def _serve(pipe: Connection) -> None:
             return
         try:
             if kind == "problem":
-                cem = make(payload)
+                cem, parts = make(payload)
                 unsettled = SETTLE_AFTER
                 _reply(pipe, ("ok", None))
             elif kind == "improve" and cem is None:
@@ -204,7 +229,7 @@ def _serve(pipe: Connection) -> None:
                     if not unsettled:
                         settle_garbage_collector()
                 _reply(pipe, ("ok", (*_to_numpy((share.u, share.cost)), share.best, _to_numpy(share.best_states),
-                                  share.timings)))
+                                  share.timings, eager_parts(parts))))
             else:
                 _reply(pipe, ("error", f"unknown message {kind!r}"))
         except Exception:  # noqa: BLE001 - reported to the parent, which raises it

@@ -3,10 +3,15 @@ this config and this torch, so that a launch loads it (seconds) or says it compi
 it eager without saying so.
 
 What torch compiles (inductor's C++ kernels, AOT autograd's forward and backward graphs) it keeps in its compile
-cache directory (``cache_dir``), found again by the graphs themselves; dynamo's tracing it repeats in every
-process (seconds, then the cache answers). An artefact is the record ``CACHE/hydrosoft-artefacts/PART-KEY.json``
-written once PART compiled completely into that cache, under its key (``ArtefactKey``): a hash of the config keys
-that shape PART's graphs, torch's version, and the model library's source. A launch whose key has a record loads
+cache directory (``cache_dir``), found again by the graphs themselves; dynamo's tracing it would repeat in every
+process. So the plant's compiled functions are also precompiled (``compilation.Precompiled``): saved whole, guards
+and graphs, in ``CACHE/hydrosoft-artefacts/PART-KEY/`` (``precompiled_dir``) by ``hydrosoft-stack compile``, and
+loaded from there at a launch without tracing (``use_precompiled``, set before the part's model is built); a launch
+that finds none compiles the usual way. (The planner's are not: building them took far longer than loading its
+graphs from inductor's cache, and their load was not measured; docs/benchmarks.md, "Stack start".) An artefact is the
+record ``CACHE/hydrosoft-artefacts/PART-KEY.json`` written once PART compiled completely into that cache, under its
+key (``ArtefactKey``): a hash of the config keys that shape PART's graphs, torch's version, and the model library's
+source. A launch whose key has a record loads
 the part from the cache; one without any record of PART (``missing``) or with records of other keys only
 (``stale``: a config, torch or code change) compiles it, saying so in its log and status, and records its key
 when it is done. Records of several keys lie side by side, so several configs stay warm in one cache.
@@ -148,6 +153,21 @@ def check(cache: Path, key: ArtefactKey) -> str:
     return "missing artefact"
 
 
+def precompiled_dir(cache: Path, key: ArtefactKey) -> Path:
+    """Where ``key``'s part keeps its precompiled functions in the compile cache ``cache``."""
+    return cache / RECORDS / f"{key.part}-{key.key}"
+
+
+def use_precompiled(config: StackConfig, key: ArtefactKey, build: bool = False) -> Path:
+    """Have the compiled functions this process (and the processes it starts) makes from now on load ``key``'s
+    precompiled functions, and build missing ones when ``build`` (``compilation.use_precompiled``); their
+    directory."""
+    from hydrosoft.compilation import use_precompiled as use
+    directory = precompiled_dir(cache_dir(config), key)
+    use(directory, build)
+    return directory
+
+
 def record(cache: Path, key: ArtefactKey, seconds: float) -> Path:
     """Record that ``key``'s part compiled completely into ``cache`` in ``seconds``; the record's path. Written to a
     temporary file and renamed, so a reader never sees half a record."""
@@ -169,8 +189,9 @@ class PartBuild:
     (``status``), and its compilation with progress lines (``run``).
 
     ``status`` before ``run``: ``compiling: loading artefact KEY`` (ready) or ``compiling: missing artefact, building
-    KEY`` / ``compiling: stale artefact (WHAT CHANGED), building KEY``; after it: ``compiled (artefact KEY)``, or
-    ``eager: WHY`` when the part fell back to eager."""
+    KEY`` / ``compiling: stale artefact (WHAT CHANGED), building KEY``; after it: ``compiled (artefact KEY,
+    precompiled)`` when its functions were loaded (or built) whole, ``compiled (artefact KEY)`` when dynamo traced
+    them, or ``eager: WHY`` when the part fell back to eager."""
 
     def __init__(self, key: ArtefactKey, cache: Path) -> None:
         self.key = key
@@ -178,6 +199,7 @@ class PartBuild:
         self.state = check(cache, key)
         self.seconds: float | None = None
         self.fallback: str | None = None
+        self.precompiled = False  # its functions were loaded or built whole, none traced
 
     @property
     def ready(self) -> bool:
@@ -189,7 +211,7 @@ class PartBuild:
         if self.fallback is not None:
             return f"eager: {self.fallback}"
         if self.seconds is not None:
-            return f"compiled (artefact {self.key.key})"
+            return f"compiled (artefact {self.key.key}{', precompiled' if self.precompiled else ''})"
         if self.ready:
             return f"compiling: loading artefact {self.key.key}"
         return f"compiling: {self.state}, building {self.key.key}"
@@ -213,6 +235,8 @@ class PartBuild:
             return False
         if not self.ready:
             record(self.cache, self.key, seconds)
+        _, _, built, loaded, traced = (now - then for now, then in zip(_graph_counts(), before))
+        self.precompiled = bool(built + loaded) and not traced
         self.seconds = seconds
         say(f"{part}: {self.status} in {seconds:.1f} s ({_graphs(before)})")
         return True
@@ -236,14 +260,19 @@ def _progress(tick: Callable[[], None], period_s: float) -> Iterator[None]:
         thread.join()
 
 
-def _graph_counts() -> tuple[int, int]:
-    """Inductor's graphs so far in this process: (compiled, loaded from the compile cache)."""
+def _graph_counts() -> tuple[int, int, int, int, int]:
+    """This process's graphs so far: inductor's (compiled, loaded from the compile cache) and the precompiled
+    functions (built, loaded, and copies that traced instead: ``compilation.PRECOMPILED``)."""
     from torch._dynamo.utils import counters
+
+    from hydrosoft.compilation import PRECOMPILED
     inductor = counters["inductor"]
-    return inductor["fxgraph_cache_miss"] + inductor["fxgraph_cache_bypass"], inductor["fxgraph_cache_hit"]
+    return (inductor["fxgraph_cache_miss"] + inductor["fxgraph_cache_bypass"], inductor["fxgraph_cache_hit"],
+            PRECOMPILED["built"], PRECOMPILED["loaded"], PRECOMPILED["jit"])
 
 
-def _graphs(before: tuple[int, int]) -> str:
-    """Inductor's graphs since ``before`` (``_graph_counts``), in words."""
-    compiled, loaded = (now - then for now, then in zip(_graph_counts(), before))
-    return f"{compiled} graphs compiled, {loaded} loaded from the cache"
+def _graphs(before: tuple[int, int, int, int, int]) -> str:
+    """The graphs since ``before`` (``_graph_counts``), in words."""
+    compiled, loaded, built, precompiled, _ = (now - then for now, then in zip(_graph_counts(), before))
+    return (f"{compiled} graphs compiled, {loaded} loaded from the cache; {built} precompiled functions built, "
+            f"{precompiled} loaded")

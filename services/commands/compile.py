@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from hydrosoft.compilation import use_precompiled
 from hydrosoft.services.bus import artefacts
 from hydrosoft.services.bus.config import ConfigError, StackConfig, load_config
 from hydrosoft.services.planner import PlannerCore, compile_planner
@@ -34,12 +35,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def compiled_parts(config: StackConfig) -> list[tuple[artefacts.ArtefactKey, int, Callable[[], str | None]]]:
     """The config's compiled parts, in launch order: each part's key, its torch threads and what compiles it (None
-    once compiled, or why it fell back to eager). Building a part's model here raises ValueError for a config whose
-    arms the scene lacks."""
+    once compiled, or why it fell back to eager). The plant is built with its precompiled directory set to build
+    (``artefacts.use_precompiled``), so that its compiled functions are saved there whole, for every launch to load.
+    Building a part's model here raises ValueError for a config whose arms the scene lacks."""
     parts = []
     if config.mode == "sim" and config.sim.compile:
+        artefacts.use_precompiled(config, artefacts.plant_key(config), build=True)
         plant = SimPlant.from_config(config)
         parts.append((artefacts.plant_key(config), TORCH_THREADS, plant.compile))
+        use_precompiled(None)  # the planner's functions are not precompiled (artefacts)
     if config.planner.compile:
         core = PlannerCore.build(config)
         parts.append((artefacts.planner_key(config), config.planner.threads, functools.partial(compile_planner, core)))

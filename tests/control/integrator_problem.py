@@ -33,3 +33,16 @@ def build(goal: tuple[float, float, float]):
         return sum(to_goal(state) for state in states) + 0.01 * effort_cost(u)
 
     return integrator, stage, to_goal
+
+
+def no_compiler(graph, example_inputs):
+    """A ``torch.compile`` backend that fails, as one without a C++ compiler does."""
+    raise RuntimeError("no C++ compiler here")
+
+
+def build_without_compiler(goal: tuple[float, float, float]):
+    """``build`` with its dynamics compiled (``compilation.CompiledFunction``) by a backend that fails: the worker's
+    step falls back to eager at its first call."""
+    from hydrosoft.compilation import CompiledFunction
+    _, stage, to_goal = build(goal)
+    return CompiledFunction(integrator, backend=no_compiler), stage, to_goal

@@ -74,6 +74,28 @@ def test_processes_plan_what_threads_plan_and_follow_a_new_goal():
     assert_stopped(pids)
 
 
+def test_a_workers_step_that_falls_back_to_eager_is_reported_to_the_parent_once():
+    """A worker's compiled step fails to compile and runs eager there: the parent's ``fallbacks`` names the worker,
+    the part and the reason, and ``on_fallback`` hears it once, not at every solve."""
+    config = CemGdConfig(seed=0, workers=2)
+    workers = WorkerProcesses(problem.build_without_compiler, 2, LOW, -LOW, config, torch.float64, timeout_s=60.0)
+    pids = workers.pids
+    heard = []
+    workers.on_fallback = lambda index, why: heard.append((index, why))
+    try:
+        workers.set_problem(GOAL)
+        cem = solver(config, processes=workers)
+        assert workers.fallbacks == {}
+        for _ in range(2):
+            cem.solve(x0())
+    finally:
+        workers.close()
+    assert_stopped(pids)
+    assert sorted(workers.fallbacks) == [0, 1]
+    assert all(why.startswith("step: ") and "no C++ compiler here" in why for why in workers.fallbacks.values())
+    assert sorted(heard) == sorted(workers.fallbacks.items())
+
+
 def test_a_broken_problem_raises_the_workers_error_and_stops_them():
     config = CemGdConfig(seed=0, workers=2)
     workers = start(config)

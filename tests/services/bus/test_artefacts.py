@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from pathlib import Path
 
 import msgspec
 import pytest
 
+from hydrosoft import compilation
 from hydrosoft.services.bus import artefacts
 from hydrosoft.services.bus.config import load_config
 
@@ -106,6 +108,23 @@ def test_a_part_that_falls_back_to_eager_says_so_and_records_nothing(tmp_path, c
     assert artefacts.check(tmp_path, key) == "missing artefact"
 
 
+@pytest.mark.parametrize("counted, precompiled", [
+    ({"loaded": 2}, True),  # a launch that loaded every function whole
+    ({"loaded": 1, "jit": 1}, False),  # one signature had no file: dynamo traced it
+    ({}, False),  # nothing precompiled (the planner)
+])
+def test_the_status_says_whether_the_part_was_precompiled_or_traced(counted, precompiled, tmp_path, config,
+                                                                   monkeypatch):
+    monkeypatch.setattr(compilation, "PRECOMPILED", Counter())
+    key = artefacts.plant_key(config)
+    artefacts.record(tmp_path, key, 1.0)
+    build = artefacts.PartBuild(key, tmp_path)
+    lines = []
+    assert build.run(lambda: compilation.PRECOMPILED.update(counted), lines.append)
+    assert build.status == f"compiled (artefact {key.key}{', precompiled' if precompiled else ''})"
+    assert f"{counted.get('loaded', 0)} loaded)" in lines[-1]
+
+
 def test_the_cache_is_the_environments_then_the_configs_then_torchs(tmp_path, config, monkeypatch):
     monkeypatch.delenv(artefacts.CACHE_ENV, raising=False)
     assert artefacts.cache_dir(config).name.startswith("torchinductor_")
@@ -113,3 +132,12 @@ def test_the_cache_is_the_environments_then_the_configs_then_torchs(tmp_path, co
     assert artefacts.cache_dir(named) == tmp_path / "named"
     monkeypatch.setenv(artefacts.CACHE_ENV, str(tmp_path / "env"))
     assert artefacts.cache_dir(named) == tmp_path / "env"
+
+
+@pytest.mark.parametrize("name", ["sim.toml", "sim-bimanual.toml"])
+def test_a_shipped_compiled_plant_is_loop_free_so_its_artefact_loads(name):
+    """A plant solved to convergence is a ``torch.while_loop``, which torch's compile cache refuses: it would compile
+    at every launch, its artefact never loaded. The shipped sim configs fix the solver's steps, as their planners do."""
+    config = load_config(SIM_TOML.parent / name)
+    assert config.sim.compile
+    assert config.sim.sdf_solver_steps is not None

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from hydrosoft.compilation import PRECOMPILED_ENV
 from hydrosoft.dynamics import CompiledStep
 from hydrosoft.services import sim_world
 from hydrosoft.services.bus import artefacts
@@ -28,6 +29,14 @@ def no_cache_env(monkeypatch):
     """TORCHINDUCTOR_CACHE_DIR unset for the test and restored after it."""
     monkeypatch.setenv(CACHE_ENV, "placeholder")  # records the variable's state before the test
     monkeypatch.delenv(CACHE_ENV)
+
+
+@pytest.fixture(autouse=True)
+def precompiled_env_restored(monkeypatch):
+    """The precompiled directory ``compiled_parts`` sets (``artefacts.use_precompiled``) unset after the test, so
+    that no later test's compiled functions are precompiled into it."""
+    monkeypatch.setenv(PRECOMPILED_ENV, "placeholder")  # records the variable's state before the test
+    monkeypatch.delenv(PRECOMPILED_ENV)
 
 
 def compiled_config(tmp_path: Path, plant: bool = True) -> Path:
