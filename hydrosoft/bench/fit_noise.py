@@ -24,22 +24,36 @@ import tempfile
 import time
 from pathlib import Path
 
+from hydrosoft.bench.material_parameters import BOOTSTRAP_INTERVALS, DEFAULT_DRAWS
+
 TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
 OBJECT = "cube"
 KINDS = ("shear", "twist", "shear_twist", "shear", "shear_twist", "twist", "shear", "shear_twist")
 STEPS = 12
+METHODS = ("hessian",) + BOOTSTRAP_INTERVALS  # Gauss-Newton, and the bootstrap's two intervals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``hydrosoft-stack bench fit``."""
-    parser.add_argument("--seeds", type=int, default=10, help="noisy recordings to fit, seeds 0..N-1 (default 10)")
+    parser.add_argument("--seeds", type=int, default=10, help="noisy recordings to fit (default 10)")
+    parser.add_argument("--first-seed", type=int, default=0, help="seed of the first one (default 0)")
+    parser.add_argument("--draws", type=int, default=DEFAULT_DRAWS,
+                        help="parametric bootstrap draws per seed, beside the Gauss-Newton interval; 0: Gauss-Newton "
+                             f"only (default {DEFAULT_DRAWS}; each draw is one refit, 0.5 to 4 s of CPU)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
 
 
-def fit_one(folder: Path, seed: int, noise_scale: float) -> dict:
-    """Record and fit one synthetic recording; its row of the benchmark's document."""
+def _covered(interval, truth: float) -> bool:
+    return interval[0] <= truth <= interval[1]
+
+
+def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0) -> dict:
+    """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0); its row of the
+    benchmark's document: per parameter the fit's value, error, Gauss-Newton sigma and interval, and, with draws,
+    ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth."""
     from hydrosoft.bench import material_fit
+    from hydrosoft.bench.fit_bootstrap import bootstrap
     from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
     from hydrosoft.bench.wrench_replay import load_recordings
 
@@ -48,54 +62,88 @@ def fit_one(folder: Path, seed: int, noise_scale: float) -> dict:
     write_synthetic_recording(path, OBJECT, TRUTH, KINDS, STEPS, seed, noise_scale)
     groups = load_recordings([path])
     labels = {(g.object, t.index) for g in groups for t in g.trajectories}
-    result = material_fit.fit_material(material_fit.replay_batches(groups, labels), "nh", list(TRUTH))
+    batches = material_fit.replay_batches(groups, labels)
+    result = material_fit.fit_material(batches, "nh", list(TRUTH))
     row = {"seed": seed, "noise_scale": noise_scale, "reduced_chi2": result.reduced_chi2, "substeps": result.substeps,
            "seconds": time.perf_counter() - tic}
     for e in result.estimates:
         row[e.name] = {"value": e.value, "relative_error": e.value / TRUTH[e.name] - 1, "sigma": e.sigma,
                        "interval95": list(e.interval95), "identified": e.identified,
-                       "covered": e.interval95[0] <= TRUTH[e.name] <= e.interval95[1]}
+                       "covered": _covered(e.interval95, TRUTH[e.name])}
+    if draws:
+        boot = bootstrap(result, batches, "nh", list(TRUTH), draws, seed)
+        row["bootstrap"] = {"draws": len(boot.draws), "failed": boot.failed, "noise_scale": boot.noise_scale,
+                            "evaluations": boot.evaluations, "seconds": boot.seconds}
+        for e in boot.estimates:
+            row[e.name]["bootstrap"] = {"sigma": e.sigma, **{
+                kind: {"interval95": list(boot.intervals[kind][e.name]),
+                       "covered": _covered(boot.intervals[kind][e.name], TRUTH[e.name])} for kind in BOOTSTRAP_INTERVALS}}
+        row["seconds"] = time.perf_counter() - tic
     return row
 
 
-def evaluate(seeds: int, progress=None) -> dict:
-    """The benchmark's document: ``recovery`` (the noise-free row), ``noisy`` (one row per seed), ``covered`` (per
-    parameter the count of noisy seeds whose 95 % interval holds the truth) and ``all_covered`` (seeds covering all
-    three)."""
+def covered_of(row: dict, name: str, method: str) -> bool:
+    """Whether ``method`` (``METHODS``) covered parameter ``name``'s truth in a row of ``fit_one``."""
+    return row[name]["covered"] if method == "hessian" else row[name]["bootstrap"][method]["covered"]
+
+
+def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0) -> dict:
+    """The benchmark's document: ``recovery`` (the noise-free row, no bootstrap), ``noisy`` (one row per seed,
+    ``first_seed`` on), ``covered`` (per parameter the count of noisy seeds whose Gauss-Newton 95 % interval holds
+    the truth), ``all_covered`` (seeds covering all three), and ``covered_by`` and ``all_covered_by``: the same per
+    method (``hessian``, and with ``draws`` the bootstrap's ``percentile`` and ``basic``)."""
     with tempfile.TemporaryDirectory(prefix="hydrosoft-fit-bench-") as folder:
         recovery = fit_one(Path(folder), 0, 0.0)
         if progress:
             progress(f"noise-free recovery in {recovery['seconds']:.1f} s")
         noisy = []
-        for seed in range(seeds):
-            noisy.append(fit_one(Path(folder), seed, 1.0))
+        for seed in range(first_seed, first_seed + seeds):
+            noisy.append(fit_one(Path(folder), seed, 1.0, draws))
             if progress:
                 progress(f"seed {seed} in {noisy[-1]['seconds']:.1f} s")
+    methods = METHODS if draws else METHODS[:1]
+    covered_by = {m: {name: sum(covered_of(r, name, m) for r in noisy) for name in TRUTH} for m in methods}
+    all_covered_by = {m: sum(all(covered_of(r, name, m) for name in TRUTH) for r in noisy) for m in methods}
     return {"truth": TRUTH, "object": OBJECT, "trajectories": len(KINDS), "steps": STEPS, "recovery": recovery,
-            "noisy": noisy, "covered": {name: sum(r[name]["covered"] for r in noisy) for name in TRUTH},
-            "all_covered": sum(all(r[name]["covered"] for name in TRUTH) for r in noisy), "seeds": seeds}
+            "noisy": noisy, "covered": covered_by["hessian"], "all_covered": all_covered_by["hessian"],
+            "covered_by": covered_by, "all_covered_by": all_covered_by, "seeds": seeds,
+            "first_seed": first_seed, "draws": draws}
 
 
 def format_table(document: dict) -> str:
-    """One line per run: per parameter the value, its relative error, 1 sigma and whether the 95 % interval holds
-    the truth; then the coverage counts."""
+    """One line per run: per parameter the value, its relative error, the Gauss-Newton 1 sigma and whether its 95 %
+    interval holds the truth, then with draws whether the bootstrap's percentile (p) and basic (b) intervals do;
+    then the coverage counts per method."""
     names = list(TRUTH)
-    head = f"{'run':<12}" + "".join(f"| {name:^34} " for name in names) + "| chi2/dof | sub-steps"
+    boot = bool(document["draws"])
+    width = 34 + (8 if boot else 0)
+    head = f"{'run':<12}" + "".join(f"| {name:^{width}} " for name in names) + "| chi2/dof | sub-steps"
     lines = [f"Material fit on synthetic {document['object']} recordings ({document['trajectories']} trajectories of "
-             f"{document['steps']} steps), truth " + ", ".join(f"{n} {v:.4g}" for n, v in TRUTH.items()),
+             f"{document['steps']} steps), truth " + ", ".join(f"{n} {v:.4g}" for n, v in TRUTH.items())
+             + (f"; bootstrap of {document['draws']} draws: p percentile, b basic interval" if boot else ""),
              head, "-" * len(head)]
 
+    def mark(covered: bool) -> str:
+        return "in" if covered else "OUT"
+
     def line(title: str, row: dict) -> str:
-        cells = "".join(f"| {row[n]['value']:>10.4g} {100 * row[n]['relative_error']:>+6.2f}% "
-                        f"s {row[n]['sigma']:>8.3g} {'in' if row[n]['covered'] else 'OUT':>3} " for n in names)
+        cells = ""
+        for n in names:
+            cells += (f"| {row[n]['value']:>10.4g} {100 * row[n]['relative_error']:>+6.2f}% "
+                      f"s {row[n]['sigma']:>8.3g} {mark(row[n]['covered']):>3} ")
+            if boot:
+                cells += "".join(f"{kind[0]} {mark(covered_of(row, n, kind)) if 'bootstrap' in row else '-':>3} "
+                                 for kind in BOOTSTRAP_INTERVALS)
         return f"{title:<12}{cells}| {row['reduced_chi2']:<8.3g} | {row['substeps']}"
 
     lines.append(line("no noise", document["recovery"]))
     lines += [line(f"noise s{r['seed']}", r) for r in document["noisy"]]
     lines.append("")
-    lines.append("Truth inside the reported 95 % interval: " + ", ".join(
-        f"{n} {document['covered'][n]}/{document['seeds']}" for n in names)
-        + f"; all three {document['all_covered']}/{document['seeds']}")
+    seeds = f"seeds {document['first_seed']}-{document['first_seed'] + document['seeds'] - 1}"
+    for method, covered in document["covered_by"].items():
+        lines.append(f"Truth inside the 95 % interval ({method}, {seeds}): " + ", ".join(
+            f"{n} {covered[n]}/{document['seeds']}" for n in names)
+            + f"; all three {document['all_covered_by'][method]}/{document['seeds']}")
     return "\n".join(lines)
 
 
@@ -106,7 +154,11 @@ def run(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         print(f"bench fit: --seeds must be at least 1, got {args.seeds}", file=sys.stderr)
         return 2
+    if args.draws < 0 or args.draws == 1:
+        print(f"bench fit: --draws must be 0 (no bootstrap) or at least 2, got {args.draws}", file=sys.stderr)
+        return 2
     torch.set_num_threads(args.threads)
-    document = evaluate(args.seeds, progress=lambda text: print(f"[bench fit] {text}", file=sys.stderr, flush=True))
+    document = evaluate(args.seeds, lambda text: print(f"[bench fit] {text}", file=sys.stderr, flush=True),
+                        args.draws, args.first_seed)
     print(json.dumps(document) if args.json else format_table(document))
     return 0
