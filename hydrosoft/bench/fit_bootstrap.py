@@ -36,6 +36,7 @@ from hydrosoft.bench.material_parameters import DEFAULT_DRAWS, MU_MAX, PARAMETER
 from hydrosoft.bench.synthetic_wrench import FRAMES_PER_SAMPLE, measured_wrenches
 from hydrosoft.bench.wrench_replay import predict_tcp_wrenches
 
+BOOTSTRAP_INTERVAL = "percentile"  # the kind ``fit --uncertainty bootstrap`` reports (docs/decisions.md)
 NOISE_STREAM = 0xB007  # first word of the bootstrap noise generator's seed
 QUANTILES = (0.025, 0.975)  # two-sided 95 %
 #: A refit stops once a step moves the values by less than this many standard deviations (along the fit's
@@ -99,7 +100,7 @@ def newton_scale(fit: MaterialFit) -> tuple[np.ndarray, float] | None:
 
 def bootstrap(fit: MaterialFit, batches: Sequence[ReplayBatch], contact: str, params: Sequence[str],
               draws: int = DEFAULT_DRAWS, seed: int = 0, start: dict[str, float] | None = None,
-              interval: str = "percentile",
+              interval: str = BOOTSTRAP_INTERVAL,
               progress: Callable[[int, int, float], None] | None = None) -> Bootstrap:
     """Parametric bootstrap (module docstring) of ``fit``, the result of ``material_fit.fit_material(batches,
     contact, params, start)``: ``draws`` refits, noise seeded by ``seed``; ``interval``: the kind its estimates
