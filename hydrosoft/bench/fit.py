@@ -55,9 +55,11 @@ def _floats(text: str) -> tuple[float, ...]:
 
 
 def stack_options(args: argparse.Namespace) -> dict:
-    """``read_stack_recording``'s keyword arguments from the stack recording options that were given."""
+    """``read_stack_recording``'s keyword arguments, and ``contact_force_n`` (``split_at_free_samples``'s), from the
+    stack recording options that were given."""
     options = {"object_name": args.object, "arm": args.arm, "clamped": args.clamped,
-               "tcp_in_sensor": args.tcp_in_sensor, "max_gap_s": args.max_gap, "period_s": args.period}
+               "tcp_in_sensor": args.tcp_in_sensor, "max_gap_s": args.max_gap, "period_s": args.period,
+               "contact_force_n": args.contact_force}
     return {key: value for key, value in options.items() if value is not None}
 
 
@@ -100,7 +102,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     stack.add_argument("--tcp-in-sensor", type=_floats, default=None, metavar="X,Y,Z,QW,QX,QY,QZ",
                        help="the TCP (bubble) frame's pose in the F/T sensor's frame, m and wxyz (default identity)")
     stack.add_argument("--max-gap", type=float, default=None, metavar="S",
-                       help="drop a wrench sample with no pose within this many seconds (default 0.02)")
+                       help="interpolate the poses to each wrench sample between poses at most 2 S apart, else take "
+                            "the nearest within S, else drop the sample (default 0.02)")
+    stack.add_argument("--contact-force", type=float, default=None, metavar="N",
+                       help="cut the recording into one trajectory per contact, where the force exceeds N newtons, "
+                            "each with its own tare before it; 0 keeps it whole, its first sample the tare "
+                            "(default 0.5)")
     stack.add_argument("--period", type=float, default=None, metavar="S",
                        help="keep at most one wrench sample per this many seconds (default 0.05)")
 
@@ -121,8 +128,10 @@ def check_recording(path: Path, read=None) -> None:
 
 class RecordingReaders:
     """Reads each file in its format: a stack recording (``stack_recording.read_stack_recording`` with
-    ``stack_options``) as one trajectory, numbered from ``STACK_INDEX_BASE`` in the order read, or a ``collect
-    wrench`` file. ``stack`` holds what each stack recording gave (path, arm, object, kept and dropped samples)."""
+    ``stack_options``) cut into one trajectory per contact (``split_at_free_samples`` at ``contact_force_n``; 0 or
+    less keeps it whole), numbered from ``STACK_INDEX_BASE`` in the order read, or a ``collect wrench`` file.
+    ``stack`` holds what each stack recording gave (arm, object, kept and dropped samples, trajectories and contacts
+    skipped for want of a tare before them)."""
 
     STACK_INDEX_BASE = 1000
 
@@ -134,18 +143,28 @@ class RecordingReaders:
     def __call__(self, path: Path):
         from dataclasses import replace
 
-        from hydrosoft.bench.stack_recording import is_stack_recording, read_stack_recording
+        from hydrosoft.bench.stack_recording import (DEFAULT_CONTACT_FORCE_N, is_stack_recording,
+                                                     read_stack_recording, split_at_free_samples)
         from hydrosoft.bench.wrench_recording import read_wrench_recording
 
         if not is_stack_recording(path):
             return read_wrench_recording(path)
         if str(path) not in self._read:
-            read = read_stack_recording(path, **self.stack_options)
-            index = self.STACK_INDEX_BASE + len(self.stack)
-            self.stack[str(path)] = {"index": index, "arm": read.arm, "object": read.info.object,
+            options = dict(self.stack_options)
+            contact_force = options.pop("contact_force_n", DEFAULT_CONTACT_FORCE_N)
+            read = read_stack_recording(path, **options)
+            pieces, skipped = ([read.trajectory], 0) if contact_force <= 0 else \
+                split_at_free_samples(read.trajectory, contact_force)
+            if not pieces:
+                raise ValueError(f"{path}: no contact with an out-of-contact sample before it (force over "
+                                 f"{contact_force} N; {skipped} contact(s) from the start): nothing to fit")
+            first = self.STACK_INDEX_BASE + sum(len(s["indices"]) for s in self.stack.values())
+            indices = list(range(first, first + len(pieces)))
+            self.stack[str(path)] = {"indices": indices, "arm": read.arm, "object": read.info.object,
                                      "clamped": bool(self.stack_options.get("clamped", False)), "kept": read.kept,
-                                     "dropped": read.dropped}
-            self._read[str(path)] = read.info, [replace(read.trajectory, index=index)]
+                                     "dropped": read.dropped, "trajectories": len(pieces),
+                                     "skipped_in_contact": skipped}
+            self._read[str(path)] = read.info, [replace(t, index=i) for t, i in zip(pieces, indices)]
         return self._read[str(path)]
 
 
@@ -280,7 +299,8 @@ def format_tables(document: dict) -> str:
     for path, stack in document["settings"]["stack_recordings"].items():
         lines.append(f"  stack recording {path}: arm {stack['arm']}, object {stack['object']}"
                      f"{' (clamped)' if stack['clamped'] else ' (tracked)'}, {stack['kept']} samples kept, "
-                     f"{stack['dropped']} dropped (no pose within the max gap)")
+                     f"{stack['dropped']} dropped (no pose within the max gap), {stack['trajectories']} "
+                     f"trajectories, {stack['skipped_in_contact']} contacts skipped (in contact from the start)")
     index = {(r["set"], r["when"]): r for r in document["rows"]}
 
     def table(title: str, key: str, digits: int = 3) -> list[str]:
@@ -344,6 +364,10 @@ def run(args: argparse.Namespace) -> int:
         if value is not None and not (math.isfinite(value) and value > 0):
             print(f"fit: {name} must be a positive number of seconds, got {value}", file=sys.stderr)
             return 2
+    if args.contact_force is not None and not (math.isfinite(args.contact_force) and args.contact_force >= 0):
+        print(f"fit: --contact-force must be a number of newtons, 0 or more, got {args.contact_force}",
+              file=sys.stderr)
+        return 2
     if args.uncertainty == "bootstrap" and args.draws < 2:
         print(f"fit: --draws must be at least 2, got {args.draws}", file=sys.stderr)
         return 2
