@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import time
@@ -40,16 +41,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--draws", type=int, default=DEFAULT_DRAWS,
                         help="parametric bootstrap draws per seed, beside the Gauss-Newton interval; 0: Gauss-Newton "
                              f"only (default {DEFAULT_DRAWS}; each draw is one refit, 0.5 to 4 s of CPU)")
+    parser.add_argument("--pose-noise", type=_pose_noise, default=(0.0, 0.0), metavar="MM,DEG",
+                        help="tracker noise on the recorded object poses, standard deviation per axis of position (mm) "
+                             "and rotation (deg); the plant pressed the true pose (default none)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
+
+
+def _pose_noise(text: str) -> tuple[float, float]:
+    parts = text.split(",")
+    try:
+        mm, deg = (float(part) for part in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected MM,DEG (two numbers), got {text!r}") from None
+    if not (math.isfinite(mm) and math.isfinite(deg) and mm >= 0 and deg >= 0):
+        raise argparse.ArgumentTypeError(f"expected two numbers 0 or more, got {text!r}")
+    return mm, deg
 
 
 def _covered(interval, truth: float) -> bool:
     return interval[0] <= truth <= interval[1]
 
 
-def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0) -> dict:
-    """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0); its row of the
+def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
+            pose_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0) and ``pose_noise``
+    ``(mm, deg)`` of tracker noise on its object poses; its row of the
     benchmark's document: per parameter the fit's value, error, Gauss-Newton sigma and interval, and, with draws,
     ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth."""
     from hydrosoft.bench import material_fit
@@ -59,7 +76,8 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0) -> dict
 
     path = folder / f"wrench-{OBJECT}-{seed}-{noise_scale:g}.mcap"
     tic = time.perf_counter()
-    write_synthetic_recording(path, OBJECT, TRUTH, KINDS, STEPS, seed, noise_scale)
+    write_synthetic_recording(path, OBJECT, TRUTH, KINDS, STEPS, seed, noise_scale,
+                              pose_noise=(pose_noise[0] / 1000, math.radians(pose_noise[1])))
     groups = load_recordings([path])
     labels = {(g.object, t.index) for g in groups for t in g.trajectories}
     batches = material_fit.replay_batches(groups, labels)
@@ -87,18 +105,20 @@ def covered_of(row: dict, name: str, method: str) -> bool:
     return row[name]["covered"] if method == "hessian" else row[name]["bootstrap"][method]["covered"]
 
 
-def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0) -> dict:
+def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
+             pose_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
     """The benchmark's document: ``recovery`` (the noise-free row, no bootstrap), ``noisy`` (one row per seed,
     ``first_seed`` on), ``covered`` (per parameter the count of noisy seeds whose Gauss-Newton 95 % interval holds
     the truth), ``all_covered`` (seeds covering all three), and ``covered_by`` and ``all_covered_by``: the same per
-    method (``hessian``, and with ``draws`` the bootstrap's ``percentile`` and ``basic``)."""
+    method (``hessian``, and with ``draws`` the bootstrap's ``percentile`` and ``basic``); ``mean_relative_error``
+    per parameter over the noisy seeds (the bias, with its standard error); ``pose_noise`` ``(mm, deg)``."""
     with tempfile.TemporaryDirectory(prefix="hydrosoft-fit-bench-") as folder:
-        recovery = fit_one(Path(folder), 0, 0.0)
+        recovery = fit_one(Path(folder), 0, 0.0, pose_noise=pose_noise)
         if progress:
             progress(f"noise-free recovery in {recovery['seconds']:.1f} s")
         noisy = []
         for seed in range(first_seed, first_seed + seeds):
-            noisy.append(fit_one(Path(folder), seed, 1.0, draws))
+            noisy.append(fit_one(Path(folder), seed, 1.0, draws, pose_noise))
             if progress:
                 progress(f"seed {seed} in {noisy[-1]['seconds']:.1f} s")
     methods = METHODS if draws else METHODS[:1]
@@ -107,7 +127,16 @@ def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0) -> 
     return {"truth": TRUTH, "object": OBJECT, "trajectories": len(KINDS), "steps": STEPS, "recovery": recovery,
             "noisy": noisy, "covered": covered_by["hessian"], "all_covered": all_covered_by["hessian"],
             "covered_by": covered_by, "all_covered_by": all_covered_by, "seeds": seeds,
-            "first_seed": first_seed, "draws": draws}
+            "first_seed": first_seed, "draws": draws, "pose_noise": list(pose_noise),
+            "mean_relative_error": {name: _mean_and_error([r[name]["relative_error"] for r in noisy])
+                                    for name in TRUTH}}
+
+
+def _mean_and_error(values: list[float]) -> list[float]:
+    """Mean and its standard error (0 for one value)."""
+    mean = sum(values) / len(values)
+    spread = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
+    return [mean, spread / math.sqrt(len(values))]
 
 
 def format_table(document: dict) -> str:
@@ -120,6 +149,8 @@ def format_table(document: dict) -> str:
     head = f"{'run':<12}" + "".join(f"| {name:^{width}} " for name in names) + "| chi2/dof | sub-steps"
     lines = [f"Material fit on synthetic {document['object']} recordings ({document['trajectories']} trajectories of "
              f"{document['steps']} steps), truth " + ", ".join(f"{n} {v:.4g}" for n, v in TRUTH.items())
+             + (", object poses with tracker noise {:g} mm, {:g} deg".format(*document["pose_noise"])
+                if any(document["pose_noise"]) else "")
              + (f"; bootstrap of {document['draws']} draws: p percentile, b basic interval" if boot else ""),
              head, "-" * len(head)]
 
@@ -140,6 +171,8 @@ def format_table(document: dict) -> str:
     lines += [line(f"noise s{r['seed']}", r) for r in document["noisy"]]
     lines.append("")
     seeds = f"seeds {document['first_seed']}-{document['first_seed'] + document['seeds'] - 1}"
+    lines.append(f"Mean relative error ({seeds}, +- standard error): " + ", ".join(
+        f"{n} {100 * m:+.2f} +- {100 * e:.2f} %" for n, (m, e) in document["mean_relative_error"].items()))
     for method, covered in document["covered_by"].items():
         lines.append(f"Truth inside the 95 % interval ({method}, {seeds}): " + ", ".join(
             f"{n} {covered[n]}/{document['seeds']}" for n in names)
@@ -159,6 +192,6 @@ def run(args: argparse.Namespace) -> int:
         return 2
     torch.set_num_threads(args.threads)
     document = evaluate(args.seeds, lambda text: print(f"[bench fit] {text}", file=sys.stderr, flush=True),
-                        args.draws, args.first_seed)
+                        args.draws, args.first_seed, args.pose_noise)
     print(json.dumps(document) if args.json else format_table(document))
     return 0
