@@ -31,8 +31,8 @@ IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 OBJECT_TOPIC = "object_pose/object"
 DEFAULT_MAX_GAP_S = 0.02  # the arm state comes at 125 Hz (8 ms) or faster, the tracked pose at the camera's 30 Hz
 DEFAULT_PERIOD_S = 0.05  # collect wrench's sample spacing
-#: A sample whose force (the tared wrench's force norm) exceeds this is in contact: 5 times the FT 300's noise per
-#: frame (0.1 N per axis, a norm of about 0.17 N), well under a press's few newtons.
+#: A sample whose force (the tared wrench's force norm, N) exceeds this is in contact: 5 times the FT 300's noise per
+#: axis and frame (0.1 N), about 3 times its norm over three axes (0.17 N), well under a press's few newtons.
 DEFAULT_CONTACT_FORCE_N = 0.5
 #: Out-of-contact samples kept before each contact, the first of them its tare (0.5 s at the default period): the
 #: tare is taken before the approach rather than at the touch, where light contact may already load the sensor.
