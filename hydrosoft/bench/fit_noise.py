@@ -7,12 +7,18 @@ E x1.7, K x0.6, mu 0.35 of the scenes' Soft Bubble) on the cube: ``len(KINDS)`` 
 fitted (``material_fit.fit_material``, E, K and mu from the scenes' values); a parameter is covered when the truth
 lies in its reported 95 % interval. First the same without noise (the FT 300's resolution only): the recovery.
 
+With ``--draws N`` each seed's fit is also bootstrapped (``fit_bootstrap``, N refits), and the coverage of the
+bootstrap's percentile and basic intervals is counted beside Gauss-Newton's. With ``--pose-noise MM,DEG`` the
+recorded object poses carry tracker noise (``synthetic_wrench.tracked_poses``) and the mean relative error over the
+seeds shows the bias it causes.
+
 Prints one row per run (the recovered values, their relative error, 1 sigma and whether covered) and per
-parameter the count of seeds that cover it; ``--json`` prints one JSON document instead.
+parameter and method the count of seeds that cover it; ``--json`` prints one JSON document instead.
 
 Run time: about 9 s of CPU per seed on one core (recording, fit, the replay-resolution check and the Gauss-Newton
 Jacobian): 101 s for the default 10 seeds and the noise-free run, 11 min 45 s of wall time on the loaded 2-core dev
-VM (2026-11-27).
+VM (2026-11-27). ``--draws 100`` adds 1 to 7 min of CPU per seed (6 to 11 cost evaluations per refit, more
+sub-steps cost more).
 """
 
 from __future__ import annotations
@@ -38,9 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``hydrosoft-stack bench fit``."""
     parser.add_argument("--seeds", type=int, default=10, help="noisy recordings to fit (default 10)")
     parser.add_argument("--first-seed", type=int, default=0, help="seed of the first one (default 0)")
-    parser.add_argument("--draws", type=int, default=DEFAULT_DRAWS,
-                        help="parametric bootstrap draws per seed, beside the Gauss-Newton interval; 0: Gauss-Newton "
-                             f"only (default {DEFAULT_DRAWS}; each draw is one refit, 0.5 to 4 s of CPU)")
+    parser.add_argument("--draws", type=int, default=0,
+                        help="parametric bootstrap draws per seed, beside the Gauss-Newton interval, e.g. "
+                             f"{DEFAULT_DRAWS}: each is one refit, 0.5 to 4 s of CPU, so 100 add 1 to 7 min per seed "
+                             "(default 0: Gauss-Newton only)")
     parser.add_argument("--pose-noise", type=_pose_noise, default=(0.0, 0.0), metavar="MM,DEG",
                         help="tracker noise on the recorded object poses, standard deviation per axis of position (mm) "
                              "and rotation (deg); the plant pressed the true pose (default none)")
