@@ -84,7 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--uncertainty", choices=UNCERTAINTY_METHODS, default="hessian",
                         help="how to report each value's uncertainty: hessian (the Gauss-Newton covariance at the "
                              "optimum; adds a few seconds) or bootstrap (--draws refits on data simulated at the fitted "
-                             "values with fresh FT 300 noise; each refit 0.5 to 4 s of CPU, so 100 draws add 1 to 7 "
+                             "values with fresh FT 300 noise; each refit 0.5 to 9 s of CPU, so 100 draws add 1 to 15 "
                              "min on one core) (default hessian)")
     parser.add_argument("--draws", type=int, default=DEFAULT_DRAWS,
                         help=f"bootstrap refits with --uncertainty bootstrap (default {DEFAULT_DRAWS})")

@@ -16,7 +16,7 @@ against the fit's ``theta``: ``percentile`` (the 2.5 % and 97.5 % quantiles of `
 units. A parameter the Gauss-Newton covariance finds undetermined (infinite variance: the data do not change with
 it) keeps that verdict: its draws cannot move it, so their spread says nothing.
 
-Cost: one refit per draw, 10 to 40 cost evaluations each (``hydrosoft-stack fit --help`` gives the run time).
+Cost: one refit per draw, 6 to 21 cost evaluations each (``hydrosoft-stack fit --help`` gives the run time).
 """
 
 from __future__ import annotations

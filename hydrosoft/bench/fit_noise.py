@@ -17,7 +17,7 @@ parameter and method the count of seeds that cover it; ``--json`` prints one JSO
 
 Run time: about 9 s of CPU per seed on one core (recording, fit, the replay-resolution check and the Gauss-Newton
 Jacobian): 101 s for the default 10 seeds and the noise-free run, 11 min 45 s of wall time on the loaded 2-core dev
-VM (2026-11-27). ``--draws 100`` adds 1 to 7 min of CPU per seed (6 to 11 cost evaluations per refit, more
+VM (2026-11-27). ``--draws 100`` adds 1 to 15 min of CPU per seed (6 to 21 cost evaluations per refit; more
 sub-steps cost more).
 """
 
@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--first-seed", type=int, default=0, help="seed of the first one (default 0)")
     parser.add_argument("--draws", type=int, default=0,
                         help="parametric bootstrap draws per seed, beside the Gauss-Newton interval, e.g. "
-                             f"{DEFAULT_DRAWS}: each is one refit, 0.5 to 4 s of CPU, so 100 add 1 to 7 min per seed "
+                             f"{DEFAULT_DRAWS}: each is one refit, 0.5 to 9 s of CPU, so 100 add 1 to 15 min per seed "
                              "(default 0: Gauss-Newton only)")
     parser.add_argument("--pose-noise", type=_pose_noise, default=(0.0, 0.0), metavar="MM,DEG",
                         help="tracker noise on the recorded object poses, standard deviation per axis of position (mm) "
