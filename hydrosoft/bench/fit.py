@@ -3,14 +3,16 @@ material identified from ``collect wrench`` recordings.
 
 The recordings' trajectories are split into a fit set and a held-out set (``--holdout``, ``--seed``); the material
 is fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from
-the Gauss-Newton covariance at the optimum); then the force, torque and tangential RMSE of both sets are printed
+the Gauss-Newton covariance at the optimum, or with ``--uncertainty bootstrap`` from a parametric bootstrap,
+``fit_bootstrap``); then the force, torque and tangential RMSE of both sets are printed
 before (start material) and after, in ``bench wrench``'s layout, with the fitted values, their uncertainty and
 which are not identified. ``--out PARAMS.toml`` writes the fitted material as an ``[arms.material]`` table for an
 arm of a stack config (``deploy/*.toml``); its E, K and mu lines also fit a scene's bubble ``[[bodies]]`` table. The
 recordings are only read.
 
 Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
-forward and backward; L-BFGS needs 20 to 70 of them); progress goes to stderr.
+forward and backward; L-BFGS needs 20 to 70 of them); the bootstrap adds one refit per draw (7 to 30 evaluations
+each). Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -24,10 +26,20 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from hydrosoft.bench.material_parameters import FIT_MODELS, PARAMETERS, UNITS
+from hydrosoft.bench.material_parameters import DEFAULT_DRAWS, FIT_MODELS, PARAMETERS, UNCERTAINTY_METHODS, UNITS
 from hydrosoft.bench.wrench_replay import mean_and_std
 
 SETS = ("fit", "held_out")
+UNCERTAINTY_TEXT = {
+    "hessian": "gauss-newton: covariance s2 (J^T J)^-1 of the residuals' Jacobian at the optimum, scaled by the "
+               "reduced chi-square; sigma by the delta method, interval95 in the log (E, K) or logit (mu) "
+               "coordinates",
+    "bootstrap": "parametric bootstrap: refits on the fit set replayed at the fitted material with fresh FT 300 noise "
+                 "at the level the residuals show; sigma the draws' standard deviation, interval95 the {interval} "
+                 "interval of the draws (bootstrap.intervals95 has both kinds); parameters the data do not "
+                 "determine keep the Gauss-Newton verdict",
+}
+UNCERTAINTY_TITLE = {"hessian": "Gauss-Newton at the optimum", "bootstrap": "parametric bootstrap"}
 SET_TITLES = {"fit": "fit", "held_out": "held-out"}
 
 
@@ -43,9 +55,11 @@ def _floats(text: str) -> tuple[float, ...]:
 
 
 def stack_options(args: argparse.Namespace) -> dict:
-    """``read_stack_recording``'s keyword arguments from the stack recording options that were given."""
+    """``read_stack_recording``'s keyword arguments, and ``contact_force_n`` (``split_at_free_samples``'s), from the
+    stack recording options that were given."""
     options = {"object_name": args.object, "arm": args.arm, "clamped": args.clamped,
-               "tcp_in_sensor": args.tcp_in_sensor, "max_gap_s": args.max_gap, "period_s": args.period}
+               "tcp_in_sensor": args.tcp_in_sensor, "max_gap_s": args.max_gap, "period_s": args.period,
+               "contact_force_n": args.contact_force}
     return {key: value for key, value in options.items() if value is not None}
 
 
@@ -67,6 +81,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--substeps", type=int, default=None,
                         help="replay steps per recorded step (default: chosen, from 1 doubled while a replay twice as "
                              "fine would move a fitted value by more than 0.1 sigma, at most 8)")
+    parser.add_argument("--uncertainty", choices=UNCERTAINTY_METHODS, default="hessian",
+                        help="how to report each value's uncertainty: hessian (the Gauss-Newton covariance at the "
+                             "optimum; adds a few seconds) or bootstrap (--draws refits on data simulated at the fitted "
+                             "values with fresh FT 300 noise; each refit 0.5 to 9 s of CPU, so 100 draws add 1 to 15 "
+                             "min on one core) (default hessian)")
+    parser.add_argument("--draws", type=int, default=DEFAULT_DRAWS,
+                        help=f"bootstrap refits with --uncertainty bootstrap (default {DEFAULT_DRAWS})")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--out", type=Path, default=None, metavar="PARAMS.toml",
                         help="write the fitted material as an [arms.material] table for an arm of a stack config "
@@ -81,7 +102,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     stack.add_argument("--tcp-in-sensor", type=_floats, default=None, metavar="X,Y,Z,QW,QX,QY,QZ",
                        help="the TCP (bubble) frame's pose in the F/T sensor's frame, m and wxyz (default identity)")
     stack.add_argument("--max-gap", type=float, default=None, metavar="S",
-                       help="drop a wrench sample with no pose within this many seconds (default 0.02)")
+                       help="interpolate the poses to each wrench sample between poses at most 2 S apart, else take "
+                            "the nearest within S, else drop the sample (default 0.02)")
+    stack.add_argument("--contact-force", type=float, default=None, metavar="N",
+                       help="cut the recording into one trajectory per contact, where the force exceeds N newtons, "
+                            "each with its own tare before it; 0 keeps it whole, its first sample the tare "
+                            "(default 0.5)")
     stack.add_argument("--period", type=float, default=None, metavar="S",
                        help="keep at most one wrench sample per this many seconds (default 0.05)")
 
@@ -102,8 +128,10 @@ def check_recording(path: Path, read=None) -> None:
 
 class RecordingReaders:
     """Reads each file in its format: a stack recording (``stack_recording.read_stack_recording`` with
-    ``stack_options``) as one trajectory, numbered from ``STACK_INDEX_BASE`` in the order read, or a ``collect
-    wrench`` file. ``stack`` holds what each stack recording gave (path, arm, object, kept and dropped samples)."""
+    ``stack_options``) cut into one trajectory per contact (``split_at_free_samples`` at ``contact_force_n``; 0 or
+    less keeps it whole), numbered from ``STACK_INDEX_BASE`` in the order read, or a ``collect wrench`` file.
+    ``stack`` holds what each stack recording gave (arm, object, kept and dropped samples, trajectories and contacts
+    skipped for want of a tare before them)."""
 
     STACK_INDEX_BASE = 1000
 
@@ -115,29 +143,42 @@ class RecordingReaders:
     def __call__(self, path: Path):
         from dataclasses import replace
 
-        from hydrosoft.bench.stack_recording import is_stack_recording, read_stack_recording
+        from hydrosoft.bench.stack_recording import (DEFAULT_CONTACT_FORCE_N, is_stack_recording,
+                                                     read_stack_recording, split_at_free_samples)
         from hydrosoft.bench.wrench_recording import read_wrench_recording
 
         if not is_stack_recording(path):
             return read_wrench_recording(path)
         if str(path) not in self._read:
-            read = read_stack_recording(path, **self.stack_options)
-            index = self.STACK_INDEX_BASE + len(self.stack)
-            self.stack[str(path)] = {"index": index, "arm": read.arm, "object": read.info.object,
+            options = dict(self.stack_options)
+            contact_force = options.pop("contact_force_n", DEFAULT_CONTACT_FORCE_N)
+            read = read_stack_recording(path, **options)
+            pieces, skipped = ([read.trajectory], 0) if contact_force <= 0 else \
+                split_at_free_samples(read.trajectory, contact_force)
+            if not pieces:
+                raise ValueError(f"{path}: no contact with an out-of-contact sample before it (force over "
+                                 f"{contact_force} N; {skipped} contact(s) from the start): nothing to fit")
+            first = self.STACK_INDEX_BASE + sum(len(s["indices"]) for s in self.stack.values())
+            indices = list(range(first, first + len(pieces)))
+            self.stack[str(path)] = {"indices": indices, "arm": read.arm, "object": read.info.object,
                                      "clamped": bool(self.stack_options.get("clamped", False)), "kept": read.kept,
-                                     "dropped": read.dropped}
-            self._read[str(path)] = read.info, [replace(read.trajectory, index=index)]
+                                     "dropped": read.dropped, "trajectories": len(pieces),
+                                     "skipped_in_contact": skipped}
+            self._read[str(path)] = read.info, [replace(t, index=i) for t, i in zip(pieces, indices)]
         return self._read[str(path)]
 
 
 def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdout: float = 0.2, seed: int = 0,
             spacing: float | None = None, substeps: int | None = None, progress=None,
-            stack_options: dict | None = None) -> dict:
+            stack_options: dict | None = None, uncertainty: str = "hessian", draws: int = DEFAULT_DRAWS) -> dict:
     """The fit's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``, or stack recordings:
     ``stack_options`` are ``stack_recording.read_stack_recording``'s keyword arguments for them).
 
     Returns ``{"model", "parameters": {name: {start, value, sigma, interval95, unit, fitted, identified}},
-    "uncertainty", "rows": [...], "trajectories": [...], "split", "fit": {...}, "settings"}``: ``rows`` per set
+    "uncertainty", "bootstrap", "rows": [...], "trajectories": [...], "split", "fit": {...}, "settings"}``:
+    ``uncertainty`` says how ``sigma`` and ``interval95`` were found (``uncertainty``: ``hessian``, or ``bootstrap``
+    with ``draws`` refits seeded by ``seed``: then ``bootstrap`` holds its draws, noise scale and both interval
+    kinds per parameter; else None); ``rows`` per set
     (``fit``, ``held_out``) and material (``before``, ``after``) the mean and sample standard deviation over
     trajectories of the force, torque and shear RMSEs, as ``bench wrench``'s rows. ValueError for a bad option or
     a recording the fit cannot use (naming it).
@@ -146,6 +187,10 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
     from hydrosoft.bench.material_fit import START
     from hydrosoft.bench.wrench_replay import load_recordings, recording_files
 
+    if uncertainty not in UNCERTAINTY_METHODS:
+        raise ValueError(f"unknown uncertainty {uncertainty!r}; known: {', '.join(UNCERTAINTY_METHODS)}")
+    if uncertainty == "bootstrap" and draws < 2:
+        raise ValueError(f"--draws must be at least 2, got {draws}")
     if model not in FIT_MODELS:
         raise ValueError(f"unknown contact model {model!r}; the fit knows {', '.join(FIT_MODELS)}")
     bad = [p for p in params if p not in PARAMETERS]
@@ -169,6 +214,20 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
 
     result = material_fit.fit_material(batches["fit"], model, params, START, substeps, progress=report)
     substeps = result.substeps
+    estimates, boot_document = result.estimates, None
+    if uncertainty == "bootstrap":
+        from hydrosoft.bench.fit_bootstrap import BOOTSTRAP_INTERVAL, bootstrap
+
+        def report_draw(draw: int, total: int, seconds: float) -> None:
+            if progress:
+                progress(f"bootstrap refit {draw}/{total} at {seconds:.1f} s")
+
+        boot = bootstrap(result, batches["fit"], model, params, draws, seed, START, progress=report_draw)
+        estimates = boot.estimates
+        boot_document = {"draws": len(boot.draws), "failed": boot.failed, "noise_scale": boot.noise_scale,
+                         "interval": BOOTSTRAP_INTERVAL, "evaluations": boot.evaluations, "seconds": boot.seconds,
+                         "intervals95": {kind: {name: list(v) for name, v in kinds.items()}
+                                         for kind, kinds in boot.intervals.items()}}
     rows, per_trajectory = [], []
     for name in SETS:
         for when, values in (("before", START), ("after", result.values)):
@@ -183,10 +242,10 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
         "model": model,
         "parameters": {e.name: {"start": e.start, "value": e.value, "sigma": _finite_or_none(e.sigma),
                                 "interval95": [_finite_or_none(v) for v in e.interval95], "unit": UNITS[e.name],
-                                "fitted": e.fitted, "identified": e.identified} for e in result.estimates},
-        "uncertainty": "gauss-newton: covariance s2 (J^T J)^-1 of the residuals' Jacobian at the optimum, scaled by "
-                       "the reduced chi-square; sigma by the delta method, interval95 in the log (E, K) or logit "
-                       "(mu) coordinates",
+                                "fitted": e.fitted, "identified": e.identified} for e in estimates},
+        "uncertainty": UNCERTAINTY_TEXT[uncertainty].format(interval=(boot_document or {}).get("interval")),
+        "uncertainty_method": uncertainty,
+        "bootstrap": boot_document,
         "rows": rows,
         "trajectories": per_trajectory,
         "split": {"fit": [list(x) for x in fit_labels], "held_out": [list(x) for x in held_labels]},
@@ -222,19 +281,26 @@ def _value_text(p: dict) -> str:
             f"start {p['start']:.4g}{verdict}")
 
 
+def _draws_text(document: dict) -> str:
+    boot = document["bootstrap"]
+    return "" if boot is None else f" of {boot['draws']} draws, {boot['interval']} intervals"
+
+
 def format_tables(document: dict) -> str:
     """The fitted values with their uncertainty, then the RMSE tables in ``bench wrench``'s layout: rows the fit
     and held-out sets, columns the start material (before) and the fitted one (after)."""
     from hydrosoft.bench.wrench import rmse_table
 
-    lines = [f"Fitted material, model {document['model'].upper()} (uncertainty: Gauss-Newton at the optimum, "
+    lines = [f"Fitted material, model {document['model'].upper()} (uncertainty: "
+             f"{UNCERTAINTY_TITLE[document['uncertainty_method']]}{_draws_text(document)}, "
              f"reduced chi-square {document['fit']['reduced_chi2']:.3g}, replay {document['fit']['substeps']} "
              f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
     for path, stack in document["settings"]["stack_recordings"].items():
         lines.append(f"  stack recording {path}: arm {stack['arm']}, object {stack['object']}"
                      f"{' (clamped)' if stack['clamped'] else ' (tracked)'}, {stack['kept']} samples kept, "
-                     f"{stack['dropped']} dropped (no pose within the max gap)")
+                     f"{stack['dropped']} dropped (no pose within the max gap), {stack['trajectories']} "
+                     f"trajectories, {stack['skipped_in_contact']} contacts skipped (in contact from the start)")
     index = {(r["set"], r["when"]): r for r in document["rows"]}
 
     def table(title: str, key: str, digits: int = 3) -> list[str]:
@@ -268,7 +334,8 @@ def params_toml(document: dict, today: datetime.date | None = None) -> str:
              "# Use: paste this table into the stack config (deploy/*.toml) directly below the keys of the",
              "# [[arms]] table of the arm whose bubble was recorded; the planner and the sim plant then use it",
              "# for that arm's bubble. For a scene file, its E, K and mu lines go in the bubble's [[bodies]] table.",
-             "# The comments give 1 sigma and the 95 % interval (Gauss-Newton at the optimum).",
+             f"# The comments give 1 sigma and the 95 % interval ({UNCERTAINTY_TITLE[document['uncertainty_method']]}"
+             f"{_draws_text(document)}).",
              "[arms.material]"]
     for p in estimates_of(document):
         if not p["fitted"]:
@@ -297,6 +364,13 @@ def run(args: argparse.Namespace) -> int:
         if value is not None and not (math.isfinite(value) and value > 0):
             print(f"fit: {name} must be a positive number of seconds, got {value}", file=sys.stderr)
             return 2
+    if args.contact_force is not None and not (math.isfinite(args.contact_force) and args.contact_force >= 0):
+        print(f"fit: --contact-force must be a number of newtons, 0 or more, got {args.contact_force}",
+              file=sys.stderr)
+        return 2
+    if args.uncertainty == "bootstrap" and args.draws < 2:
+        print(f"fit: --draws must be at least 2, got {args.draws}", file=sys.stderr)
+        return 2
     if args.out is not None and args.out.suffix != ".toml":
         print(f"fit: --out must name a .toml file (the recordings are never written), got {args.out}",
               file=sys.stderr)
@@ -305,7 +379,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         document = run_fit(args.recordings, args.model, args.params, args.holdout, args.seed, args.spacing,
                            args.substeps, progress=lambda text: print(f"[fit] {text}", file=sys.stderr, flush=True),
-                           stack_options=stack_options(args))
+                           stack_options=stack_options(args), uncertainty=args.uncertainty, draws=args.draws)
     except ValueError as error:
         print(f"fit: {error}", file=sys.stderr)
         return 2

@@ -7,95 +7,183 @@ E x1.7, K x0.6, mu 0.35 of the scenes' Soft Bubble) on the cube: ``len(KINDS)`` 
 fitted (``material_fit.fit_material``, E, K and mu from the scenes' values); a parameter is covered when the truth
 lies in its reported 95 % interval. First the same without noise (the FT 300's resolution only): the recovery.
 
+With ``--draws N`` each seed's fit is also bootstrapped (``fit_bootstrap``, N refits), and the coverage of the
+bootstrap's percentile and basic intervals is counted beside Gauss-Newton's. With ``--pose-noise MM,DEG`` the
+recorded object poses carry tracker noise (``synthetic_wrench.tracked_poses``) and the mean relative error over the
+seeds shows the bias it causes.
+
 Prints one row per run (the recovered values, their relative error, 1 sigma and whether covered) and per
-parameter the count of seeds that cover it; ``--json`` prints one JSON document instead.
+parameter and method the count of seeds that cover it; ``--json`` prints one JSON document instead.
 
 Run time: about 9 s of CPU per seed on one core (recording, fit, the replay-resolution check and the Gauss-Newton
 Jacobian): 101 s for the default 10 seeds and the noise-free run, 11 min 45 s of wall time on the loaded 2-core dev
-VM (2026-11-27).
+VM (2026-11-27). ``--draws 100`` adds 1 to 15 min of CPU per seed (6 to 21 cost evaluations per refit; more
+sub-steps cost more).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from hydrosoft.bench.material_parameters import BOOTSTRAP_INTERVALS, DEFAULT_DRAWS
+
 TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
 OBJECT = "cube"
 KINDS = ("shear", "twist", "shear_twist", "shear", "shear_twist", "twist", "shear", "shear_twist")
 STEPS = 12
+METHODS = ("hessian",) + BOOTSTRAP_INTERVALS  # Gauss-Newton, and the bootstrap's two intervals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``hydrosoft-stack bench fit``."""
-    parser.add_argument("--seeds", type=int, default=10, help="noisy recordings to fit, seeds 0..N-1 (default 10)")
+    parser.add_argument("--seeds", type=int, default=10, help="noisy recordings to fit (default 10)")
+    parser.add_argument("--first-seed", type=int, default=0, help="seed of the first one (default 0)")
+    parser.add_argument("--draws", type=int, default=0,
+                        help="parametric bootstrap draws per seed, beside the Gauss-Newton interval, e.g. "
+                             f"{DEFAULT_DRAWS}: each is one refit, 0.5 to 9 s of CPU, so 100 add 1 to 15 min per seed "
+                             "(default 0: Gauss-Newton only)")
+    parser.add_argument("--pose-noise", type=_pose_noise, default=(0.0, 0.0), metavar="MM,DEG",
+                        help="tracker noise on the recorded object poses, standard deviation per axis of position (mm) "
+                             "and rotation (deg); the plant pressed the true pose (default none)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
 
 
-def fit_one(folder: Path, seed: int, noise_scale: float) -> dict:
-    """Record and fit one synthetic recording; its row of the benchmark's document."""
+def _pose_noise(text: str) -> tuple[float, float]:
+    parts = text.split(",")
+    try:
+        mm, deg = (float(part) for part in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected MM,DEG (two numbers), got {text!r}") from None
+    if not (math.isfinite(mm) and math.isfinite(deg) and mm >= 0 and deg >= 0):
+        raise argparse.ArgumentTypeError(f"expected two numbers 0 or more, got {text!r}")
+    return mm, deg
+
+
+def _covered(interval, truth: float) -> bool:
+    return interval[0] <= truth <= interval[1]
+
+
+def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
+            pose_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0) and ``pose_noise``
+    ``(mm, deg)`` of tracker noise on its object poses; its row of the
+    benchmark's document: per parameter the fit's value, error, Gauss-Newton sigma and interval, and, with draws,
+    ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth."""
     from hydrosoft.bench import material_fit
+    from hydrosoft.bench.fit_bootstrap import bootstrap
     from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
     from hydrosoft.bench.wrench_replay import load_recordings
 
     path = folder / f"wrench-{OBJECT}-{seed}-{noise_scale:g}.mcap"
     tic = time.perf_counter()
-    write_synthetic_recording(path, OBJECT, TRUTH, KINDS, STEPS, seed, noise_scale)
+    write_synthetic_recording(path, OBJECT, TRUTH, KINDS, STEPS, seed, noise_scale,
+                              pose_noise=(pose_noise[0] / 1000, math.radians(pose_noise[1])))
     groups = load_recordings([path])
     labels = {(g.object, t.index) for g in groups for t in g.trajectories}
-    result = material_fit.fit_material(material_fit.replay_batches(groups, labels), "nh", list(TRUTH))
+    batches = material_fit.replay_batches(groups, labels)
+    result = material_fit.fit_material(batches, "nh", list(TRUTH))
     row = {"seed": seed, "noise_scale": noise_scale, "reduced_chi2": result.reduced_chi2, "substeps": result.substeps,
            "seconds": time.perf_counter() - tic}
     for e in result.estimates:
         row[e.name] = {"value": e.value, "relative_error": e.value / TRUTH[e.name] - 1, "sigma": e.sigma,
                        "interval95": list(e.interval95), "identified": e.identified,
-                       "covered": e.interval95[0] <= TRUTH[e.name] <= e.interval95[1]}
+                       "covered": _covered(e.interval95, TRUTH[e.name])}
+    if draws:
+        boot = bootstrap(result, batches, "nh", list(TRUTH), draws, seed)
+        row["bootstrap"] = {"draws": len(boot.draws), "failed": boot.failed, "noise_scale": boot.noise_scale,
+                            "evaluations": boot.evaluations, "seconds": boot.seconds}
+        for e in boot.estimates:
+            row[e.name]["bootstrap"] = {"sigma": e.sigma, **{
+                kind: {"interval95": list(boot.intervals[kind][e.name]),
+                       "covered": _covered(boot.intervals[kind][e.name], TRUTH[e.name])} for kind in BOOTSTRAP_INTERVALS}}
+        row["seconds"] = time.perf_counter() - tic
     return row
 
 
-def evaluate(seeds: int, progress=None) -> dict:
-    """The benchmark's document: ``recovery`` (the noise-free row), ``noisy`` (one row per seed), ``covered`` (per
-    parameter the count of noisy seeds whose 95 % interval holds the truth) and ``all_covered`` (seeds covering all
-    three)."""
+def covered_of(row: dict, name: str, method: str) -> bool:
+    """Whether ``method`` (``METHODS``) covered parameter ``name``'s truth in a row of ``fit_one``."""
+    return row[name]["covered"] if method == "hessian" else row[name]["bootstrap"][method]["covered"]
+
+
+def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
+             pose_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """The benchmark's document: ``recovery`` (the noise-free row, no bootstrap), ``noisy`` (one row per seed,
+    ``first_seed`` on), ``covered`` (per parameter the count of noisy seeds whose Gauss-Newton 95 % interval holds
+    the truth), ``all_covered`` (seeds covering all three), and ``covered_by`` and ``all_covered_by``: the same per
+    method (``hessian``, and with ``draws`` the bootstrap's ``percentile`` and ``basic``); ``mean_relative_error``
+    per parameter over the noisy seeds (the bias, with its standard error); ``pose_noise`` ``(mm, deg)``."""
     with tempfile.TemporaryDirectory(prefix="hydrosoft-fit-bench-") as folder:
-        recovery = fit_one(Path(folder), 0, 0.0)
+        recovery = fit_one(Path(folder), 0, 0.0, pose_noise=pose_noise)
         if progress:
             progress(f"noise-free recovery in {recovery['seconds']:.1f} s")
         noisy = []
-        for seed in range(seeds):
-            noisy.append(fit_one(Path(folder), seed, 1.0))
+        for seed in range(first_seed, first_seed + seeds):
+            noisy.append(fit_one(Path(folder), seed, 1.0, draws, pose_noise))
             if progress:
                 progress(f"seed {seed} in {noisy[-1]['seconds']:.1f} s")
+    methods = METHODS if draws else METHODS[:1]
+    covered_by = {m: {name: sum(covered_of(r, name, m) for r in noisy) for name in TRUTH} for m in methods}
+    all_covered_by = {m: sum(all(covered_of(r, name, m) for name in TRUTH) for r in noisy) for m in methods}
     return {"truth": TRUTH, "object": OBJECT, "trajectories": len(KINDS), "steps": STEPS, "recovery": recovery,
-            "noisy": noisy, "covered": {name: sum(r[name]["covered"] for r in noisy) for name in TRUTH},
-            "all_covered": sum(all(r[name]["covered"] for name in TRUTH) for r in noisy), "seeds": seeds}
+            "noisy": noisy, "covered": covered_by["hessian"], "all_covered": all_covered_by["hessian"],
+            "covered_by": covered_by, "all_covered_by": all_covered_by, "seeds": seeds,
+            "first_seed": first_seed, "draws": draws, "pose_noise": list(pose_noise),
+            "mean_relative_error": {name: _mean_and_error([r[name]["relative_error"] for r in noisy])
+                                    for name in TRUTH}}
+
+
+def _mean_and_error(values: list[float]) -> list[float]:
+    """Mean and its standard error (0 for one value)."""
+    mean = sum(values) / len(values)
+    spread = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
+    return [mean, spread / math.sqrt(len(values))]
 
 
 def format_table(document: dict) -> str:
-    """One line per run: per parameter the value, its relative error, 1 sigma and whether the 95 % interval holds
-    the truth; then the coverage counts."""
+    """One line per run: per parameter the value, its relative error, the Gauss-Newton 1 sigma and whether its 95 %
+    interval holds the truth, then with draws whether the bootstrap's percentile (p) and basic (b) intervals do;
+    then the coverage counts per method."""
     names = list(TRUTH)
-    head = f"{'run':<12}" + "".join(f"| {name:^34} " for name in names) + "| chi2/dof | sub-steps"
+    boot = bool(document["draws"])
+    width = 34 + (8 if boot else 0)
+    head = f"{'run':<12}" + "".join(f"| {name:^{width}} " for name in names) + "| chi2/dof | sub-steps"
     lines = [f"Material fit on synthetic {document['object']} recordings ({document['trajectories']} trajectories of "
-             f"{document['steps']} steps), truth " + ", ".join(f"{n} {v:.4g}" for n, v in TRUTH.items()),
+             f"{document['steps']} steps), truth " + ", ".join(f"{n} {v:.4g}" for n, v in TRUTH.items())
+             + (", object poses with tracker noise {:g} mm, {:g} deg".format(*document["pose_noise"])
+                if any(document["pose_noise"]) else "")
+             + (f"; bootstrap of {document['draws']} draws: p percentile, b basic interval" if boot else ""),
              head, "-" * len(head)]
 
+    def mark(covered: bool) -> str:
+        return "in" if covered else "OUT"
+
     def line(title: str, row: dict) -> str:
-        cells = "".join(f"| {row[n]['value']:>10.4g} {100 * row[n]['relative_error']:>+6.2f}% "
-                        f"s {row[n]['sigma']:>8.3g} {'in' if row[n]['covered'] else 'OUT':>3} " for n in names)
+        cells = ""
+        for n in names:
+            cells += (f"| {row[n]['value']:>10.4g} {100 * row[n]['relative_error']:>+6.2f}% "
+                      f"s {row[n]['sigma']:>8.3g} {mark(row[n]['covered']):>3} ")
+            if boot:
+                cells += "".join(f"{kind[0]} {mark(covered_of(row, n, kind)) if 'bootstrap' in row else '-':>3} "
+                                 for kind in BOOTSTRAP_INTERVALS)
         return f"{title:<12}{cells}| {row['reduced_chi2']:<8.3g} | {row['substeps']}"
 
     lines.append(line("no noise", document["recovery"]))
     lines += [line(f"noise s{r['seed']}", r) for r in document["noisy"]]
     lines.append("")
-    lines.append("Truth inside the reported 95 % interval: " + ", ".join(
-        f"{n} {document['covered'][n]}/{document['seeds']}" for n in names)
-        + f"; all three {document['all_covered']}/{document['seeds']}")
+    seeds = f"seeds {document['first_seed']}-{document['first_seed'] + document['seeds'] - 1}"
+    lines.append(f"Mean relative error ({seeds}, +- standard error): " + ", ".join(
+        f"{n} {100 * m:+.2f} +- {100 * e:.2f} %" for n, (m, e) in document["mean_relative_error"].items()))
+    for method, covered in document["covered_by"].items():
+        lines.append(f"Truth inside the 95 % interval ({method}, {seeds}): " + ", ".join(
+            f"{n} {covered[n]}/{document['seeds']}" for n in names)
+            + f"; all three {document['all_covered_by'][method]}/{document['seeds']}")
     return "\n".join(lines)
 
 
@@ -106,7 +194,11 @@ def run(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         print(f"bench fit: --seeds must be at least 1, got {args.seeds}", file=sys.stderr)
         return 2
+    if args.draws < 0 or args.draws == 1:
+        print(f"bench fit: --draws must be 0 (no bootstrap) or at least 2, got {args.draws}", file=sys.stderr)
+        return 2
     torch.set_num_threads(args.threads)
-    document = evaluate(args.seeds, progress=lambda text: print(f"[bench fit] {text}", file=sys.stderr, flush=True))
+    document = evaluate(args.seeds, lambda text: print(f"[bench fit] {text}", file=sys.stderr, flush=True),
+                        args.draws, args.first_seed, args.pose_noise)
     print(json.dumps(document) if args.json else format_table(document))
     return 0

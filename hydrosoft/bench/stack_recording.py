@@ -5,18 +5,22 @@ The fit needs three raw topics (``services/recording/mcap_format.py``): ``wrench
 tared), ``arm_state/ARM`` (the TCP pose, base frame) and ``object_pose/object`` (the tracked object pose, base frame).
 The bubble frame is the stack's TCP frame (sim_world puts the arm's bubble body at the TCP pose), so the bubble pose is
 the TCP pose. Samples are taken on the wrench's stamps (``stamp_ns``), at most one per ``period_s``; each takes the
-arm state and the object pose whose stamps are nearest to it. A sample with no arm state (or, unless the object is
-clamped, no object pose) within ``max_gap_s`` of it is dropped and counted. With ``clamped``, every sample takes the
-first tracked object pose (the object does not move; tracker noise stays out of the replay).
+arm's TCP pose and the object pose at that stamp (``pose_at``): interpolated between the poses recorded just before
+and just after it (linear in position, slerp in orientation) when those are at most ``2 max_gap_s`` apart, else the
+nearest pose when it is within ``max_gap_s``. A sample with no such arm pose (or, unless the object is clamped, no
+object pose) is dropped and counted. With ``clamped``, every sample takes the first tracked object pose (the object
+does not move; tracker noise stays out of the replay).
 
-The first kept sample is the trajectory's tare row (``wrench_replay.measured_tcp_wrenches`` subtracts it): the
-recording must start with the bubble out of contact. The file is only read, in one pass, one message at a time
-(images and other topics are never decoded); only these topics' stamps, poses and wrenches are held.
+``read_stack_recording`` gives the whole recording as one trajectory, its first kept sample the tare row
+(``wrench_replay.measured_tcp_wrenches`` subtracts it). ``split_at_free_samples`` cuts it into one trajectory per
+contact: a run of samples whose force exceeds ``contact_force_n``, after up to ``APPROACH_SAMPLES`` out-of-contact
+ones, the first of which is its tare. The file is only read, in one pass, one message at a time (images and other
+topics are never decoded); only these topics' stamps, poses and wrenches are held.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +31,12 @@ IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 OBJECT_TOPIC = "object_pose/object"
 DEFAULT_MAX_GAP_S = 0.02  # the arm state comes at 125 Hz (8 ms) or faster, the tracked pose at the camera's 30 Hz
 DEFAULT_PERIOD_S = 0.05  # collect wrench's sample spacing
-
+#: A sample whose force (the tared wrench's force norm, N) exceeds this is in contact: 5 times the FT 300's noise per
+#: axis and frame (0.1 N), about 3 times its norm over three axes (0.17 N), well under a press's few newtons.
+DEFAULT_CONTACT_FORCE_N = 0.5
+#: Out-of-contact samples kept before each contact, the first of them its tare (0.5 s at the default period): the
+#: tare is taken before the approach rather than at the touch, where light contact may already load the sensor.
+APPROACH_SAMPLES = 10
 
 @dataclass(frozen=True)
 class StackTrajectory:
@@ -60,12 +69,60 @@ def is_stack_recording(path: str | Path) -> bool:
     return False
 
 
-def _nearest(stamps: np.ndarray, at: int) -> tuple[int, int]:
-    """Index of the stamp nearest ``at`` in sorted ``stamps`` and its distance (ns)."""
-    i = int(np.searchsorted(stamps, at))
+def pose_at(stamps: np.ndarray, poses: np.ndarray, at: int, max_gap_ns: int) -> np.ndarray | None:
+    """The pose ``(7,)`` (m, wxyz) at stamp ``at`` (ns) of poses ``(N, 7)`` at sorted ``stamps (N,)``: interpolated
+    between the poses just before and just after ``at`` (linear position, slerp orientation) when they are at most
+    ``2 max_gap_ns`` apart, else the nearest one when it is within ``max_gap_ns``; None when there is none."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    i = int(np.searchsorted(stamps, at, side="right"))  # stamps[i - 1] <= at < stamps[i]
+    if i > 0 and stamps[i - 1] == at:
+        return poses[i - 1]
+    if 0 < i < len(stamps) and stamps[i] - stamps[i - 1] <= 2 * max_gap_ns:
+        t0, t1 = int(stamps[i - 1]), int(stamps[i])
+        fraction = (at - t0) / (t1 - t0)
+        position = (1 - fraction) * poses[i - 1, :3] + fraction * poses[i, :3]
+        turns = Rotation.from_quat(poses[i - 1:i + 1, 3:], scalar_first=True)
+        quaternion = Slerp([0.0, 1.0], turns)(fraction).as_quat(scalar_first=True)
+        if np.dot(quaternion, poses[i - 1, 3:]) < 0:  # keep the recorded hemisphere
+            quaternion = -quaternion
+        return np.concatenate([position, quaternion])
     candidates = [j for j in (i - 1, i) if 0 <= j < len(stamps)]
     best = min(candidates, key=lambda j: abs(int(stamps[j]) - at))
-    return best, abs(int(stamps[best]) - at)
+    return poses[best] if abs(int(stamps[best]) - at) <= max_gap_ns else None
+
+
+def split_at_free_samples(trajectory: RecordedTrajectory, contact_force_n: float = DEFAULT_CONTACT_FORCE_N
+                          ) -> tuple[list[RecordedTrajectory], int]:
+    """One trajectory per contact of ``trajectory`` (a whole stack recording, ``read_stack_recording``), and the
+    count of contacts left out because no out-of-contact sample precedes them (the recording starts in contact).
+
+    A sample is in contact when its force norm (N) exceeds ``contact_force_n``. Each maximal run of such samples
+    becomes a trajectory: up to ``APPROACH_SAMPLES`` out-of-contact samples before it (the first is its tare row),
+    then the run. Trajectories keep ``trajectory.index``; the caller numbers them."""
+    force = np.linalg.norm(trajectory.wrenches[:, :3], axis=-1)
+    touching = force > contact_force_n
+    pieces, skipped, k = [], 0, 0
+    while k < len(touching):
+        if not touching[k]:
+            k += 1
+            continue
+        end = k
+        while end < len(touching) and touching[end]:
+            end += 1
+        free = k
+        while free > 0 and not touching[free - 1] and k - free < APPROACH_SAMPLES:
+            free -= 1
+        if free == k:
+            skipped += 1
+        else:
+            rows = slice(free, end)
+            pieces.append(replace(trajectory, bubble_poses=trajectory.bubble_poses[rows],
+                                  target_poses=trajectory.target_poses[rows],
+                                  object_poses=trajectory.object_poses[rows], wrenches=trajectory.wrenches[rows],
+                                  phases=("start",) + ("stack",) * (end - free - 1)))
+        k = end
+    return pieces, skipped
 
 
 def read_stack_recording(path: str | Path, object_name: str | None = None, arm: str | None = None,
@@ -117,6 +174,7 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     wrench_t, state_t, object_t = needed
     order = {t: np.argsort(np.array(stamps[t], dtype=np.int64), kind="stable") for t in needed}
     sorted_stamps = {t: np.array(stamps[t], dtype=np.int64)[order[t]] for t in needed}
+    sorted_poses = {t: np.stack(values[t])[order[t]] for t in (state_t, object_t)}
     max_gap_ns, period_ns = int(max_gap_s * 1e9), int(period_s * 1e9)
     rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (TCP pose, object pose, wrench)
     dropped, last = 0, None
@@ -124,13 +182,13 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
         at = int(stamps[wrench_t][w])
         if last is not None and at - last < period_ns:
             continue
-        s, s_gap = _nearest(sorted_stamps[state_t], at)
-        o, o_gap = _nearest(sorted_stamps[object_t], at)
-        if s_gap > max_gap_ns or (not clamped and o_gap > max_gap_ns):
+        tcp = pose_at(sorted_stamps[state_t], sorted_poses[state_t], at, max_gap_ns)
+        tracked = sorted_poses[object_t][0] if clamped else pose_at(sorted_stamps[object_t],
+                                                                   sorted_poses[object_t], at, max_gap_ns)
+        if tcp is None or tracked is None:
             dropped += 1
             continue
-        object_pose = values[object_t][order[object_t][0] if clamped else order[object_t][o]]
-        rows.append((values[state_t][order[state_t][s]], object_pose, values[wrench_t][w]))
+        rows.append((tcp, tracked, values[wrench_t][w]))
         last = at
     if len(rows) < 2:
         raise ValueError(f"{path}: {len(rows)} sample(s) with a pose within {max_gap_s} s of the wrench "

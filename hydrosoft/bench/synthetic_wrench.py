@@ -6,7 +6,10 @@ step (finer than the fit's replay) along press-and-shear trajectories (``wrench_
 benchmark object. Each recorded wrench is what ``collect wrench`` stores: the mean of ``FRAMES_PER_SAMPLE`` FT 300
 frames, each the true wrench plus Gaussian noise of ``noise_scale * material_fit.FT300_NOISE`` rounded to the
 frame's resolution (``FT300_RESOLUTION``, as the FT 300 simulator quantises). The file is written by the recording
-writer (``wrench_recording.WrenchRecordingWriter``) with the TCP frame at the sensor's origin.
+writer (``wrench_recording.WrenchRecordingWriter``) with the TCP frame at the sensor's origin. With ``pose_noise``
+the recorded object poses are what a tracker reports (``tracked_poses``): the plant pressed the true, clamped
+object, but every sample's recorded pose carries Gaussian position and rotation noise, drawn from a generator of its
+own so the wrench noise of a seed stays the same.
 """
 
 from __future__ import annotations
@@ -29,6 +32,21 @@ FRAMES_PER_SAMPLE = 5  # collect wrench averages a sample over 0.05 s of frames 
 PLANT_SUBSTEPS = 4
 PLANT_SPACING_M = 0.00625  # the sim plant's object surface spacing with deploy/sim.toml
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+POSE_NOISE_STREAM = 0x7AC  # first word of the tracker noise generator's seed
+
+
+def tracked_poses(poses: np.ndarray, rng: np.random.Generator, position_m: float, rotation_rad: float) -> np.ndarray:
+    """Poses ``(..., 7)`` (m, wxyz) as a tracker reports them: each position plus Gaussian noise of ``position_m``
+    per axis, each orientation turned by a rotation vector with Gaussian noise of ``rotation_rad`` per axis (in the
+    world frame)."""
+    from scipy.spatial.transform import Rotation
+
+    flat = poses.reshape(-1, 7)
+    position = flat[:, :3] + rng.normal(size=(len(flat), 3)) * position_m
+    turn = Rotation.from_rotvec(rng.normal(size=(len(flat), 3)) * rotation_rad)
+    quaternion = (turn * Rotation.from_quat(flat[:, 3:], scalar_first=True)).as_quat(scalar_first=True)
+    quaternion *= np.where(np.sum(quaternion * flat[:, 3:], axis=1, keepdims=True) < 0, -1.0, 1.0)
+    return np.concatenate([position, quaternion], axis=1).reshape(poses.shape)
 
 
 def measured_wrenches(truth: np.ndarray, rng: np.random.Generator | None, noise_scale: float = 1.0) -> np.ndarray:
@@ -63,11 +81,14 @@ def synthetic_trajectories(object_name: str, material: dict[str, float], kinds: 
 
 def write_synthetic_recording(path: str | Path, object_name: str, material: dict[str, float],
                               kinds: Sequence[str], steps: int, seed: int, noise_scale: float = 0.0,
-                              contact: str = "nh") -> None:
+                              contact: str = "nh", pose_noise: tuple[float, float] = (0.0, 0.0)) -> None:
     """Record ``synthetic_trajectories(object_name, material, kinds, steps, seed, noise_scale, contact)`` to
-    ``path`` in the ``collect wrench`` format."""
+    ``path`` in the ``collect wrench`` format. ``pose_noise``: ``(position m, rotation rad)`` per axis of the
+    tracker noise on the recorded object poses (``tracked_poses``; none by default)."""
     params, bubbles, objects, measured = synthetic_trajectories(object_name, material, kinds, steps, seed,
                                                                 noise_scale, contact)
+    if any(pose_noise):
+        objects = tracked_poses(objects, np.random.default_rng((POSE_NOISE_STREAM, seed)), *pose_noise)
     info = RecordingInfo(object=object_name, config="synthetic", mode="sim", tcp_in_sensor=IDENTITY,
                          plant_spacing_m=PLANT_SPACING_M, seed=seed, epoch_offset_ns=0,
                          trajectories=[{"kind": kind, "material": dict(material)} for kind in kinds])

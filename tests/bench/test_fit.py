@@ -92,6 +92,7 @@ def test_fit_refuses_bad_options_and_recordings_that_lack_what_it_needs_naming_t
     cases.append(([recording], {"holdout": 1.5}, "holdout must be a fraction"))
     cases.append(([recording], {"out": recording}, "--out must name a .toml file"))
     cases.append(([recording], {"substeps": 0}, "--substeps must be at least 1"))
+    cases.append(([recording], {"uncertainty": "bootstrap", "draws": 1}, "--draws must be at least 2, got 1"))
     before = _digest(recording)
     for recordings, options, message in cases:
         assert fit.run(_args(recordings, **options)) == 2, message
@@ -105,3 +106,20 @@ def test_fit_fits_the_pressure_field_model_too(recording, capsys):
     rows = {(r["set"], r["when"]): r for r in document["rows"]}
     assert document["model"] == "pf" and document["parameters"]["E"]["identified"]
     assert rows["held_out", "after"]["force_n_mean"] < 0.5 * rows["held_out", "before"]["force_n_mean"]
+
+
+def test_fit_reports_a_parametric_bootstrap_with_progress_when_asked(recording, tmp_path, capsys):
+    out = tmp_path / "bubble.toml"
+    assert fit.run(_args([recording], json=True, params=["E", "K"], uncertainty="bootstrap", draws=3, out=out)) == 0
+    captured = capsys.readouterr()
+    document = json.loads(captured.out)
+    assert "[fit] bootstrap refit 3/3 at" in captured.err
+    assert document["uncertainty_method"] == "bootstrap" and document["uncertainty"].startswith("parametric bootstrap")
+    boot = document["bootstrap"]
+    assert boot["draws"] == 3 and boot["interval"] == "percentile"
+    E, K = document["parameters"]["E"], document["parameters"]["K"]
+    assert E["interval95"] == boot["intervals95"]["percentile"]["E"] and E["identified"]
+    assert K["sigma"] is None and not K["identified"]  # undetermined on a flat face: the bootstrap cannot say more
+    assert "parametric bootstrap of 3 draws" in out.read_text()
+    assert fit.run(_args([recording], uncertainty="bootstrap", draws=2)) == 0
+    assert "(uncertainty: parametric bootstrap of 2 draws, percentile intervals" in capsys.readouterr().out

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from hydrosoft.bench.fit import add_arguments, run, run_fit
-from hydrosoft.bench.stack_recording import read_stack_recording
+from hydrosoft.bench.fit import RecordingReaders, add_arguments, run, run_fit
+from hydrosoft.bench.stack_recording import APPROACH_SAMPLES, pose_at, read_stack_recording, split_at_free_samples
 from hydrosoft.bench.synthetic_wrench import PLANT_SPACING_M, synthetic_trajectories
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.recorder import RecorderOptions, SceneLog, open_sinks
@@ -32,16 +32,29 @@ def one_thread():
     torch.set_num_threads(1)
 
 
-def record(path, bubbles: np.ndarray, objects: np.ndarray, wrenches: np.ndarray, with_wrench: bool = True) -> None:
-    """One trajectory (poses ``(K + 1, 7)``, wrenches ``(K + 1, 6)``) as the stack publishes it, through the
-    recorder's logging: the arm state 3 ms after each wrench, the tracked pose 7 ms before it, and one last wrench
-    1 s after the last pose (no fresh pose: dropped)."""
+def log_messages(path, messages) -> None:
+    """``(topic, message)`` pairs written by the recorder's own logging, each received 0.5 ms after its stamp."""
     context = foxglove.Context()
     geometry = SceneGeometry(bubbles={ARM: (0.06, 0.045, 0.03)}, object_triangles=np.zeros((2, 3, 3)),
                              planner_points=np.eye(3) * 0.01, planner_bodies=(ARM, "table"), static_frames={})
     log = SceneLog(context, SceneBuilder(geometry, epoch_offset_ns=10**18))
     writer, _ = open_sinks(context, RecorderOptions(record=path), path, {})
     log.writer = writer
+    for topic, message in messages:
+        log.log_message(topic, message, received_ns=message.stamp_ns + 500_000)
+    writer.close()
+
+
+def arm_state(k: int, at: int, pose) -> msg.ArmState:
+    return msg.ArmState(seq=k + 1, stamp_ns=at, source=f"arm_commander-{ARM}", arm=ARM, tcp_pose=pose,
+                        tcp_speed=np.zeros(6), running=True, protective_stop=False, emergency_stop=False,
+                        servo_active=True)
+
+
+def record(path, bubbles: np.ndarray, objects: np.ndarray, wrenches: np.ndarray, with_wrench: bool = True) -> None:
+    """One trajectory (poses ``(K + 1, 7)``, wrenches ``(K + 1, 6)``) as the stack publishes it, through the
+    recorder's logging: the arm state 3 ms after each wrench, the tracked pose 7 ms before it, and one last wrench
+    1 s after the last pose (no fresh pose: dropped)."""
     start = 1_000_000_000
     messages = []
     for k in range(len(bubbles)):
@@ -52,16 +65,12 @@ def record(path, bubbles: np.ndarray, objects: np.ndarray, wrenches: np.ndarray,
         if with_wrench:
             messages.append((f"wrench/{ARM}", msg.Wrench(seq=k + 1, stamp_ns=at, source=f"ft_reader-{ARM}",
                                                          sensor=ARM, wrench=wrenches[k], tared=True)))
-        messages.append((f"arm_state/{ARM}", msg.ArmState(
-            seq=k + 1, stamp_ns=at + 3_000_000, source=f"arm_commander-{ARM}", arm=ARM, tcp_pose=bubbles[k],
-            tcp_speed=np.zeros(6), running=True, protective_stop=False, emergency_stop=False, servo_active=True)))
+        messages.append((f"arm_state/{ARM}", arm_state(k, at + 3_000_000, bubbles[k])))
     if with_wrench:
         late = start + len(bubbles) * STEP_NS + 1_000_000_000
         messages.append((f"wrench/{ARM}", msg.Wrench(seq=len(bubbles) + 1, stamp_ns=late, source=f"ft_reader-{ARM}",
                                                      sensor=ARM, wrench=wrenches[-1], tared=True)))
-    for topic, message in messages:
-        log.log_message(topic, message, received_ns=message.stamp_ns + 500_000)
-    writer.close()
+    log_messages(path, messages)
 
 
 def test_the_fit_recovers_a_non_default_material_from_stack_recordings_and_counts_dropped_samples(tmp_path):
@@ -121,3 +130,60 @@ def test_the_fit_command_takes_a_stack_recording_and_refuses_one_without_the_wre
     document = json.loads(capsys.readouterr().out)
     assert document["settings"]["stack_recordings"][str(good)]["kept"] == 5
     assert document["split"]["fit"] and document["split"]["held_out"]
+
+
+def _turn_z(angle: float) -> np.ndarray:
+    return np.array([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)])
+
+
+def test_poses_are_interpolated_to_the_wrench_stamps_within_the_max_gap_and_else_the_nearest_or_none():
+    stamps = np.array([0, 30_000_000])
+    poses = np.stack([np.r_[0.0, 0.0, 0.1, _turn_z(0.0)], np.r_[0.03, 0.0, 0.1, _turn_z(0.9)]])
+    at_10 = pose_at(stamps, poses, 10_000_000, max_gap_ns=20_000_000)  # 30 ms apart: interpolated
+    np.testing.assert_allclose(at_10, np.r_[0.01, 0.0, 0.1, _turn_z(0.3)], atol=1e-12)  # a third: 0.3 of 0.9 rad
+    np.testing.assert_array_equal(pose_at(stamps, poses, 30_000_000, 20_000_000), poses[1])
+    np.testing.assert_array_equal(pose_at(stamps, poses, 10_000_000, 10_000_000), poses[0])  # too far apart: nearest
+    assert pose_at(stamps, poses, 15_000_000, 10_000_000) is None  # ... when within the max gap
+    np.testing.assert_array_equal(pose_at(stamps, poses, 45_000_000, 20_000_000), poses[1])  # past the end
+    assert pose_at(stamps, poses, 51_000_000, 20_000_000) is None
+
+
+def test_a_long_stack_recording_is_cut_into_one_trajectory_per_contact_each_with_its_tare_and_interpolated_poses(
+        tmp_path):
+    _, bubbles, objects, measured = synthetic_trajectories("cube", TRUTH, ["shear", "twist", "shear_twist"], steps=5,
+                                                           seed=1)
+    # one run: the end of a contact (the recording starts in it), then the three trajectories back to back, each
+    # after a pause out of contact longer than the approach the fit keeps
+    rows = [(bubbles[0, k], measured[0, k]) for k in (4, 5)]
+    for i in range(3):
+        rows += [(bubbles[i, 0], np.zeros(6))] * (APPROACH_SAMPLES + 2) + list(zip(bubbles[i], measured[i]))
+    path = tmp_path / "long.mcap"
+    start, messages = 1_000_000_000, []
+    for k, (bubble, wrench) in enumerate(rows):
+        at = start + k * STEP_NS
+        messages.append((f"wrench/{ARM}", msg.Wrench(seq=k + 1, stamp_ns=at, source=f"ft_reader-{ARM}", sensor=ARM,
+                                                     wrench=wrench, tared=True)))
+        # the arm state 10 ms before and 15 ms after each wrench, 25 ms apart, moving 1 mm in x between them
+        for offset, dx in ((-10_000_000, -0.0004), (15_000_000, 0.0006)):
+            messages.append((f"arm_state/{ARM}", arm_state(2 * k + (offset > 0), at + offset,
+                                                           bubble + np.r_[dx, np.zeros(6)])))
+    messages.append(("object_pose/object", msg.ObjectPose(seq=1, stamp_ns=start, source="tag_tracker",
+                                                          object="cube", pose=objects[0, 0], tags_used=(0,),
+                                                          quality=1.0)))
+    log_messages(path, messages)
+    whole = read_stack_recording(path, clamped=True)
+    assert whole.kept == len(rows) and whole.dropped == 0
+    np.testing.assert_allclose(whole.trajectory.bubble_poses, np.stack([b for b, _ in rows]), atol=1e-12)
+    pieces, skipped = split_at_free_samples(whole.trajectory)
+    assert skipped == 1 and len(pieces) == 3  # the contact the recording starts in has no tare before it
+    for i, piece in enumerate(pieces):
+        approach = APPROACH_SAMPLES - 1  # the pause's samples kept before the trajectory's own tare row
+        np.testing.assert_array_equal(piece.wrenches[approach:], measured[i])
+        np.testing.assert_allclose(piece.bubble_poses[approach:], bubbles[i], atol=1e-12)
+        assert piece.phases[0] == "start" and not piece.wrenches[0].any()
+    readers = RecordingReaders({"clamped": True})
+    info, trajectories = readers(path)
+    assert [t.index for t in trajectories] == [1000, 1001, 1002] and info.object == "cube"
+    assert readers.stack[str(path)]["trajectories"] == 3 and readers.stack[str(path)]["skipped_in_contact"] == 1
+    _, whole_again = RecordingReaders({"clamped": True, "contact_force_n": 0.0})(path)
+    assert len(whole_again) == 1 and len(whole_again[0].wrenches) == len(rows)

@@ -218,7 +218,9 @@ def test_the_material_fit_reads_a_live_stack_recording_as_one_trajectory(recorde
     grouped = by_topic(messages)
     read = read_stack_recording(recorded_run.clean, object_name="cube", clamped=True)
     assert read.arm == "bubble" and read.kept >= 2, (read.kept, read.dropped)
-    states = {m.tcp_pose.tobytes() for m in grouped["arm_state/bubble"]}
-    assert all(pose.tobytes() in states for pose in read.trajectory.bubble_poses)
+    states = np.stack([m.tcp_pose for m in sorted(grouped["arm_state/bubble"], key=lambda m: m.stamp_ns)])
+    low, high = np.minimum(states[:-1], states[1:]) - 1e-12, np.maximum(states[:-1], states[1:]) + 1e-12
+    for pose in read.trajectory.bubble_poses:  # interpolated to the wrench stamps: between two recorded states
+        assert ((low[:, :3] <= pose[:3]) & (pose[:3] <= high[:, :3])).all(axis=1).any()
     first = min(grouped["object_pose/object"], key=lambda m: m.stamp_ns).pose
     np.testing.assert_array_equal(read.trajectory.object_poses, np.broadcast_to(first, (read.kept, 7)))

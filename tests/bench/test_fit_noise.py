@@ -1,0 +1,44 @@
+"""The noise benchmark's synthetic tracker noise: the recorded object poses carry the asked noise, the plant's
+wrenches do not change with it (the same seed gives the same wrench noise), and ``--pose-noise`` takes MM,DEG."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from hydrosoft.bench import fit_noise
+from hydrosoft.bench.synthetic_wrench import tracked_poses, write_synthetic_recording
+from hydrosoft.bench.wrench_recording import read_wrench_recording
+
+TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
+
+
+def test_tracked_poses_carry_the_asked_position_and_rotation_noise():
+    truth = np.tile(np.r_[0.1, -0.2, 0.025, Rotation.from_rotvec([0, 0, 0.7]).as_quat(scalar_first=True)], (5000, 1))
+    tracked = tracked_poses(truth, np.random.default_rng(0), position_m=2e-4, rotation_rad=1e-3)
+    np.testing.assert_allclose((tracked[:, :3] - truth[:, :3]).std(axis=0), 2e-4, rtol=0.05)
+    turn = Rotation.from_quat(tracked[:, 3:], scalar_first=True) * Rotation.from_quat(truth[:, 3:],
+                                                                                      scalar_first=True).inv()
+    np.testing.assert_allclose(turn.as_rotvec().std(axis=0), 1e-3, rtol=0.05)
+    assert (np.sum(tracked[:, 3:] * truth[:, 3:], axis=1) > 0).all()  # the recorded hemisphere
+
+
+def test_pose_noise_changes_the_recorded_poses_only_and_the_option_takes_mm_and_deg(tmp_path):
+    plain, noisy = tmp_path / "wrench-cube-a.mcap", tmp_path / "wrench-cube-b.mcap"
+    write_synthetic_recording(plain, "cube", TRUTH, ["shear"], steps=3, seed=5, noise_scale=1.0)
+    write_synthetic_recording(noisy, "cube", TRUTH, ["shear"], steps=3, seed=5, noise_scale=1.0,
+                              pose_noise=(1e-3, 0.0))
+    (_, [a]), (_, [b]) = read_wrench_recording(plain), read_wrench_recording(noisy)
+    np.testing.assert_array_equal(a.wrenches, b.wrenches)
+    np.testing.assert_array_equal(a.bubble_poses, b.bubble_poses)
+    offsets = b.object_poses[:, :3] - a.object_poses[:, :3]
+    assert 1e-4 < np.abs(offsets).mean() < 3e-3 and np.allclose(a.object_poses[:, 3:], b.object_poses[:, 3:])
+    parser = argparse.ArgumentParser()
+    fit_noise.add_arguments(parser)
+    assert parser.parse_args(["--pose-noise", "0.2,0.05"]).pose_noise == (0.2, 0.05)
+    for bad in ("0.2", "x,1", "-1,0"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--pose-noise", bad])
