@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from hydrosoft.services.benchmarks import bus_tail
+from hydrosoft.services.benchmarks.process_pair import run_pair
 from hydrosoft.services.bus.sockets import Bus, CurveKeys, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.commands.keys import generate_key_pair
 from hydrosoft.services.bus.messages import DepthFrame, Message, Wrench
@@ -151,33 +152,6 @@ async def subscribe(endpoint: str, payload: str, seconds: float, key_dir: str = 
 # --- the orchestrator -------------------------------------------------------------------------------------------
 
 
-async def _start(role: str, endpoint: str, payload: str, seconds: float, key_dir: str) -> asyncio.subprocess.Process:
-    return await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "hydrosoft.services.benchmarks.bus", role, endpoint, payload, str(seconds), key_dir,
-        stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
-    )
-
-
-async def _first_line(process: asyncio.subprocess.Process, role: str) -> str:
-    try:
-        line = await asyncio.wait_for(process.stdout.readline(), START_TIMEOUT_S)  # type: ignore[union-attr]
-    except TimeoutError:
-        raise RuntimeError(f"the {role} process did not start within {START_TIMEOUT_S} s") from None
-    if not line:
-        raise RuntimeError(f"the {role} process exited before reporting (exit {await process.wait()})")
-    return line.decode().strip()
-
-
-async def _result(process: asyncio.subprocess.Process, role: str, timeout_s: float) -> dict[str, float]:
-    try:
-        out, _ = await asyncio.wait_for(process.communicate(), timeout_s)
-    except TimeoutError:
-        raise RuntimeError(f"the {role} process did not finish within {timeout_s:.1f} s") from None
-    if process.returncode != 0:
-        raise RuntimeError(f"the {role} process failed (exit {process.returncode})")
-    return json.loads(out.decode().strip().splitlines()[-1])
-
-
 async def measure(payload: str, transport: str, seconds: float, ipc_dir: Path, peer: str = "") -> Row:
     """Run one publisher and one subscriber process for ``payload`` over ``transport`` (to ``peer``'s address for
     the ``PEER_TRANSPORTS``; ``ipc_dir`` also holds a ``tcp-peer-curve`` row's keys) and return their row."""
@@ -191,24 +165,9 @@ async def measure(payload: str, transport: str, seconds: float, ipc_dir: Path, p
             public, _ = generate_key_pair(ipc_dir / "keys", BENCH_HOST)
             (ipc_dir / "keys" / "authorized").mkdir()
             (ipc_dir / "keys" / "authorized" / public.name).write_bytes(public.read_bytes())
-    processes: list[asyncio.subprocess.Process] = []
-    try:
-        publisher = await _start("publish", endpoint, payload, seconds, key_dir)
-        processes.append(publisher)
-        bound = (await _first_line(publisher, "publisher")).removeprefix("BOUND ")
-        subscriber = await _start("subscribe", bound, payload, seconds, key_dir)
-        processes.append(subscriber)
-        await _first_line(subscriber, "subscriber")
-        publisher.stdin.write(b"go\n")  # type: ignore[union-attr]
-        await publisher.stdin.drain()  # type: ignore[union-attr]
-        limit_s = WARMUP_S + seconds + SILENCE_END_S + END_MARGIN_S
-        sent, got = await asyncio.gather(_result(publisher, "publisher", limit_s),
-                                         _result(subscriber, "subscriber", limit_s))
-    finally:
-        for process in processes:
-            if process.returncode is None:
-                process.kill()
-                await process.wait()
+    sent, got = await run_pair(
+        lambda role, address: ["hydrosoft.services.benchmarks.bus", role, address, payload, str(seconds), key_dir],
+        endpoint, START_TIMEOUT_S, WARMUP_S + seconds + SILENCE_END_S + END_MARGIN_S)
     return Row(payload=payload, transport=transport, p50_us=round(got["p50_us"], 1), p99_us=round(got["p99_us"], 1),
                msgs_per_s=round(got["received"] / seconds, 1), rate_hz=RATES_HZ[payload], sent=int(sent["sent"]),
                received=int(got["received"]), samples=int(got["samples"]))

@@ -40,6 +40,7 @@ import numpy as np
 import zmq
 import zmq.asyncio
 
+from hydrosoft.services.benchmarks.process_pair import run_pair
 from hydrosoft.services.bus.messages import decode, encode
 from hydrosoft.services.bus.runtime import settle_garbage_collector
 from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale
@@ -253,53 +254,12 @@ async def _receive_stack(endpoint: str, warmup: int, deadline_s: float, collecti
 # --- the orchestrator -------------------------------------------------------------------------------------------
 
 
-async def _start(role: str, variant: str, endpoint: str, seconds: float) -> asyncio.subprocess.Process:
-    return await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "hydrosoft.services.benchmarks.bus_tail", role, variant, endpoint, str(seconds),
-        stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE)
-
-
-async def _line(process: asyncio.subprocess.Process, role: str) -> str:
-    try:
-        line = await asyncio.wait_for(process.stdout.readline(), START_TIMEOUT_S)  # type: ignore[union-attr]
-    except TimeoutError:
-        raise RuntimeError(f"the {role} process did not start within {START_TIMEOUT_S} s") from None
-    if not line:
-        raise RuntimeError(f"the {role} process exited before reporting (exit {await process.wait()})")
-    return line.decode().strip()
-
-
-async def _report(process: asyncio.subprocess.Process, role: str, timeout_s: float) -> dict:
-    try:
-        out, _ = await asyncio.wait_for(process.communicate(), timeout_s)
-    except TimeoutError:
-        raise RuntimeError(f"the {role} process did not finish within {timeout_s:.1f} s") from None
-    if process.returncode != 0:
-        raise RuntimeError(f"the {role} process failed (exit {process.returncode})")
-    return json.loads(out.decode().strip().splitlines()[-1])
-
-
 async def measure(variant: str, transport: str, seconds: float, ipc_dir: Path) -> dict:
     """One variant over one transport: the sender's and the receiver's reports (``publish``, ``subscribe``)."""
     endpoint = {"tcp": "tcp://127.0.0.1:*", "ipc": f"ipc://{ipc_dir}/{variant}.ipc"}[transport]
-    processes: list[asyncio.subprocess.Process] = []
-    try:
-        sender = await _start("publish", variant, endpoint, seconds)
-        processes.append(sender)
-        bound = (await _line(sender, "publisher")).removeprefix("BOUND ")
-        receiver = await _start("subscribe", variant, bound, seconds)
-        processes.append(receiver)
-        await _line(receiver, "subscriber")
-        sender.stdin.write(b"go\n")  # type: ignore[union-attr]
-        await sender.stdin.drain()  # type: ignore[union-attr]
-        limit_s = WARMUP_S + seconds + SILENCE_END_S + END_MARGIN_S
-        sent, got = await asyncio.gather(_report(sender, "publisher", limit_s),
-                                         _report(receiver, "subscriber", limit_s))
-    finally:
-        for process in processes:
-            if process.returncode is None:
-                process.kill()
-                await process.wait()
+    sent, got = await run_pair(
+        lambda role, address: ["hydrosoft.services.benchmarks.bus_tail", role, variant, address, str(seconds)],
+        endpoint, START_TIMEOUT_S, WARMUP_S + seconds + SILENCE_END_S + END_MARGIN_S)
     return {"sender": sent, "receiver": got}
 
 

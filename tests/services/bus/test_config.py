@@ -193,7 +193,8 @@ def test_a_fitted_material_pasted_below_an_arm_reaches_the_planners_and_the_plan
     from hydrosoft.services.sim_world import plant_model
     from hydrosoft.tasks import make_task
 
-    document = {"model": "nh", "settings": {"objects": ["cube"]}, "split": {"fit": [["cube", 0]], "held_out": []},
+    document = {"model": "nh", "uncertainty_method": "hessian", "bootstrap": None, "settings": {"objects": ["cube"]},
+                "split": {"fit": [["cube", 0]], "held_out": []},
                 "rows": [{"set": "held_out", "when": "after", "trajectories": 0}],
                 "parameters": {"E": {"value": 5.1e5, "sigma": 700.0, "interval95": [5.08e5, 5.12e5], "unit": "Pa/m",
                                      "fitted": True, "identified": True},
