@@ -30,7 +30,6 @@ builds them; any other compiles a signature without a file the usual way.
 from __future__ import annotations
 
 import contextlib
-import gc
 import hashlib
 import os
 import threading
@@ -183,19 +182,6 @@ class Precompiled:
         built.save_compiled_function(str(path), external_data=self._closure)
         PRECOMPILED["built"] += 1
         return built
-
-
-def settle_garbage_collector() -> None:
-    """Collect, then move every object that is left out of the cyclic garbage collector's generations
-    (``gc.freeze``): call it once the compiled calls are warm.
-
-    Compiling leaves about half a million objects (dynamo's and inductor's graphs and caches) that live as long as
-    the process. Each full collection walked all of them, 20 ms or more, and a planner whose solves promote a few
-    objects each ran one per solve in some runs: a share's solve took 52 instead of 34 ms (``perf``:
-    ``gc_collect_main`` and its visits half the time). Frozen, they are never walked again; garbage made later is
-    collected as before."""
-    gc.collect()
-    gc.freeze()
 
 
 def with_default_options(options: dict) -> dict:

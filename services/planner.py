@@ -59,9 +59,10 @@ import msgspec
 import numpy as np
 import torch
 
-from hydrosoft.compilation import settle_garbage_collector
+from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
 from hydrosoft.control import device_unavailable as control_device_unavailable
+from hydrosoft.control.worker_processes import eager_parts
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import State, with_object_update
@@ -703,9 +704,9 @@ def core_problem(problem: tuple) -> tuple[Callable, Callable, Callable]:
 
 def compile_step(core: PlannerCore) -> float:
     """Compile the planner's step for every input signature a solve uses, by one solve from the scene's initial
-    state (its result is dropped), then settle the garbage collector (``compilation.settle_garbage_collector``: the
-    compiler's objects out of its way); the seconds it took. With torch's compile cache warm this loads the compiled
-    code instead (seconds, not minutes)."""
+    state (its result is dropped), then settle the garbage collector
+    (``garbage_collection.settle_garbage_collector``: the compiler's objects out of its way); the seconds it took.
+    With torch's compile cache warm this loads the compiled code instead (seconds, not minutes)."""
     started = time.monotonic()
     _, initial, _ = compile_scene(planner_scene(core.task, core.config), dtype=core.model.dtype)
     arm_poses = {name: initial.body_poses[0, index].double() for name, index in core.arms.items()}
@@ -718,8 +719,8 @@ def compile_planner(core: PlannerCore) -> str | None:
     """Compile the planner's step and costs (``compile_step``); None when all of them run compiled, in this process
     and in each solver worker process, else each that fell back to eager with its reason."""
     compile_step(core)
-    parts = {"step": core.dynamics, "stage cost": core.cost_terms.stage, "terminal cost": core.cost_terms.terminal}
-    failed = [f"{name}: {part.fallback_reason}" for name, part in parts.items() if not part.compiled]
+    own = eager_parts((core.dynamics, core.cost_terms.stage, core.cost_terms.terminal))
+    failed = [own] if own else []
     if core.processes is not None:
         failed += [worker_fallback(index, why) for index, why in sorted(core.processes.fallbacks.items())]
     return "; ".join(failed) if failed else None

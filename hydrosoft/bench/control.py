@@ -226,21 +226,21 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     the costs through the setup's compiled cost terms (as the planner runs them) or eager; ``preloaded``: the
     process's ``LD_PRELOAD`` (the allocator ``hydrosoft-stack`` preloads, ``hydrosoft.services.bus.allocator``), or None.
 
-    After the warm-up solves the process's garbage collector is settled (``compilation.settle_garbage_collector``), as
-    the stack's planner does once it has compiled. A timed solve is one cycle of the closed loop, as
-    ``evaluation.run_episode`` runs it: the state estimate from the plant's sensors and the planner's prediction of this
-    instant (``observed_state``; ``estimate_ms``), the solve, and the prediction of the applied action for the next
-    estimate (``predict_ms``: taken from the solve's own rollout of its plan, ``PlanResult.states``, it costs next to
-    nothing; an eager step took 4.7 ms). Only the first estimate, with no prediction yet, presses the bodies in from
-    contact-free (``dynamics.press_in``). The costs'
+    After the warm-up solves the process's garbage collector is settled
+    (``garbage_collection.settle_garbage_collector``), as the stack's planner does once it has compiled. A timed
+    solve is one cycle of the closed loop, as ``evaluation.run_episode`` runs it: the state estimate from the
+    plant's sensors and the planner's prediction of this instant (``observed_state``; ``estimate_ms``), the solve,
+    and the prediction of the applied action for the next estimate (``predict_ms``: taken from the solve's own
+    rollout of its plan, ``PlanResult.states``, it costs next to nothing; an eager step took 4.7 ms). Only the first
+    estimate, with no prediction yet, presses the bodies in from contact-free (``dynamics.press_in``). The costs'
     drift is anchored at the plant's initial state, as an episode's is (and the stack's, at the state its goal
-    started from), through the setup's cost terms (compiled with ``compile``). ``plan_costs``:
-    each timed solve's plan cost ``J``, in order, so that two settings' plans can be compared along the same loop.
-    ``worker_kind``: ``threads`` or ``processes`` (``PlannerSettings.worker_processes``); with processes the step and
-    cost calls run there, and ``step_forward_ms`` and ``cost_forward_ms`` are None. ``device``: where the planner's
-    model, step, costs and solver compute (``on_device``; threads only); on CUDA ``step_forward_ms`` and
-    ``cost_forward_ms`` are None too (the calls return before their kernels end) and ``gpu_memory_mib`` is the most
-    memory the solves held."""
+    started from), through the setup's cost terms (compiled with ``compile``). ``plan_costs``: each timed solve's
+    plan cost ``J``, in order, so that two settings' plans can be compared along the same loop. ``worker_kind``:
+    ``threads`` or ``processes`` (``PlannerSettings.worker_processes``); with processes the step and cost calls run
+    there, and ``step_forward_ms`` and ``cost_forward_ms`` are None. ``device``: where the planner's model, step,
+    costs and solver compute (``on_device``; threads only); on CUDA ``step_forward_ms`` and ``cost_forward_ms`` are
+    None too (the calls return before their kernels end) and ``gpu_memory_mib`` is the most memory the solves
+    held."""
     import torch
 
     from hydrosoft.tasks import make_task
@@ -297,7 +297,7 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
     import msgspec
     import torch
 
-    from hydrosoft.compilation import settle_garbage_collector
+    from hydrosoft.garbage_collection import settle_garbage_collector
     from hydrosoft.control import CemGd
     from hydrosoft.dynamics import pair_counts
     from hydrosoft.scene import build_surface

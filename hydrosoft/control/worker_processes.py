@@ -45,7 +45,7 @@ import torch
 from torch import Tensor
 from torch.utils._pytree import tree_map
 
-from hydrosoft.compilation import settle_garbage_collector
+from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.control.cem_gd import CemGd, CemGdConfig, ShareResult
 
 Problem = tuple[Callable, Callable, Callable]
@@ -186,7 +186,7 @@ PART_NAMES = ("step", "stage cost", "terminal cost")
 
 def eager_parts(parts: Problem) -> str:
     """Which of a problem's compiled parts (``compilation.FallsBack``) fell back to eager, and why: '' when none
-    did (plain functions are eager by design and not named)."""
+    did (plain functions are eager by design and not named). The planner names its own parts with it too."""
     return "; ".join(f"{name}: {part.fallback_reason}" for name, part in zip(PART_NAMES, parts)
                      if getattr(part, "fallback_reason", None) is not None)
 

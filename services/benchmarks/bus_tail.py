@@ -10,8 +10,9 @@ alike; the variants are compared by ratio within the run:
   ``zmq.asyncio`` socket's ``poll()`` before each read, the way ``LatestSubscriber`` read until this benchmark.
 - ``stack``: ``LatestSubscriber.wait`` as every service reads now (``loop.add_reader`` on the socket's file
   descriptor, every queued message read per wake-up), with Python's garbage collector as it comes.
-- ``stack-gc``: the same with the services' collector settings in both processes (``runtime.settle_garbage_collector``,
-  which ``Service.ready`` calls: start-up objects collected once and frozen).
+- ``stack-gc``: the same with the services' collector settings in both processes
+  (``garbage_collection.settle_garbage_collector``, which ``Service.ready`` calls: start-up objects collected once
+  and frozen).
 
 Each process records its garbage collections (``gc.callbacks``: generation and pause), the sender also how late each
 of its wake-ups came (its pacing). A message's age is its receive time minus its ``stamp_ns`` (one host, one
@@ -42,7 +43,7 @@ import zmq.asyncio
 
 from hydrosoft.services.benchmarks.process_pair import run_pair
 from hydrosoft.services.bus.messages import decode, encode
-from hydrosoft.services.bus.runtime import settle_garbage_collector
+from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale
 
 VARIANTS = ("raw", "poll", "stack", "stack-gc")

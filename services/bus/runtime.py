@@ -36,7 +36,6 @@ re-exported here, since every service uses them.
 from __future__ import annotations
 
 import asyncio
-import gc
 import logging
 import os
 import logging.handlers
@@ -49,6 +48,7 @@ from collections.abc import Awaitable, Callable, Iterable, Sequence
 
 import msgspec
 
+from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.services.bus.sockets import (
     Bus,
     BusConfigError,
@@ -295,17 +295,6 @@ class Service:
                 await hook()
             except Exception:  # one failing hook must not skip the others (e.g. the arm's stop)
                 self.log.exception("shutdown hook %r failed", hook)
-
-
-def settle_garbage_collector() -> None:
-    """Collect once, then move every object left (the imports', the sockets', a model's) out of the collector's
-    generations for good (``gc.freeze``): ``Service.ready`` calls it, so that no later collection walks a service's
-    start-up objects again. A full collection walked them all: 14-32 ms for a service without torch and 140-220 ms
-    with it on two busy cores, a pause of the event loop that no message could outrun (docs/benchmarks.md, the bus's
-    tail). The first generation's threshold stays Python's: with the objects frozen its collections took 0.14 ms at
-    most in ``bench bus --tail``."""
-    gc.collect()
-    gc.freeze()
 
 
 def _total(counters: Iterable[Counter[str]]) -> Counter[str]:

@@ -679,10 +679,9 @@ class LatestSubscriber:
     def _on_signal(self) -> None:
         """The socket's descriptor signalled: wake the waiting ``_readable`` when a message is queued. Reading
         ``EVENTS`` re-arms the descriptor, also when no one waits (then the next ``wait`` drains first)."""
-        queued = self._plain.getsockopt(_EVENTS) & _POLLIN
-        woken = self._woken
-        if queued and woken is not None and not woken.done():
-            woken.set_result(True)
+        queued = self._plain.getsockopt(_EVENTS) & _POLLIN  # read every time: it re-arms the descriptor
+        if queued and self._woken is not None:
+            _resolve(self._woken, True)
 
     async def _readable(self, timeout_s: float) -> bool:
         """Wait until the socket holds a message (True) or ``timeout_s`` (s) passed (False)."""
