@@ -33,7 +33,9 @@ No motion the person did not start: a target is acted on only when its goal (``A
 after this commander's start, its last reconnect to the controller, its last ``arm enable`` and the last loss of the
 planner (a heartbeat that was fresh and went older than ``limits.planner_lost_s``: a dead, frozen or cut-off
 planner ends its goal, counted once as ``planner_lost``; one that runs on does not resume it; a shorter gap past
-``limits.heartbeat_timeout_s`` only stops the arm until the goal's next fresh target); the others are
+``limits.heartbeat_timeout_s`` only stops the arm until the goal's next fresh target) and the last loss of the F/T
+readings (none for longer than ``limits.sensor_lost_s`` after a fresh one: a dead reader or an unplugged sensor,
+counted once as ``ft_lost``; a reader that comes back does not resume the goal); the others are
 counted (``old_goal``) and the arm holds. ``ArmState.goal_floor_ns`` and ``goal_floor_cause`` publish that floor, so
 the planner ends a goal the commander no longer acts on.
 
@@ -106,6 +108,8 @@ EXIT_STOP_UNCONFIRMED = 3
 STOPPING = "stopping"
 #: The goal floor's cause after the planner's heartbeat went stale (or gone) from fresh.
 PLANNER_LOST = "the loss of the planner's heartbeat"
+#: The goal floor's cause after the F/T readings went missing (from fresh) for longer than ``limits.sensor_lost_s``.
+FT_LOST = "the loss of the F/T readings"
 #: The cause a hold names: a target's deadline passed while the arm servoed and no other rule stopped it.
 HOLD = "hold: target deadline passed"
 #: The loop skips ahead instead of bursting when it falls this many periods behind.
@@ -120,14 +124,15 @@ class Decision:
     """What to do this period. command: the servo pose ``(7,)`` [m, wxyz] to send, or None (hold stopped).
     stop: send ``driver.stop()`` now. reason: why the arm is stopped ("" while servoing). refusal: a target refused
     this period for its path (to be counted), or "". planner_lost: why the planner counts as lost this period and
-    every goal started before it ended (to be counted once), or "". hold_started: the stop begun this period is a
-    hold (to be counted as one)."""
+    every goal started before it ended (to be counted once), or "". ft_lost: the same for the F/T readings.
+    hold_started: the stop begun this period is a hold (to be counted as one)."""
 
     command: np.ndarray | None
     stop: bool
     reason: str
     refusal: str = ""
     planner_lost: str = ""
+    ft_lost: str = ""
     hold_started: bool = False
 
 
@@ -139,14 +144,15 @@ class ServoLogic:
     (a person's ``arm enable``), even once the controller runs again. A ``stack`` stop is one of the commander's
     own rules; the transient ones (deadline, a heartbeat not seen yet, state, F/T, driver errors, the force limit)
     clear on the next fresh target, a refused target holds the arm for the rest of its goal, a lost planner (its
-    heartbeat fresh at one decision, gone or older than ``limits.planner_lost_s`` at a later one) ends every goal
-    started before the loss. A stop
+    heartbeat fresh at one decision, gone or older than ``limits.planner_lost_s`` at a later one) and lost F/T
+    readings (fresh at one decision, none for longer than ``limits.sensor_lost_s`` since) end every goal started
+    before the loss: a planner or F/T reader that comes back (restarted, reconnected) does not resume it. A stop
     for the servoed target's passed deadline alone is a hold (``holding``): a late planner, not a fault (the module
     docstring).
 
     No motion the person did not start: only targets of a goal started (``ArmTarget.goal_started_ns``) after the
     commander's start, its last reconnect to the controller (``ArmState.link_since_ns``), its last ``enable``, the
-    goal of its last refused target and the last loss of the planner are servoed on.
+    goal of its last refused target and the last loss of the planner or of the F/T readings are servoed on.
 
     Args:
         limits: the workspace box, orientation, speed, force and timeout limits (``LimitsConfig``).
@@ -180,6 +186,8 @@ class ServoLogic:
         self._state_hw_ns: int | None = None
         self._state_advanced_ns: int | None = None
         self._planner_alive = False  # the planner's heartbeat was fresh at the last decision
+        self._ft_seen_ns: int | None = None  # the last decision with a fresh F/T reading since the last loss
+        self._ft_seq = 0  # the seq of the newest F/T reading decided on (a lower one: its reader restarted)
 
     def offer(self, target: msg.ArmTarget | None, now_ns: int) -> tuple[str, str] | None:
         """Consider the newest target message at ``now_ns``; returns ``(error kind, text)`` to count, or None.
@@ -251,6 +259,29 @@ class ServoLogic:
         return (f"planner lost: its heartbeat is {seen} (limit {self.limits.planner_lost_s} s); its goal ended, "
                 "a new goal must be started")
 
+    def _ft_lost(self, now_ns: int, reading: bool, seq: int | None) -> str:
+        """Why the F/T readings count as lost at ``now_ns``, or "": a decision had a fresh reading (``reading``:
+        a finite wrench within ``WRENCH_MAX_AGE_S``, tared or not) and none came for longer than
+        ``limits.sensor_lost_s`` since (a dead or unplugged reader), or this reading's ``seq`` is lower than the
+        last one's (a restarted reader numbers from 1). Then every goal started before ``now_ns`` has ended, so a
+        reader that comes back does not resume it. A shorter gap only stops the arm (the watchdog's "no fresh F/T
+        reading") until the goal's next fresh target; readings never seen since the start end nothing."""
+        if reading:
+            restarted = seq is not None and seq < self._ft_seq
+            self._ft_seen_ns, self._ft_seq = now_ns, self._ft_seq if seq is None else seq
+            if not restarted:
+                return ""
+            why = "its reader restarted (its wrenches are numbered from 1 again)"
+        elif self._ft_seen_ns is None or (now_ns - self._ft_seen_ns) * 1e-9 <= self.limits.sensor_lost_s:
+            return ""
+        else:
+            why = f"none for {(now_ns - self._ft_seen_ns) * 1e-9:.3f} s (limit {self.limits.sensor_lost_s} s)"
+            self._ft_seen_ns = None
+        if now_ns > self.goal_floor_ns:
+            self.goal_floor_ns, self.goal_floor_cause = now_ns, FT_LOST
+        self.target = None
+        return f"F/T readings lost: {why}; its goal ended, a new goal must be started"
+
     @staticmethod
     def enable_refusal(state: ArmState | None) -> str | None:
         """Why a person's ``arm enable`` must be refused with the controller in ``state`` (None: unreadable), or
@@ -276,12 +307,15 @@ class ServoLogic:
         return cleared
 
     def decide(self, now_ns: int, state: ArmState | None, driver_error: str | None, heartbeat_ns: int | None,
-               force: np.ndarray | None, stopping: bool = False, untared: bool = False) -> Decision:
+               force: np.ndarray | None, stopping: bool = False, untared: bool = False,
+               ft_seq: int | None = None) -> Decision:
         """This period's decision at ``now_ns``, from the driver's ``state`` (None when reading it failed with
         ``driver_error``), the planner heartbeat's stamp (ns), the contact force on the bubble ``(3,)`` (N, TCP
         frame; None when unknown), whether a stop is still in flight (then nothing is commanded until it ends) and
         whether that force is ``untared``: the F/T reader has no bias to remove, so the force is off by the
-        sensor's unknown offset and the force limit cannot be kept (the arm holds, cause ``UNTARED_FT``)."""
+        sensor's unknown offset and the force limit cannot be kept (the arm holds, cause ``UNTARED_FT``). ft_seq: the
+        ``seq`` of the wrench message behind ``force`` (None: not known), so a restarted reader is noticed."""
+        ft_lost = self._ft_lost(now_ns, force is not None and bool(np.isfinite(force).all()), ft_seq)
         if untared:
             force = None
         force_n = None if force is None else float(np.linalg.norm(force))
@@ -294,7 +328,7 @@ class ServoLogic:
         refusal = ""
         untared_reason = UNTARED_FT if untared else None
         planner_lost = self._planner_lost(now_ns, heartbeat_ns)
-        early = (self._external_reason() or planner_lost or driver_error or self._refusal or untared_reason
+        early = (self._external_reason() or planner_lost or ft_lost or driver_error or self._refusal or untared_reason
                  or self._goal_end)
         reason = early or watchdog(
             now_ns, None if self.target is None else self.deadline_ns, heartbeat_ns, self._state_advanced_ns,
@@ -328,7 +362,7 @@ class ServoLogic:
         self.halt(reason or "no arm state", hold=hold)
         moving = state is not None and is_moving(state.tcp_speed)
         return Decision(None, stop=was_servoing or (moving and not stopping), reason=self.reason, refusal=refusal,
-                        planner_lost=planner_lost, hold_started=hold)
+                        planner_lost=planner_lost, ft_lost=ft_lost, hold_started=hold)
 
     def _only_late(self, now_ns: int, state: ArmState | None, heartbeat_ns: int | None, force_n: float | None) -> bool:
         """Whether the only stop at ``now_ns`` is the servoed target's passed deadline (then the stop is a hold): the
@@ -429,11 +463,14 @@ class Commander:
         heartbeat = self._newest("heartbeat/planner", ANY_AGE_S, msg.Heartbeat)
         decision = self.logic.decide(time.monotonic_ns(), state, driver_error,
                                      None if heartbeat is None else heartbeat.stamp_ns, force, stopping=self.stopping,
-                                     untared=wrench is not None and not wrench.tared)
+                                     untared=wrench is not None and not wrench.tared,
+                                     ft_seq=None if wrench is None else wrench.seq)
         if decision.refusal:
             self.service.count_error("target_refused", decision.refusal)
         if decision.planner_lost:
             self.service.count_error("planner_lost", decision.planner_lost)
+        if decision.ft_lost:
+            self.service.count_error("ft_lost", decision.ft_lost)
         if decision.hold_started:
             self.service.count_error("deadline_hold", decision.reason)
         if decision.command is not None:

@@ -14,6 +14,9 @@ commanders, each with a deadline: ``target_lead`` after it is sent, twice the p9
 plus a margin, within ``planner.target_lead_s`` .. ``limits.max_target_lead_s`` (so the next target comes before it
 lapses; a lapsed one makes the commander hold the arm). When a goal ends, a halt names its outcome. Stale inputs mean no
 solve and no target, also when an input went stale during the solve: the commander's watchdog then stops the arm.
+Inputs stale for longer than ``limits.sensor_lost_s``, or from a publisher that restarted meanwhile (its
+messages' ``seq`` began again), end the goal ``interrupted`` (``input_lost``): a sensor that comes back (a restarted
+tag tracker or camera) does not resume it; a person starts a new goal.
 
 The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus``. A goal set for another stack
 launch (``Goal.instance``, not this service's ``instance``) is refused. ``Start`` is refused without
@@ -347,10 +350,37 @@ class Episode:
     outcome: msg.Outcome = "running"
     reason: str = ""
     contact: ContactWatch | None = None
+    stale_since_s: float | None = None  # when the inputs went stale (time.monotonic()), None while fresh
+    input_seqs: dict[str, int] = field(default_factory=dict)  # per input topic, the seq of its newest message used
 
     def finish(self, outcome: msg.Outcome, reason: str = "") -> None:
         if self.outcome == "running":
             self.outcome, self.reason = outcome, reason
+
+    def note_stale(self, now_s: float, why: str, lost_after_s: float) -> bool:
+        """Note inputs stale at ``now_s`` (s, monotonic) for ``why``; once they have been stale for longer than
+        ``lost_after_s`` the goal ends ``interrupted`` (returns True): the arm was stopped for it, and a sensor
+        that comes back does not move it again on this goal."""
+        if self.stale_since_s is None:
+            self.stale_since_s = now_s
+        if now_s - self.stale_since_s <= lost_after_s:
+            return False
+        self.finish("interrupted", f"input lost: {why}, for over {lost_after_s:g} s (the arm was stopped); "
+                                   "start a new goal")
+        return True
+
+    def note_fresh(self, seqs: dict[str, int]) -> bool:
+        """Note fresh inputs whose newest messages have these ``seq`` per topic; when one is lower than the last
+        one used, its publisher restarted (a new process numbers from 1): the goal ends ``interrupted`` (returns
+        True), so a sensor that comes back does not move the arm again on this goal."""
+        self.stale_since_s = None
+        restarted = sorted(topic for topic, seq in seqs.items() if seq < self.input_seqs.get(topic, 0))
+        self.input_seqs.update(seqs)
+        if not restarted:
+            return False
+        self.finish("interrupted", f"input lost: the publisher of {', '.join(restarted)} restarted during the goal "
+                                   "(its messages are numbered from 1 again); start a new goal")
+        return True
 
 
 class Planner:
@@ -370,8 +400,10 @@ class Planner:
             topics=["object_pose/", "arm_state/", "deformation/"], background=True)
         self.out = service.publisher(config.endpoint("planner"))
         self.pose_stamps = (0, 0)  # (image, publish) stamps of the object pose fresh_inputs returned last, ns
+        self.input_seqs: dict[str, int] = {}  # per topic, the seq of the message fresh_inputs returned last
         self.cycles_s: deque[float] = deque(maxlen=LEAD_WINDOW)  # recent cycles, start to targets sent (s)
         self.camera_period_s = 1.0 / config.camera.fps  # the time between object poses (pose_wait_s)
+        self.sensor_lost_s = config.limits.sensor_lost_s  # inputs stale for longer: the goal ends
 
     # --- client API ---
 
@@ -482,16 +514,19 @@ class Planner:
 
     def fresh_inputs(self) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, msg.MembraneDeformation]]:
         """The newest object pose, TCP poses (task frame) and deformation images, each within its maximum age
-        (else Stale). ``pose_stamps`` keeps the object pose's image and publish stamps (ns) for the Plan."""
+        (else Stale). ``pose_stamps`` keeps the object pose's image and publish stamps (ns) for the Plan,
+        ``input_seqs`` each input message's ``seq``."""
         to_task = self.core.frame.to_task
         tracked = self.inputs.latest(OBJECT_POSE_TOPIC, self.max_age["object_pose"]).value
-        self.pose_stamps = (tracked.hw_stamp_ns or 0, tracked.stamp_ns)
+        seqs = {OBJECT_POSE_TOPIC: tracked.seq}
         object_pose = to_task(as_pose(tracked.pose))
         arms, deformations = {}, {}
         for arm in self.config.arms:
             state = self.inputs.latest(f"arm_state/{arm.name}", self.max_age["arm_state"]).value
             arms[arm.name] = to_task(as_pose(state.tcp_pose))
             deformations[arm.name] = self.inputs.latest(f"deformation/{arm.name}", self.max_age["deformation"]).value
+            seqs[f"arm_state/{arm.name}"], seqs[f"deformation/{arm.name}"] = state.seq, deformations[arm.name].seq
+        self.pose_stamps, self.input_seqs = (tracked.hw_stamp_ns or 0, tracked.stamp_ns), seqs
         return object_pose, arms, deformations
 
     def penetration(self, object_pose: torch.Tensor, arm_poses: dict[str, torch.Tensor],
@@ -532,7 +567,15 @@ class Planner:
             object_pose, arm_poses, deformations = self.fresh_inputs()
         except Stale as err:
             self.service.count_error("stale_input", str(err))
+            if episode.note_stale(time.monotonic(), str(err), self.sensor_lost_s):
+                self.service.count_error("input_lost", episode.reason)
+                self._end_episode()
+                return
             await asyncio.sleep(IDLE_PERIOD_S)
+            return
+        if episode.note_fresh(self.input_seqs):
+            self.service.count_error("input_lost", episode.reason)
+            self._end_episode()
             return
         stamps = {"image_stamp_ns": self.pose_stamps[0], "pose_stamp_ns": self.pose_stamps[1],
                   "inputs_ns": time.monotonic_ns()}

@@ -230,6 +230,7 @@ LIMIT_BOUNDS = {
     "idle_rate_hz": 500.0,  # at most servo_rate_hz (checked there)
     "heartbeat_timeout_s": 2.0,  # longer, a dead planner's last target would steer the arm for seconds
     "planner_lost_s": 10.0,  # longer, a planner silent for many seconds could still resume its goal
+    "sensor_lost_s": 10.0,  # longer, a sensor back from a restart many seconds later could still resume its goal
     "state_timeout_s": 1.0,  # longer, the arm would move blind past ur_rtde's own 2.5 s read deadline
     "max_target_lead_s": 5.0,  # a target is a plan step, valid for a fraction of a second, not a program
     "max_plan_age_s": 10.0,  # a planner that solved nothing for this long is hung, not slow
@@ -248,7 +249,10 @@ class LimitsConfig(Strict):
     the force has fallen below this (N, < max_force_n; default 0.75 x max_force_n). servo_rate_hz: the rate of
     servo commands. idle_rate_hz: the commander's rate while it holds the arm at rest with no target (it checks
     the arm and publishes its state this often, and wakes at once on a target). heartbeat_timeout_s: stop when
-    the planner's heartbeat is older. state_timeout_s: stop when the arm driver's state has not advanced for this
+    the planner's heartbeat is older. planner_lost_s: a heartbeat older than this, after it was fresh, ends the
+    goal (a new goal must be started). sensor_lost_s: an input the motion depends on (the F/T readings for the
+    commander; the object pose, TCP poses and membrane images for the planner) missing for longer than this, after
+    it was fresh, ends the goal the same way. state_timeout_s: stop when the arm driver's state has not advanced for this
     long. max_target_lead_s: a target's deadline is clamped to at most this far after its arrival (s).
     max_plan_age_s: stop when the plan behind the target was completed longer ago than this (s; a hung solve).
     max_tilt_deg: the largest angle between a target's tool z axis and the arm's nominal one
@@ -265,6 +269,7 @@ class LimitsConfig(Strict):
     idle_rate_hz: float = 25.0
     heartbeat_timeout_s: float = 0.5
     planner_lost_s: float = 1.0
+    sensor_lost_s: float = 1.0
     state_timeout_s: float = 0.2
     max_target_lead_s: float = 1.0
     max_plan_age_s: float = 2.0
@@ -273,7 +278,8 @@ class LimitsConfig(Strict):
 
     def __post_init__(self) -> None:
         _positive(self, "limits", "max_speed_m_s", "max_angular_speed_rad_s", "max_force_n", "servo_rate_hz",
-                  "idle_rate_hz", "heartbeat_timeout_s", "planner_lost_s", "state_timeout_s", "max_target_lead_s",
+                  "idle_rate_hz", "heartbeat_timeout_s", "planner_lost_s", "sensor_lost_s", "state_timeout_s",
+                  "max_target_lead_s",
                   "max_plan_age_s", "max_tilt_deg")
         for name, bound in LIMIT_BOUNDS.items():
             if name != "max_yaw_deg":

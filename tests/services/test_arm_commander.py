@@ -28,8 +28,8 @@ from hydrosoft.drivers.base import ArmState
 from hydrosoft.drivers.ur.config import DASHBOARD_PORT, SIM_CONTROL_PORT, URArmConfig
 from hydrosoft.services.commands import arm as arm_enable
 from hydrosoft.services.bus import messages as msg
-from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, HOLD, MAX_STEP_PERIODS, NO_TARGET, PLANNER_LOST,
-                                             UNTARED_FT, ServoLogic, driver_config)
+from hydrosoft.services.arm_commander import (EXIT_STOP_UNCONFIRMED, FT_LOST, HOLD, MAX_STEP_PERIODS, NO_TARGET,
+                                             PLANNER_LOST, UNTARED_FT, ServoLogic, driver_config)
 from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale
 from hydrosoft.services.bus.config import LimitsConfig, load_config
 from loopback import free_ur_host
@@ -293,6 +293,60 @@ def test_a_heartbeat_gap_shorter_than_planner_lost_s_stops_the_arm_and_the_goals
     now += PERIOD_NS
     assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now), now) is None  # the same goal's next target
     assert step(logic, now, heartbeat_ns=now).command is not None and logic.goal_floor_cause != PLANNER_LOST
+
+
+def test_f_t_readings_lost_past_sensor_lost_s_end_the_goal_and_a_reader_back_does_not_resume_it():
+    """F/T readings missing for a moment stop the arm until the goal's next target; missing for longer than
+    ``limits.sensor_lost_s`` (a dead reader, an unplugged sensor) they end every goal started before, so the reader
+    coming back moves nothing; a new goal moves the arm."""
+    logic = servoing_logic(msgspec.structs.replace(LIMITS, sensor_lost_s=0.5))
+    now = T0 + int(0.3 * S)
+    gap = step(logic, now, force=None)  # a short gap: the watchdog's stop, the goal stands
+    assert gap.stop and "F/T" in gap.reason and not gap.ft_lost and logic.goal_floor_cause != FT_LOST
+    now += PERIOD_NS
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now), now) is None
+    assert step(logic, now).command is not None  # readings back: the same goal's next target servoes
+    quiet = step(logic, now + int(0.49 * S), force=None)  # none since now, not yet for sensor_lost_s
+    assert quiet.stop and not quiet.ft_lost and logic.goal_floor_cause != FT_LOST
+    lost_at = now + int(0.51 * S)
+    lost = step(logic, lost_at, force=None)
+    assert lost.stop is False and lost.command is None  # stopped already at the first missing reading
+    assert "F/T readings lost" in lost.ft_lost and "F/T readings lost" in lost.reason
+    assert logic.goal_floor_ns == lost_at and logic.goal_floor_cause == FT_LOST
+    assert not step(logic, lost_at + PERIOD_NS, force=None).ft_lost  # counted once
+    back = lost_at + 2 * PERIOD_NS  # the reader is back, the planner sends the old goal's next target
+    kind, text = logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], back), back)
+    assert kind == "old_goal" and FT_LOST in text
+    assert step(logic, back).command is None
+    back += PERIOD_NS
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], back, goal_ns=back - 1), back) is None  # a new goal
+    assert step(logic, back).command is not None
+
+
+def test_a_restarted_f_t_reader_ends_the_goal_at_its_first_reading():
+    """A reader back within ``limits.sensor_lost_s`` (a fast restart) is still a restart: its wrenches are numbered
+    from 1 again, and the goal started before it ends at its first reading."""
+    logic = servoing_logic()
+    now = T0 + PERIOD_NS
+    assert step(logic, now, ft_seq=500).command is not None
+    assert step(logic, now + PERIOD_NS, ft_seq=501).command is not None  # numbered on: the same reader
+    now += 2 * PERIOD_NS
+    restarted = step(logic, now, ft_seq=1)
+    assert restarted.stop and restarted.command is None and "reader restarted" in restarted.ft_lost
+    assert logic.goal_floor_ns == now and logic.goal_floor_cause == FT_LOST
+    now += PERIOD_NS
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], now), now)[0] == "old_goal"
+    assert step(logic, now, ft_seq=2).command is None and not step(logic, now + 1, ft_seq=3).ft_lost
+
+
+def test_f_t_readings_never_seen_since_the_start_end_no_goal():
+    """A commander whose F/T reader has not published yet (it starts later) holds the arm, but lost nothing."""
+    logic = new_logic(msgspec.structs.replace(LIMITS, sensor_lost_s=0.5))
+    assert logic.offer(target(HOME + [0.1, 0, 0, 0, 0, 0, 0], T0), T0) is None
+    for k in range(3):
+        decision = step(logic, T0 + k * S, force=None)
+        assert decision.command is None and not decision.ft_lost
+    assert logic.goal_floor_cause != FT_LOST
 
 
 def test_a_heartbeat_not_seen_yet_holds_the_arm_without_ending_the_goal():

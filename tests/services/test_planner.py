@@ -315,6 +315,34 @@ def test_a_goal_ends_once_an_arm_commanders_goal_floor_reaches_its_start():
     why = ended_by_commander(started_ns, [fine, lost])
     assert why is not None and "arm right" in why and PLANNER_LOST in why and "start a new goal" in why
 
+def idle_episode() -> Episode:
+    """An episode for the input rules alone (no goal, target or solver needed)."""
+    return Episode(goal=None, target=None, solver=None, started_s=0.0)
+
+
+def test_inputs_stale_past_sensor_lost_s_end_the_goal_and_a_short_gap_does_not():
+    episode = idle_episode()
+    assert not episode.note_stale(10.0, "object pose 0.6 s old", 1.0)
+    assert not episode.note_stale(10.9, "object pose 1.5 s old", 1.0) and episode.outcome == "running"
+    assert not episode.note_fresh({OBJECT_POSE_TOPIC: 7})  # back in time: the gap only stopped the arm
+    assert not episode.note_stale(11.0, "object pose 0.6 s old", 1.0)  # a new gap counts from its own start
+    assert not episode.note_stale(12.0, "object pose 1.6 s old", 1.0)
+    assert episode.note_stale(12.01, "object pose 1.61 s old", 1.0)
+    assert episode.outcome == "interrupted" and "input lost: object pose 1.61 s old" in episode.reason
+    assert "start a new goal" in episode.reason
+
+
+def test_an_input_whose_publisher_restarted_ends_the_goal_even_without_a_gap():
+    """A restarted tag tracker or camera numbers its messages from 1 again: the goal ends at once, so a sensor that
+    comes back quickly does not move the arm again on that goal."""
+    episode = idle_episode()
+    topics = {OBJECT_POSE_TOPIC: 40, "arm_state/bubble": 900, "deformation/bubble": 30}
+    assert not episode.note_fresh(topics)
+    assert not episode.note_fresh({**topics, OBJECT_POSE_TOPIC: 45, "deformation/bubble": 30})  # none newer: fine
+    assert episode.note_fresh({**topics, OBJECT_POSE_TOPIC: 46, "deformation/bubble": 1})
+    assert episode.outcome == "interrupted" and "publisher of deformation/bubble restarted" in episode.reason
+
+
 def test_the_target_lead_follows_the_slow_cycles_within_the_configured_floor_and_the_commanders_ceiling():
     assert target_lead(0.3, [], 1.0) == 0.3  # nothing measured yet: the configured lead
     fast = [0.06] * 18 + [0.08, 0.09]  # p90 0.08 s: 2 x 0.08 + 0.05 = 0.21 s, under the floor
