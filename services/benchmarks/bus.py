@@ -36,8 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from hydrosoft.services.benchmarks import bus_tail
-from hydrosoft.services.benchmarks.process_pair import run_pair
-from hydrosoft.services.bus.sockets import Bus, CurveKeys, LatestSubscriber, Publisher, Stale
+from hydrosoft.services.benchmarks.process_pair import (END_MARGIN_S, SILENCE_END_S, START_TIMEOUT_S, WARMUP_S,
+                                                         newest_until_silence, run_pair)
+from hydrosoft.services.bus.sockets import Bus, CurveKeys, LatestSubscriber, Publisher
 from hydrosoft.services.commands.keys import generate_key_pair
 from hydrosoft.services.bus.messages import DepthFrame, Message, Wrench
 
@@ -48,14 +49,6 @@ TRANSPORTS = ("tcp", "ipc")
 PEER_TRANSPORTS = ("tcp-peer", "tcp-peer-curve")
 #: The key pair's name in a ``tcp-peer-curve`` row's key folder.
 BENCH_HOST = "bench"
-#: Messages of the first WARMUP_S seconds are sent but not measured.
-WARMUP_S = 0.3
-#: The subscriber ends after this long without a message (once messages have flowed), s.
-SILENCE_END_S = 0.3
-#: Longest wait for a process to start and report, s (imports on two busy cores).
-START_TIMEOUT_S = 20.0
-#: Time a process may take beyond its nominal run before it is killed, s.
-END_MARGIN_S = 10.0
 
 
 def make_message(payload: str) -> Message:
@@ -129,14 +122,7 @@ async def subscribe(endpoint: str, payload: str, seconds: float, key_dir: str = 
     with Bus(curve=curve_keys(key_dir)) as bus:
         subscriber = LatestSubscriber(bus, endpoint, [topic])
         print("READY", flush=True)
-        while time.monotonic() < deadline_s:
-            waited_s = SILENCE_END_S if received else deadline_s - time.monotonic()
-            if not await subscriber.wait(max(waited_s, 0.0)):
-                break
-            try:
-                newest = subscriber.latest(topic, math.inf)
-            except Stale:
-                continue
+        async for newest in newest_until_silence(subscriber, topic, deadline_s, warmup_count):
             if newest.value.seq > warmup_count:
                 ages_ns.append(round(newest.age_s * 1e9))
                 received = subscriber.received[topic] - warmup_count

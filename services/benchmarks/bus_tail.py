@@ -41,23 +41,17 @@ import numpy as np
 import zmq
 import zmq.asyncio
 
-from hydrosoft.services.benchmarks.process_pair import run_pair
+from hydrosoft.services.benchmarks.process_pair import (END_MARGIN_S, SILENCE_END_S, START_TIMEOUT_S, WARMUP_S,
+                                                         newest_until_silence, run_pair)
 from hydrosoft.services.bus.messages import decode, encode
 from hydrosoft.garbage_collection import settle_garbage_collector
-from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher
 
 VARIANTS = ("raw", "poll", "stack", "stack-gc")
 TRANSPORTS = ("ipc", "tcp")
 RATE_HZ = 1000.0
 #: Ages over this are the tail this benchmark explains, ns: the target for small messages.
 TAIL_NS = 1_000_000
-#: Messages of the first WARMUP_S seconds are sent but not measured.
-WARMUP_S = 0.3
-#: The receiver ends after this long without a message, s.
-SILENCE_END_S = 0.3
-#: Longest wait for a process to start and report, s; and beyond its run before it is killed.
-START_TIMEOUT_S = 20.0
-END_MARGIN_S = 10.0
 
 
 class Collections:
@@ -237,14 +231,7 @@ async def _receive_stack(endpoint: str, warmup: int, deadline_s: float, collecti
     with Bus() as bus:
         subscriber = LatestSubscriber(bus, endpoint, [topic])
         print("READY", flush=True)
-        while time.monotonic() < deadline_s:
-            waited_s = SILENCE_END_S if samples else deadline_s - time.monotonic()
-            if not await subscriber.wait(max(waited_s, 0.0)):
-                break
-            try:
-                newest = subscriber.latest(topic, math.inf)
-            except Stale:
-                continue
+        async for newest in newest_until_silence(subscriber, topic, deadline_s, warmup):
             received_ns = newest.stamp_ns + round(newest.age_s * 1e9)  # when it was handed out
             collections.recording = newest.value.seq > warmup
             if newest.value.seq > warmup:

@@ -4,8 +4,21 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import sys
-from collections.abc import Callable
+import time
+from collections.abc import AsyncIterator, Callable
+
+from hydrosoft.services.bus.sockets import LatestSubscriber, Received, Stale
+
+#: Messages of the first WARMUP_S seconds are sent but not measured.
+WARMUP_S = 0.3
+#: The subscriber ends after this long without a message (once measured messages have flowed), s.
+SILENCE_END_S = 0.3
+#: Longest wait for a process to start and report, s (imports on two busy cores); and beyond its run before it is
+#: killed.
+START_TIMEOUT_S = 20.0
+END_MARGIN_S = 10.0
 
 
 async def _first_line(process: asyncio.subprocess.Process, role: str, start_timeout_s: float) -> str:
@@ -58,3 +71,20 @@ async def run_pair(arguments: Callable[[str, str], list[str]], endpoint: str, st
             if process.returncode is None:
                 process.kill()
                 await process.wait()
+
+
+async def newest_until_silence(subscriber: LatestSubscriber, topic: str, deadline_s: float,
+                               warmup_seq: int) -> AsyncIterator[Received]:
+    """The newest message on ``topic`` each time ``subscriber`` wakes, until ``deadline_s`` (``time.monotonic()``)
+    or, once a message past the warm-up (``seq`` over ``warmup_seq``) came, ``SILENCE_END_S`` without one."""
+    measuring = False
+    while time.monotonic() < deadline_s:
+        waited_s = SILENCE_END_S if measuring else deadline_s - time.monotonic()
+        if not await subscriber.wait(max(waited_s, 0.0)):
+            return
+        try:
+            newest = subscriber.latest(topic, math.inf)
+        except Stale:
+            continue
+        measuring = measuring or newest.value.seq > warmup_seq
+        yield newest
