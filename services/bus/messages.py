@@ -376,7 +376,7 @@ class ArmState(SensorMessage, frozen=True, kw_only=True):
 
 
 #: How a goal ended, for the halt target the planner sends then (``ArmTarget.goal_end``; "" for a plan's target).
-GoalEnd = Literal["", "reached", "failed", "timeout", "stopped"]
+GoalEnd = Literal["", "reached", "failed", "timeout", "stopped", "interrupted"]
 
 
 class ArmTarget(Message, frozen=True, kw_only=True):

@@ -8,6 +8,7 @@ import collections
 import math
 import os
 import time
+import typing
 from pathlib import Path
 
 import msgspec
@@ -379,6 +380,10 @@ def test_a_goal_end_sends_a_halt_naming_its_outcome_and_the_deadline_follows_the
     (_, plan_target), (topic, halt) = sent
     assert topic == "arm_target/bubble" and plan_target.goal_end == "" and halt.goal_end == "reached"
     assert halt.plan_seq == plan_target.plan_seq + 1
+    for outcome in typing.get_args(msg.Outcome):  # every way a goal ends makes a halt the commander can read
+        if outcome not in ("", "running"):
+            halt = msgspec.structs.replace(halt, goal_end=outcome, seq=1, stamp_ns=time.monotonic_ns())
+            assert msg.decode(msg.encode(halt))[1].goal_end == outcome
 
 
 def test_a_solve_waits_for_a_pose_newer_than_the_last_solves_within_a_limit():
