@@ -291,7 +291,7 @@ def reference_refine_corners(grey, corners, intrinsics=None):
 
 def raw_quads(image):
     """OpenCV's sub-pixel corners ``[(id, (4, 2))]`` of the tags in ``image``, before line refinement."""
-    grey = tracking._to_grey_uint8(image)
+    grey = tracking.to_grey_uint8(image)
     corners, ids, _ = make_detector().detectMarkers(grey)
     return grey, [] if ids is None else [(int(i), tracking.subpixel_corners(grey, q)) for q, i in zip(corners,
                                                                                                        ids.ravel())]
