@@ -483,3 +483,10 @@ def test_every_image_is_searched_whole_when_the_period_is_one():
     assert (region.full_frame_searches, region.region_searches) == (3, 0)
     with pytest.raises(ValueError, match="full_frame_every"):
         RegionOfInterest(frozenset({0}), full_frame_every=0)
+
+
+def test_the_detector_thresholds_in_two_passes_of_3_and_13_px_windows_and_leaves_corners_on_whole_pixels():
+    parameters = make_detector().getDetectorParameters()
+    assert (parameters.adaptiveThreshWinSizeMin, parameters.adaptiveThreshWinSizeMax,
+            parameters.adaptiveThreshWinSizeStep) == (3, 13, 10)
+    assert parameters.cornerRefinementMethod == cv2.aruco.CORNER_REFINE_NONE
