@@ -10,7 +10,9 @@ Pipeline of ``Renderer.render`` (one grey float32 canvas, BGR only at the end):
 
 1. draw on an undistorted (ideal pinhole) canvas ``supersample`` times finer than the image; polygons are clipped
    at ``NEAR_PLANE_M`` in front of the camera;
-2. shrink it to the image's resolution with area averaging, which anti-aliases every edge;
+2. shrink it to the image's resolution with area averaging, which anti-aliases every edge (when the table fills the
+   view, steps 1-2 run only in a window around the object, the rest being the table's uniform grey: the same image,
+   bit for bit, for a fraction of the pixels);
 3. apply the lens distortion exactly: each image pixel samples the ideal canvas (bilinear) where
    ``cv2.undistortPoints`` puts it (a homography of distorted corners would leave the tag's edges straight where
    the lens bends them). Resampling an area-averaged edge keeps its area position (measured: within 0.01 px with
