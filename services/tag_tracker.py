@@ -251,14 +251,14 @@ class TagTracker:
         gives a ``Rejection``."""
         intrinsics = self.calibration.intrinsics
         detections = self.region.detect(image, self.detector, intrinsics)
-        solved = [solve_tag(detection.corners, self._tag_size_m(detection.id), intrinsics)
+        solved = [solve_tag(detection.corners, self.tag_size_m(detection.id), intrinsics)
                   for detection in detections]
         tags = tuple((detection, pose) for detection, pose in zip(detections, map(reject_ambiguous, solved))
                      if isinstance(pose, TagPose))
         result = object_pose_from_tags(detections, self.layout, intrinsics, self.calibration.T_base_camera, solved)
         return Tracked(tags, result)
 
-    def _tag_size_m(self, tag_id: int) -> float:
+    def tag_size_m(self, tag_id: int) -> float:
         """Edge (m) of tag ``tag_id``: the object's tag's, else ``other_tag_size_m``."""
         tag = self.layout.tag(tag_id)
         return tag.size_m if tag is not None else self.other_tag_size_m

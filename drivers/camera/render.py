@@ -10,7 +10,9 @@ Pipeline of ``Renderer.render`` (one grey float32 canvas, BGR only at the end):
 
 1. draw on an undistorted (ideal pinhole) canvas ``supersample`` times finer than the image; polygons are clipped
    at ``NEAR_PLANE_M`` in front of the camera;
-2. shrink it to the image's resolution with area averaging, which anti-aliases every edge;
+2. shrink it to the image's resolution with area averaging, which anti-aliases every edge (when the table fills the
+   view, steps 1-2 run only in a window around the object, the rest being the table's uniform grey: the same image,
+   bit for bit, for a fraction of the pixels);
 3. apply the lens distortion exactly: each image pixel samples the ideal canvas (bilinear) where
    ``cv2.undistortPoints`` puts it (a homography of distorted corners would leave the tag's edges straight where
    the lens bends them). Resampling an area-averaged edge keeps its area position (measured: within 0.01 px with
@@ -40,6 +42,9 @@ EDGE_ON_COSINE = 1e-6  # surfaces seen closer to edge-on than this (cosine of th
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-9)
 #: The noise field is this many images across each axis: an image's noise is one of (H x W) distinct windows.
 NOISE_FIELD_SCALE = 2
+#: Canvas pixels to spare around the object's drawing window (``Renderer._object_window``): a quad's warp reads 1-2
+#: pixels past its corners, and the table must cover the canvas by more than this to be a uniform background.
+WINDOW_MARGIN_PX = 8
 
 
 @dataclass(frozen=True)
@@ -125,20 +130,36 @@ class Renderer:
         return self._expose(self._last_scene[1], rng)
 
     def _draw(self, T_camera_object: np.ndarray, layout: TagLayout, T_camera_table: np.ndarray | None) -> np.ndarray:
-        """The noise-free image ``(H, W)`` float32 of ``render``'s scene."""
-        canvas = self._blank_canvas()
+        """The noise-free image ``(H, W)`` float32 of ``render``'s scene.
+
+        When the table covers the whole canvas (``_table_covers_canvas``), only a window around the object
+        (``_object_window``) is drawn and shrunk; the rest of the image is the table's uniform grey. The window's
+        edges lie on whole image pixels and its offset is a whole number of canvas pixels, so the image is the
+        whole canvas's, bit for bit, at a fraction of the pixels (deploy/sim.toml: 1 / 25)."""
+        table = None
         if T_camera_table is not None:
-            table = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float64) * TABLE_HALF_EXTENT_M
-            table[:, :2] += transform_points(inverse(T_camera_table), T_camera_object[None, :3])[0, :2]
-            polygon = transform_points(T_camera_table, table)
+            corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float64)
+            corners *= TABLE_HALF_EXTENT_M
+            corners[:, :2] += transform_points(inverse(T_camera_table), T_camera_object[None, :3])[0, :2]
+            polygon = transform_points(T_camera_table, corners)
             normal, centre = _normal(polygon), polygon.mean(axis=0)
             if _faces_camera(normal, centre):
-                self._fill_polygon(canvas, polygon, self.options.table_grey * self._shade(normal, centre))
+                table = (polygon, self.options.table_grey * self._shade(normal, centre))
+        window = None
+        if table is not None and self._table_covers_canvas(table[0]):
+            window = self._object_window(T_camera_object, layout)
+        if window is None:
+            canvas, offset = self._blank_canvas(), np.zeros(2)
+            if table is not None:
+                self._fill_polygon(canvas, table[0], table[1])
+        else:
+            x0, y0, x1, y1 = window
+            canvas, offset = np.full((y1 - y0, x1 - x0), table[1], dtype=np.float32), np.array([x0, y0], dtype=float)
         for face in layout.faces:
             polygon = transform_points(T_camera_object, face)
             normal, centre = _normal(polygon), polygon.mean(axis=0)
             if _faces_camera(normal, centre):
-                self._fill_polygon(canvas, polygon, self.options.face_grey * self._shade(normal, centre))
+                self._fill_polygon(canvas, polygon, self.options.face_grey * self._shade(normal, centre), offset)
         quiet_scale = (MARKER_CELLS + 2 * QUIET_ZONE_CELLS) / MARKER_CELLS
         for tag in layout.tags:
             T_camera_tag = compose(T_camera_object, tag.T_object_tag)
@@ -148,8 +169,58 @@ class Renderer:
                 continue
             cell_px = self._projected_cell_px(printed)
             shade = self._shade(normal, T_camera_tag[:3])
-            self._draw_quad(canvas, self._marker_texture(tag.id, cell_px) * shade, printed)
-        return self._optics(canvas)
+            self._draw_quad(canvas, self._marker_texture(tag.id, cell_px) * shade, printed, offset)
+        if window is None:
+            return self._optics(canvas)
+        return self._optics_of_window(canvas, window, table[1])
+
+    def _table_covers_canvas(self, table_camera: np.ndarray) -> bool:
+        """Whether the table polygon ``(4, 3)`` (camera frame) covers every canvas pixel, with a margin of
+        ``WINDOW_MARGIN_PX`` canvas pixels: each canvas corner inside its part in front of the camera."""
+        clipped = _clip_near(table_camera)
+        if len(clipped) < 3:
+            return False
+        polygon = self._to_canvas(clipped).astype(np.float32)
+        s = self.options.supersample
+        width, height = self._canvas_size[0] * s, self._canvas_size[1] * s
+        return all(cv2.pointPolygonTest(polygon, (float(x), float(y)), True) > WINDOW_MARGIN_PX
+                   for x in (-0.5, width - 0.5) for y in (-0.5, height - 0.5))
+
+    def _object_window(self, T_camera_object: np.ndarray, layout: TagLayout) -> tuple[int, int, int, int] | None:
+        """The canvas window ``(x0, y0, x1, y1)`` (slice bounds, canvas px, multiples of ``supersample``) that holds
+        every face and tag of the object with ``WINDOW_MARGIN_PX`` to spare, cut at the canvas's border; ``None``
+        when some of the object is not in front of the camera (then the whole canvas is drawn)."""
+        quiet_scale = (MARKER_CELLS + 2 * QUIET_ZONE_CELLS) / MARKER_CELLS
+        points = [transform_points(T_camera_object, face) for face in layout.faces]
+        points += [transform_points(compose(T_camera_object, tag.T_object_tag), tag_corners(tag.size_m * quiet_scale))
+                   for tag in layout.tags]
+        if not points:
+            return 0, 0, 0, 0
+        points_camera = np.concatenate(points)
+        if np.any(points_camera[:, 2] < NEAR_PLANE_M):
+            return None
+        canvas = self._to_canvas(points_camera)
+        s = self.options.supersample
+        width, height = self._canvas_size[0] * s, self._canvas_size[1] * s
+        low = np.floor((canvas.min(axis=0) - WINDOW_MARGIN_PX) / s) * s
+        high = np.ceil((canvas.max(axis=0) + WINDOW_MARGIN_PX) / s) * s
+        x0, y0 = int(min(max(low[0], 0), width)), int(min(max(low[1], 0), height))
+        x1, y1 = int(min(max(high[0], x0), width)), int(min(max(high[1], y0), height))
+        return x0, y0, x1, y1
+
+    def _optics_of_window(self, window_canvas: np.ndarray, window: tuple[int, int, int, int],
+                          table_grey: float) -> np.ndarray:
+        """``_optics`` of a canvas that is ``table_grey`` everywhere but in ``window`` (canvas px), whose pixels are
+        ``window_canvas``: only the window is shrunk."""
+        s = self.options.supersample
+        width, height = self._canvas_size
+        uniform = cv2.resize(np.full((s, s), table_grey, dtype=np.float32), (1, 1), interpolation=cv2.INTER_AREA)
+        image = np.full((height, width), uniform[0, 0], dtype=np.float32)
+        x0, y0, x1, y1 = window
+        if x1 > x0 and y1 > y0:
+            image[y0 // s:y1 // s, x0 // s:x1 // s] = cv2.resize(window_canvas, ((x1 - x0) // s, (y1 - y0) // s),
+                                                                 interpolation=cv2.INTER_AREA)
+        return self._lens(image)
 
     def render_plane(
         self,
@@ -182,30 +253,35 @@ class Renderer:
         width, height = self._canvas_size
         return np.full((height * s, width * s), self.options.background, dtype=np.float32)
 
-    def _to_canvas(self, points_camera: np.ndarray) -> np.ndarray:
-        """Canvas pixel coordinates ``(N, 2)`` of camera-frame points ``(N, 3)`` in front of the camera."""
+    def _to_canvas(self, points_camera: np.ndarray, offset: np.ndarray | None = None) -> np.ndarray:
+        """Canvas pixel coordinates ``(N, 2)`` of camera-frame points ``(N, 3)`` in front of the camera, less
+        ``offset (2,)`` (whole canvas pixels: the corner of the window drawn; subtracting it is exact)."""
         K = self.intrinsics
         s = self.options.supersample
         uv = np.column_stack([K.fx * points_camera[:, 0] / points_camera[:, 2] + K.cx,
                               K.fy * points_camera[:, 1] / points_camera[:, 2] + K.cy])
-        return (uv - self._origin) * s + (s - 1) / 2.0
+        canvas = (uv - self._origin) * s + (s - 1) / 2.0
+        return canvas if offset is None else canvas - offset
 
-    def _fill_polygon(self, canvas: np.ndarray, polygon_camera: np.ndarray, grey: float) -> None:
+    def _fill_polygon(self, canvas: np.ndarray, polygon_camera: np.ndarray, grey: float,
+                      offset: np.ndarray | None = None) -> None:
         clipped = _clip_near(polygon_camera)
         if len(clipped) < 3:
             return
         subpixel_bits = 4
-        points = np.round(self._to_canvas(clipped) * (1 << subpixel_bits)).astype(np.int64)
+        points = np.round(self._to_canvas(clipped, offset) * (1 << subpixel_bits)).astype(np.int64)
         limit = np.iinfo(np.int32).max // 4
         cv2.fillConvexPoly(canvas, np.clip(points, -limit, limit).astype(np.int32), float(grey), cv2.LINE_8,
                            subpixel_bits)
 
-    def _draw_quad(self, canvas: np.ndarray, texture: np.ndarray, corners_camera: np.ndarray) -> None:
-        """Paint ``texture (h, w)`` float32 onto the quad ``corners_camera (4, 3)`` (its TL, TR, BR, BL corners)."""
+    def _draw_quad(self, canvas: np.ndarray, texture: np.ndarray, corners_camera: np.ndarray,
+                   offset: np.ndarray | None = None) -> None:
+        """Paint ``texture (h, w)`` float32 onto the quad ``corners_camera (4, 3)`` (its TL, TR, BR, BL corners) of a
+        canvas whose pixel (0, 0) is the whole canvas's ``offset`` (``_to_canvas``)."""
         height, width = texture.shape
         source = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]],
                           dtype=np.float32)
-        target = self._to_canvas(corners_camera)
+        target = self._to_canvas(corners_camera, offset)
         x0, y0 = np.maximum(np.floor(target.min(axis=0)).astype(int) - 1, 0)
         x1 = min(int(math.ceil(target[:, 0].max())) + 2, canvas.shape[1])
         y1 = min(int(math.ceil(target[:, 1].max())) + 2, canvas.shape[0])
@@ -250,7 +326,10 @@ class Renderer:
 
     def _optics(self, canvas: np.ndarray) -> np.ndarray:
         """The supersampled ideal canvas through the lens: the noise-free image ``(H, W)`` float32."""
-        image = cv2.resize(canvas, self._canvas_size, interpolation=cv2.INTER_AREA)
+        return self._lens(cv2.resize(canvas, self._canvas_size, interpolation=cv2.INTER_AREA))
+
+    def _lens(self, image: np.ndarray) -> np.ndarray:
+        """The shrunk ideal canvas ``image`` through the lens's distortion and blur."""
         if self._distortion_map is not None:
             image = cv2.remap(image, *self._distortion_map, interpolation=cv2.INTER_LINEAR,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=self.options.background)

@@ -19,7 +19,9 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
   use, and the latency split (p50 and p99, ms), with each one's growth (last / first - 1). The issue's target:
   neither memory nor the loop latency grows by more than 10 % over 10 minutes;
 - over the whole soak (``whole``): the latency split, and the replanning rate (``replanning_hz``: plans published
-  per second of the goals' wall time).
+  per second of the goals' wall time);
+- the host's load average (``load_average``: ``os.getloadavg``'s 1-minute figure when the idle phase starts, when the
+  goals start and when they end): other work on the machine slows the stack, so figures compare only at like loads.
 
 It prints a table and one JSON document (only the document with ``--json``). Every process it starts is stopped
 by its pid. Latencies are the planner host's monotonic clock, so they are meaningful in sim mode; in the lab the
@@ -32,6 +34,7 @@ import argparse
 import asyncio
 import json
 import math
+import os
 import shutil
 import sys
 import tempfile
@@ -207,6 +210,7 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
                 window_s: float) -> dict[str, object]:
     """The idle phase, then the soak, measured (module docstring)."""
     idle = Samples()
+    load_average = {"idle_start": _load_average()}
     t0_s = time.monotonic()
     threads_before = _thread_times(pids)
     await _sample(pids, idle, t0_s, t0_s + idle_s)
@@ -215,6 +219,7 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
     threads = {name: thread_split(pids[name], threads_before[name], threads_after[name], idle_end_s - t0_s)
                for name in sorted(threads_before.keys() & threads_after.keys())}
     samples = Samples()
+    load_average["soak_start"] = _load_average()
     t0_s = time.monotonic()
     until_s = t0_s + soak_s
     watchers = [asyncio.create_task(_sample(pids, samples, t0_s, math.inf)),
@@ -225,6 +230,7 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
         for task in watchers:
             task.cancel()
         await asyncio.gather(*watchers, return_exceptions=True)
+    load_average["soak_end"] = _load_average()
     end_s = max(t for rows in samples.usage.values() for t, _, _ in rows)
     first = window_summary(samples, 0.0, window_s)
     last = window_summary(samples, end_s - window_s, end_s)
@@ -233,7 +239,13 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
                      "cpu_percent_total": round(sum(s["cpu_percent"] for s in idle_summary["services"].values()), 1)},
             "soak_seconds": round(end_s, 1), "goals": goals, "first": first, "last": last,
             "growth": growth(first, last), "whole": window_summary(samples, 0.0, end_s),
-            "replanning_hz": round(len(samples.plans) / goal_s, 2) if goal_s > 0 else 0.0}
+            "replanning_hz": round(len(samples.plans) / goal_s, 2) if goal_s > 0 else 0.0,
+            "load_average": load_average}
+
+
+def _load_average() -> float:
+    """The host's 1-minute load average (runnable processes, all users)."""
+    return round(os.getloadavg()[0], 2)
 
 
 def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: Path | None = None
@@ -273,7 +285,10 @@ def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: 
 def format_table(result: dict[str, object]) -> str:
     """Idle CPU, then per service and latency stage the first and last window side by side with the growth."""
     first, last, grown = result["first"], result["last"], result["growth"]
-    lines = [f"idle: {result['idle']['cpu_percent_total']} % of one core in all ("
+    load = result.get("load_average", {})
+    lines = ["load average (1 min) at the idle phase's start, the goals' start and end: "
+             + " / ".join(str(load.get(key, "-")) for key in ("idle_start", "soak_start", "soak_end")),
+             f"idle: {result['idle']['cpu_percent_total']} % of one core in all ("
              + ", ".join(f"{n} {s['cpu_percent']}" for n, s in result["idle"]["services"].items()) + ")"]
     for name, split in result["idle"].get("threads", {}).items():
         lines.append(f"  idle {name}: main thread {split['main']}, zmq {split['zmq']}, other threads "

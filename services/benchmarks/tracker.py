@@ -28,19 +28,30 @@ where one tracker gave a pose and the other not) and ``max_pose_diff_mm``, ``max
 trackers' poses (``null`` when none). ``sequence_cpu_ms`` sums up all sequences: ``roi`` and ``full_frame``
 (``mean``, ``p95``), ``roi_to_full_frame`` (ratio of the means) and ``images``.
 
+Pieces (``pieces``): the tracker's time per image split into its steps, on deploy/sim.toml's tag camera (640 x 480,
+the sim's noise and blur: what the stack's tracker sees) while the scene's object (the pushing cube) slides ``SEQUENCE_SPEED_M_S``
+and turns: ``receive`` (decoding the ``CameraImage`` message), ``grey`` (BGR to grey), ``detect`` (OpenCV's ArUco
+detector, in the region the tracker searched or the whole image), ``corners`` (``subpixel_corners`` and
+``refine_corners`` of each tag), ``pose`` (``solve_tag`` of each tag and ``object_pose_from_tags``) and ``track``
+(``TagTracker.track`` itself, all but ``receive``): CPU ms per image, ``mean`` and ``p95``, over
+``pieces_images`` images (each timed on its own, the steps after the tracker's own ``track`` of the image).
+
 ``--json`` prints ``{"config": {...}, "rows": [...], "track_cpu_ms": {...}, "sequences": [...],
-"sequence_cpu_ms": {...}}``; otherwise a table, a line with ``track_cpu_ms`` and lines with the sequences' figures.
+"sequence_cpu_ms": {...}, "pieces": {...}}``; otherwise a table, a line with ``track_cpu_ms``, lines with the
+sequences' figures and one with the pieces.
 Progress goes to stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
 import time
 from collections import Counter
+from collections.abc import Iterator
 
 import cv2
 import numpy as np
@@ -49,16 +60,35 @@ from hydrosoft.drivers.camera.config import CameraCalibration, CameraIntrinsics
 from hydrosoft.drivers.poses import compose, inverse, look_at, rotation_angle_rad
 from hydrosoft.drivers.camera.render import Renderer, RenderOptions
 from hydrosoft.drivers.camera.tags import box_layout
-from hydrosoft.services.tag_tracker import TagTracker, full_frame_every
-from hydrosoft.services.tag_detection import ObjectPose, Rejection, detect_tags, make_detector, object_pose_from_tags
+from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.bus.config import StackConfig, load_config
+from hydrosoft.services.sim.render import tag_camera
+from hydrosoft.services.tag_tracker import TAG_CAMERA, TagTracker, full_frame_every
+from hydrosoft.services.tag_detection import (
+    ObjectPose,
+    Rejection,
+    TagDetection,
+    detect_markers,
+    detect_tags,
+    make_detector,
+    object_pose_from_tags,
+    refine_corners,
+    solve_tag,
+    subpixel_corners,
+    to_grey_uint8,
+)
+from hydrosoft.tasks import make_task
 
 CUBE_EDGE_M = 0.05
 TAG_SIZE_M = 0.032
 INTRINSICS = dict(width=1280, height=720, fx=900.0, fy=900.0, cx=639.5, cy=359.5,
                   distortion=[-0.08, 0.02, 0.0, 0.0, 0.0])
 AIM_JITTER = 0.1  # aim point off the cube centre, as a fraction of the distance (about 6 deg off the optical axis)
-FULL = {"distances_m": "0.3,0.5,0.75,1.0", "angles_deg": "0,20,40,60", "samples": 30, "sequence_images": 40}
-QUICK = {"distances_m": "0.3,1.0", "angles_deg": "0,60", "samples": 3, "sequence_images": 12}
+FULL = {"distances_m": "0.3,0.5,0.75,1.0", "angles_deg": "0,20,40,60", "samples": 30, "sequence_images": 40,
+        "pieces_images": 100}
+QUICK = {"distances_m": "0.3,1.0", "angles_deg": "0,60", "samples": 3, "sequence_images": 12, "pieces_images": 12}
+PIECES_CONFIG = "deploy/sim.toml"  # the stack config whose tag camera and pushing scene the pieces are timed on
+PIECES = ("receive", "grey", "detect", "corners", "pose", "track")
 SEQUENCE_FPS = 10.0  # images/s of the sequences: half deploy/sim.toml's tag camera rate, so twice its motion per
 # image (the harder case for the region of interest)
 SEQUENCE_ANGLE_DEG = 40.0  # view angle of the sequences: two or three faces in view
@@ -120,20 +150,25 @@ def run(args: argparse.Namespace) -> int:
     sequence_cpu_ms = {"roi": _cpu_summary(roi_cpu_ms), "full_frame": _cpu_summary(full_frame_cpu_ms),
                        "roi_to_full_frame": float(np.mean(roi_cpu_ms) / np.mean(full_frame_cpu_ms)),
                        "images": len(roi_cpu_ms)}
+    print("bench tracker: the tracker's pieces on the sim stack's tag camera", file=sys.stderr)
+    pieces = measure_pieces(load_config(PIECES_CONFIG), grid["pieces_images"])
     config = {"cube_edge_m": CUBE_EDGE_M, "tag_size_m": TAG_SIZE_M, "intrinsics": INTRINSICS,
               "noise_std": args.noise, "blur_sigma_px": args.blur, "samples": samples, "seed": args.seed,
               "aim_jitter": AIM_JITTER, "opencv_threads": cv2.getNumThreads(),
               "sequence": {"images": grid["sequence_images"], "fps": SEQUENCE_FPS, "view_angle_deg": SEQUENCE_ANGLE_DEG,
                            "speed_m_s": SEQUENCE_SPEED_M_S, "yaw_rate_rad_s": SEQUENCE_YAW_RATE_RAD_S,
-                           "full_frame_every": full_frame_every(SEQUENCE_FPS)}}
+                           "full_frame_every": full_frame_every(SEQUENCE_FPS)},
+              "pieces": {"config": PIECES_CONFIG, "images": grid["pieces_images"]}}
     if args.json:
         print(json.dumps({"config": config, "rows": rows, "track_cpu_ms": track_cpu_ms, "sequences": sequences,
-                          "sequence_cpu_ms": sequence_cpu_ms}))
+                          "sequence_cpu_ms": sequence_cpu_ms, "pieces": pieces}))
     else:
         _print_table(rows)
         print(f"tracker CPU per image ({track_cpu_ms['images']} images, {intrinsics.width} x {intrinsics.height}): "
               f"mean {track_cpu_ms['mean']:.1f} ms, p95 {track_cpu_ms['p95']:.1f} ms")
         _print_sequences(sequences, sequence_cpu_ms)
+        print(f"tracker pieces on {PIECES_CONFIG}'s tag camera, CPU ms per image (mean / p95): "
+              + ", ".join(f"{name} {pieces[name]['mean']:.2f} / {pieces[name]['p95']:.2f}" for name in PIECES))
     return 0
 
 
@@ -220,6 +255,50 @@ def measure_sequence(renderer: Renderer, distance_m: float, images: int, rng: np
             "full_frame_cpu_ms_mean": float(np.mean(full_frame_cpu_ms[-images:])), "pose_mismatches": mismatches,
             "max_pose_diff_mm": max(position_diff_mm, default=None),
             "max_pose_diff_deg": max(rotation_diff_deg, default=None)}
+
+
+def measure_pieces(config: StackConfig, images: int) -> dict:
+    """The tracker's CPU time per image in pieces (module docstring, Pieces) on ``images`` images of ``config``'s tag
+    camera, its scene's object sliding along x and turning as in the sequences: ``{piece: {mean, p95}}`` (ms)."""
+    tracker = TagTracker.from_config(config)
+    spec = make_task(config.scene.task).scene.object
+    start = compose(np.asarray(config.scene.task_frame, dtype=np.float64), np.asarray(spec.pose, dtype=np.float64))
+    pose = {"now": start}
+    camera = tag_camera(config, lambda: pose["now"])
+    intrinsics = tracker.calibration.intrinsics
+    cpu_ms: dict[str, list[float]] = {name: [] for name in PIECES}
+    for index in range(images):
+        t_s = index / config.camera.fps
+        angle = SEQUENCE_YAW_RATE_RAD_S * t_s
+        pose["now"] = compose(start, np.array([SEQUENCE_SPEED_M_S * t_s, 0.0, 0.0, math.cos(angle / 2), 0.0, 0.0,
+                                               math.sin(angle / 2)]))
+        frames = msg.encode(msg.CameraImage.of(TAG_CAMERA, camera.render(pose["now"]), 0))
+        with _cpu_time(cpu_ms["receive"]):
+            image = msg.decode(frames)[1].frame
+        region = tracker.region.region if tracker.region.images_since_full_frame + 1 < tracker.full_frame_every \
+            else None
+        with _cpu_time(cpu_ms["track"]):
+            tracker.track(image)
+        with _cpu_time(cpu_ms["grey"]):
+            grey = to_grey_uint8(image)
+        with _cpu_time(cpu_ms["detect"]):
+            markers = detect_markers(grey, tracker.detector, region)
+        with _cpu_time(cpu_ms["corners"]):
+            detections = [(tag_id, refine_corners(grey, subpixel_corners(grey, polygon), intrinsics))
+                          for tag_id, polygon in markers]
+        with _cpu_time(cpu_ms["pose"]):
+            solved = [solve_tag(corners, tracker.tag_size_m(tag_id), intrinsics) for tag_id, corners in detections]
+            object_pose_from_tags([TagDetection(tag_id, corners) for tag_id, corners in detections], tracker.layout,
+                                  intrinsics, tracker.calibration.T_base_camera, solved)
+    return {name: _cpu_summary(values) for name, values in cpu_ms.items()}
+
+
+@contextlib.contextmanager
+def _cpu_time(values: list[float]) -> Iterator[None]:
+    """Appends the CPU time (ms, ``time.process_time``) of the ``with`` block to ``values``."""
+    start = time.process_time()
+    yield
+    values.append(1e3 * (time.process_time() - start))
 
 
 def _timed_track(tracker: TagTracker, image: np.ndarray, cpu_ms: list[float]) -> ObjectPose | Rejection:

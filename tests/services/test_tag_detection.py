@@ -291,7 +291,7 @@ def reference_refine_corners(grey, corners, intrinsics=None):
 
 def raw_quads(image):
     """OpenCV's sub-pixel corners ``[(id, (4, 2))]`` of the tags in ``image``, before line refinement."""
-    grey = tracking._to_grey_uint8(image)
+    grey = tracking.to_grey_uint8(image)
     corners, ids, _ = make_detector().detectMarkers(grey)
     return grey, [] if ids is None else [(int(i), tracking.subpixel_corners(grey, q)) for q, i in zip(corners,
                                                                                                        ids.ravel())]
@@ -483,3 +483,10 @@ def test_every_image_is_searched_whole_when_the_period_is_one():
     assert (region.full_frame_searches, region.region_searches) == (3, 0)
     with pytest.raises(ValueError, match="full_frame_every"):
         RegionOfInterest(frozenset({0}), full_frame_every=0)
+
+
+def test_the_detector_thresholds_in_two_passes_of_3_and_13_px_windows_and_leaves_corners_on_whole_pixels():
+    parameters = make_detector().getDetectorParameters()
+    assert (parameters.adaptiveThreshWinSizeMin, parameters.adaptiveThreshWinSizeMax,
+            parameters.adaptiveThreshWinSizeStep) == (3, 13, 10)
+    assert parameters.cornerRefinementMethod == cv2.aruco.CORNER_REFINE_NONE

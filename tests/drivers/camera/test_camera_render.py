@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from hydrosoft.drivers.camera.config import CameraIntrinsics
-from hydrosoft.drivers.poses import rvec_tvec_from_pose
+from hydrosoft.drivers.poses import compose, inverse, look_at, rvec_tvec_from_pose
 from hydrosoft.drivers.camera.render import Renderer, RenderOptions
 from hydrosoft.drivers.camera.tags import Tag, TagLayout, box_layout
 
@@ -110,3 +110,31 @@ def test_options_are_checked():
         RenderOptions(black_level=200.0, white_level=100.0)
     with pytest.raises(ValueError, match="supersample"):
         RenderOptions(supersample=0)
+
+
+class WholeCanvasRenderer(Renderer):
+    """The renderer as it was: the whole supersampled canvas drawn and shrunk for every image."""
+
+    def _table_covers_canvas(self, table_camera: np.ndarray) -> bool:
+        return False
+
+
+@pytest.mark.parametrize("distortion", [np.zeros(5), np.array([-0.08, 0.02, 0.0, 0.0, 0.0])])
+def test_an_object_on_a_table_that_fills_the_view_is_drawn_in_a_window_and_gives_the_whole_canvas_image(distortion):
+    intrinsics = CameraIntrinsics(320, 240, 300.0, 300.0, 159.5, 119.5, distortion)
+    options = RenderOptions(noise_std=0.0, blur_sigma_px=0.6)
+    layout = box_layout((0.05,) * 3, 0.032)
+    # deploy/sim.toml's view: 36 deg down at a cube 0.53 m away, the table's far edge out of sight
+    T_camera_base = inverse(look_at([0.25, -0.35, 0.33], [0.0, 0.0, 0.02], [0.0, 0.0, 1.0]))
+    T_camera_table = compose(T_camera_base, np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
+    windowed, whole = Renderer(intrinsics, options), WholeCanvasRenderer(intrinsics, options)
+    rng = np.random.default_rng(3)
+    for _ in range(6):
+        yaw = rng.uniform(-np.pi, np.pi)
+        T_base_object = np.array([*rng.uniform(-0.05, 0.05, 2), 0.025, np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+        T_camera_object = compose(T_camera_base, T_base_object)
+        window = windowed._object_window(T_camera_object, layout)
+        assert window is not None and (window[2] - window[0]) * (window[3] - window[1]) < 0.2 * 960 * 720
+        image = windowed.render(T_camera_object, layout, None, T_camera_table)
+        np.testing.assert_array_equal(image, whole.render(T_camera_object, layout, None, T_camera_table))
+        assert np.any(image != image[0, 0])  # the object is in the image

@@ -65,7 +65,9 @@ def test_windows_compare_memory_cpu_and_latency_and_the_growth_names_each():
                                                            {"outcome": "timeout", "reapproaches": 2}],
                           "first": first, "last": last, "growth": grown,
                           "whole": window_summary(samples, 0, 600), "replanning_hz": 9.5,
-                          "errors": {"sim_world": {"physics_behind": 7, "tag_camera": 1}}})
+                          "errors": {"sim_world": {"physics_behind": 7, "tag_camera": 1}},
+                          "load_average": {"idle_start": 1.2, "soak_start": 2.5, "soak_end": 3.75}})
+    assert "load average (1 min) at the idle phase's start, the goals' start and end: 1.2 / 2.5 / 3.75" in table
     assert "idle: 12.5 % of one core in all (planner 12.5)" in table
     assert "idle planner: main thread 2.0, zmq 0.5, other threads 6.0 + 4.0" in table
     assert "2 goals, 1 reached, 3 re-approaches of a lost cube" in table

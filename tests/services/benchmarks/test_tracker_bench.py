@@ -53,6 +53,12 @@ def test_quick_json_rows(capsys):
     assert sequence_cpu["images"] == 24 and 0.0 < sequence_cpu["roi"]["mean"] <= sequence_cpu["roi"]["p95"]
     assert sequence_cpu["roi_to_full_frame"] == pytest.approx(sequence_cpu["roi"]["mean"] /
                                                               sequence_cpu["full_frame"]["mean"])
+    assert document["config"]["pieces"] == {"config": "deploy/sim.toml", "images": 12}
+    pieces = document["pieces"]
+    assert set(pieces) == {"receive", "grey", "detect", "corners", "pose", "track"}
+    for piece in pieces.values():
+        assert 0.0 <= piece["mean"] <= piece["p95"]
+    assert pieces["track"]["mean"] > max(pieces[name]["mean"] for name in ("grey", "detect", "corners", "pose"))
 
 
 def test_bad_options_exit_with_status_2(capsys):
