@@ -85,6 +85,19 @@ def use_precompiled(directory: Path | None, build: bool = False) -> None:
         os.environ[PRECOMPILED_BUILD_ENV] = "1" if build else "0"
 
 
+@contextlib.contextmanager
+def building_precompiled(directory: Path) -> Iterator[None]:
+    """Have the compiled functions made inside the block build their missing precompiled files into ``directory``
+    (``use_precompiled(directory, build=True)``); the setting from before is back after it, so functions made later
+    (and processes started later) load from there or trace, as before."""
+    before = precompiling()
+    use_precompiled(directory, build=True)
+    try:
+        yield
+    finally:
+        use_precompiled(*before) if before is not None else use_precompiled(None)
+
+
 def precompiling() -> Precompiling | None:
     """What ``use_precompiled`` set (here or in a parent process), or None."""
     directory = os.environ.get(PRECOMPILED_ENV)
