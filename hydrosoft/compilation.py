@@ -24,8 +24,10 @@ before the cache answered with the graphs. With a precompiled directory set (``u
 environment so that processes started from this one inherit it), each copy is a ``Precompiled``: every input
 signature's function is loaded from one file there, guards and graphs, without tracing anything. Building the files
 (``torch.compile(fullgraph=True).aot_compile``, backward graphs included) is a compile of its own, longer than
-loading graphs from inductor's cache, so only a process that is asked to (``build``: ``hydrosoft-stack compile``)
-builds them; any other compiles a signature without a file the usual way.
+loading graphs from inductor's cache, so only a process that is asked to (``build``: ``hydrosoft-stack compile``,
+or the planner's own process at a launch that finds its artefact missing or stale, ``building_precompiled``) builds
+them; any other (the planner's solver worker processes) loads them, and compiles a signature without a file the
+usual way.
 """
 from __future__ import annotations
 

@@ -3,7 +3,9 @@
 launch after it loads them instead of compiling them.
 
 Each part says what it does: it loads an artefact built for this config and torch, or builds a missing or stale one
-(``services/bus/artefacts.py``), with a progress line every 15 s, and records it when done. Building from cold takes
+(``services/bus/artefacts.py``), with a progress line every 15 s, and records it when done. The planner's step and
+costs are built once, in this process, for one solver worker's share of the samples, and its worker processes then
+load them, as at a launch. Building from cold takes
 minutes on a 2-core machine; a launch then starts each part from the cache. Run it once after an install, a torch
 upgrade or a config change, as the user the stack runs as (the cache is per directory), before the first
 ``launch``; a launch that finds an artefact missing or stale builds it itself, saying so in its log and status. It
