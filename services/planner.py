@@ -106,8 +106,9 @@ NEXT_DUE_PERIODS = 0.5
 LATE_PERIODS = 0.2
 OBJECT_POSE_TOPIC = "object_pose/object"
 #: The status note while the planner compiles its step (``planner.compile``) before it reports ready.
-COMPILING_NOTE = ("compiling the planner step (planner.compile): ready in seconds with a warm compile cache, 2-5 min "
-                  "with a cold one on 2 busy cores")
+COMPILING_NOTE = ("compiling the planner step (planner.compile): ready in seconds once its artefact is built "
+                  "(hydrosoft-stack compile), minutes without it: the planner then builds its precompiled functions "
+                  "first")
 
 
 def as_pose(values) -> torch.Tensor:
