@@ -24,8 +24,10 @@ before the cache answered with the graphs. With a precompiled directory set (``u
 environment so that processes started from this one inherit it), each copy is a ``Precompiled``: every input
 signature's function is loaded from one file there, guards and graphs, without tracing anything. Building the files
 (``torch.compile(fullgraph=True).aot_compile``, backward graphs included) is a compile of its own, longer than
-loading graphs from inductor's cache, so only a process that is asked to (``build``: ``hydrosoft-stack compile``)
-builds them; any other compiles a signature without a file the usual way.
+loading graphs from inductor's cache, so only a process that is asked to (``build``: ``hydrosoft-stack compile``,
+or the planner's own process at a launch that finds its artefact missing or stale, ``building_precompiled``) builds
+them; any other (the planner's solver worker processes) loads them, and compiles a signature without a file the
+usual way.
 """
 from __future__ import annotations
 
@@ -83,6 +85,19 @@ def use_precompiled(directory: Path | None, build: bool = False) -> None:
     else:
         os.environ[PRECOMPILED_ENV] = str(directory)
         os.environ[PRECOMPILED_BUILD_ENV] = "1" if build else "0"
+
+
+@contextlib.contextmanager
+def building_precompiled(directory: Path) -> Iterator[None]:
+    """Have the compiled functions made inside the block build their missing precompiled files into ``directory``
+    (``use_precompiled(directory, build=True)``); the setting from before is back after it, so functions made later
+    (and processes started later) load from there or trace, as before."""
+    before = precompiling()
+    use_precompiled(directory, build=True)
+    try:
+        yield
+    finally:
+        use_precompiled(*before) if before is not None else use_precompiled(None)
 
 
 def precompiling() -> Precompiling | None:

@@ -57,11 +57,13 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import msgspec
 import numpy as np
 import torch
 
+from hydrosoft.compilation import building_precompiled
 from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
 from hydrosoft.control import device_unavailable as control_device_unavailable
@@ -78,6 +80,7 @@ from hydrosoft.tasks.base import EAGER_COST_TERMS, CostTerms, mean_point_distanc
 from hydrosoft.tasks.evaluation import (METRIC_SPACING_M, PlannerSettings, planner_calls, with_body_materials,
                                         with_contact, with_solver_steps)
 from hydrosoft.services.bus import artefacts
+from hydrosoft.services.bus.artefacts import PROGRESS_PERIOD_S
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Stale, quote
 from hydrosoft.services.bus import service_cli
@@ -106,8 +109,9 @@ NEXT_DUE_PERIODS = 0.5
 LATE_PERIODS = 0.2
 OBJECT_POSE_TOPIC = "object_pose/object"
 #: The status note while the planner compiles its step (``planner.compile``) before it reports ready.
-COMPILING_NOTE = ("compiling the planner step (planner.compile): ready in seconds with a warm compile cache, 2-5 min "
-                  "with a cold one on 2 busy cores")
+COMPILING_NOTE = ("compiling the planner step (planner.compile): ready in seconds once its artefact is built "
+                  "(hydrosoft-stack compile), minutes without it: the planner then builds its precompiled functions "
+                  "first")
 
 
 def as_pose(values) -> torch.Tensor:
@@ -758,9 +762,35 @@ def compile_step(core: PlannerCore) -> float:
     return time.monotonic() - started
 
 
-def compile_planner(core: PlannerCore) -> str | None:
-    """Compile the planner's step and costs (``compile_step``); None when all of them run compiled, in this process
-    and in each solver worker process, else each that fell back to eager with its reason."""
+def share_sizes(samples: int, workers: int) -> list[int]:
+    """The batch sizes of the solver's shares, each once: ``samples`` split over ``workers`` as ``CemGd`` splits them
+    (``Tensor.tensor_split``: the first ``samples % workers`` shares one larger)."""
+    return sorted({samples // workers + (index < samples % workers) for index in range(workers)} - {0})
+
+
+def build_precompiled(config: StackConfig, directory: Path) -> None:
+    """Build the planner's precompiled functions (step and costs, ``compilation.Precompiled``) into ``directory``, in
+    this process alone, for every input signature a solver worker's solve uses: per share size (``share_sizes``),
+    one solve of a one-worker core whose batch is that share, as a worker process (or thread) runs its share.
+    Functions already there are loaded, not built again. A function that fails to build is left without a file:
+    the processes that load the others compile it the usual way, and say so if that fails too (``compile_planner``).
+    (Each worker process building its own copy took about 10 minutes per file under load, all of them building the
+    same files.)"""
+    for size in share_sizes(config.planner.samples, config.planner.workers):
+        alone = msgspec.structs.replace(config.planner, workers=1, worker_processes=False, samples=size,
+                                        elites=min(config.planner.elites, size))
+        with building_precompiled(directory):  # only this core's functions build
+            core = PlannerCore.build(msgspec.structs.replace(config, planner=alone))
+        compile_step(core)
+
+
+def compile_planner(core: PlannerCore, precompile: Path | None = None) -> str | None:
+    """Compile the planner's step and costs (``compile_step``), after building their precompiled functions into
+    ``precompile`` (``build_precompiled``) when given, so that this process and its solver worker processes load
+    them; None when all of them run compiled, in this process and in each solver worker process, else each that
+    fell back to eager with its reason."""
+    if precompile is not None:
+        build_precompiled(core.config, precompile)
     compile_step(core)
     own = eager_parts((core.dynamics, core.cost_terms.stage, core.cost_terms.terminal))
     failed = [own] if own else []
@@ -821,12 +851,16 @@ async def run(service: Service, config: StackConfig) -> None:
         os.nice(config.planner.nice)  # before the worker processes start: they inherit it
         service.log.info("running at niceness %d (planner.nice): the other services go first", os.nice(0))
     torch.set_num_threads(config.planner.threads)
+    if config.planner.compile:  # before the model and the worker processes: they load its precompiled functions
+        precompiled = artefacts.use_precompiled(config, artefacts.planner_key(config))
     core = await loop.run_in_executor(None, PlannerCore.build, config)
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
         service.compilation = build.status
         service.note = COMPILING_NOTE
-        if not await loop.run_in_executor(None, build.run, functools.partial(compile_planner, core), service.log.info):
+        compile = functools.partial(compile_planner, core, None if build.ready else precompiled)
+        elsewhere = None if core.processes is None else core.processes.precompiled
+        if not await loop.run_in_executor(None, build.run, compile, service.log.info, PROGRESS_PERIOD_S, elsewhere):
             service.log.warning("the planner runs eager: %s", build.fallback)
         service.note = ""
         service.compilation = build.status

@@ -15,13 +15,18 @@ stage_cost, terminal_cost)`` and keep a ``CemGd`` of its own on it (one worker, 
 settings), as for a new goal; ``build`` must be a module-level function and ``problem`` picklable, and ``build`` may
 keep what does not change between problems (the model and its compiled step). ``improve(x0, shares)`` sends the batch-1
 start state and one share of the sequences to each, whose solver's ``improve`` runs it, and returns their
-``ShareResult``s in order. The first ``improve`` compiles, in every process at once. Messages are pickled with the
-standard pickler and sent as bytes through the sockets, the per-solve tensors as NumPy arrays (multiprocessing's own
-pickler would move each tensor through a shared-memory file, slower for a few kilobytes).
+``ShareResult``s in order. The first ``improve`` compiles, in every process at once (or, with a precompiled directory
+set in the parent's environment, which they inherit, loads the step and costs from their files:
+``compilation.use_precompiled``). Messages are pickled with the standard pickler and sent as bytes through the sockets,
+the per-solve tensors as NumPy arrays (multiprocessing's own pickler would move each tensor through a shared-memory
+file, slower for a few kilobytes).
 
 A worker's compiled parts (the problem's step and costs, when they are ``compilation.FallsBack``) may fall back to
 eager in the worker, where the parent would not see it: each ``improve`` answer says which of them run eager and
-why, which the parent keeps in ``fallbacks`` (worker index -> reason) and reports once through ``on_fallback``.
+why, which the parent keeps in ``fallbacks`` (worker index -> reason) and reports once through ``on_fallback``. Each
+answer also carries the worker's count of precompiled functions (``compilation.PRECOMPILED``: loaded, built, traced
+instead), summed over the workers by ``precompiled()``, so that the parent can say whether its workers loaded their
+step and costs whole or traced them.
 
 A worker's error is raised in the parent as ``WorkerError`` with the worker's message; a worker that dies, or does
 not answer within ``timeout_s``, raises it too, and ``close`` (also on garbage collection and at exit) stops all
@@ -35,6 +40,7 @@ import subprocess
 import sys
 import traceback
 import weakref
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import replace
 from multiprocessing.connection import Connection
@@ -45,6 +51,7 @@ import torch
 from torch import Tensor
 from torch.utils._pytree import tree_map
 
+from hydrosoft.compilation import PRECOMPILED
 from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.control.cem_gd import CemGd, CemGdConfig, ShareResult
 
@@ -95,6 +102,7 @@ class WorkerProcesses:
         self.workers = workers
         self.timeout_s = timeout_s
         self.fallbacks: dict[int, str] = {}
+        self._precompiled: dict[int, dict[str, int]] = {}  # worker index -> its PRECOMPILED at its last answer
         self.on_fallback: Callable[[int, str], None] | None = None
         self._pipes: list[Connection] = []
         self._processes: list[subprocess.Popen] = []
@@ -115,6 +123,11 @@ class WorkerProcesses:
         """The worker processes' pids."""
         return [process.pid for process in self._processes]
 
+    def precompiled(self) -> Counter:
+        """The worker processes' precompiled functions (``compilation.PRECOMPILED``: ``loaded``, ``built``, ``jit``),
+        summed, as of each one's last ``improve`` answer."""
+        return sum(map(Counter, self._precompiled.values()), Counter())
+
     def set_problem(self, problem: Any) -> None:
         """Rebuild every process's problem from ``problem`` (``build(problem)``), as for a new goal."""
         self._broadcast("problem", [problem] * self.workers)
@@ -125,14 +138,15 @@ class WorkerProcesses:
             raise ValueError(f"{len(shares)} shares for {self.workers} worker processes")
         start = _to_numpy(x0)
         results = self._broadcast("improve", [(start, share.cpu().numpy()) for share in shares])
-        for index, (*_, eager) in enumerate(results):
+        for index, (*_, eager, precompiled) in enumerate(results):
+            self._precompiled[index] = precompiled
             if eager and self.fallbacks.get(index) != eager:
                 self.fallbacks[index] = eager
                 if self.on_fallback is not None:
                     self.on_fallback(index, eager)
         return [ShareResult(torch.from_numpy(u).to(share), torch.from_numpy(cost).to(share.device), best,
                             _to_torch(states, share.device), timings)
-                for (u, cost, best, states, timings, _), share in zip(results, shares)]
+                for (u, cost, best, states, timings, _, _), share in zip(results, shares)]
 
     def close(self) -> None:
         """Stop the processes (their pipes close; any still running after 5 s is killed)."""
@@ -229,7 +243,7 @@ def _serve(pipe: Connection) -> None:
                     if not unsettled:
                         settle_garbage_collector()
                 _reply(pipe, ("ok", (*_to_numpy((share.u, share.cost)), share.best, _to_numpy(share.best_states),
-                                  share.timings, eager_parts(parts))))
+                                  share.timings, eager_parts(parts), dict(PRECOMPILED))))
             else:
                 _reply(pipe, ("error", f"unknown message {kind!r}"))
         except Exception:  # noqa: BLE001 - reported to the parent, which raises it

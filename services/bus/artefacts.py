@@ -4,11 +4,12 @@ it eager without saying so.
 
 What torch compiles (inductor's C++ kernels, AOT autograd's forward and backward graphs) it keeps in its compile
 cache directory (``cache_dir``), found again by the graphs themselves; dynamo's tracing it would repeat in every
-process. So the plant's compiled functions are also precompiled (``compilation.Precompiled``): saved whole, guards
-and graphs, in ``CACHE/hydrosoft-artefacts/PART-KEY/`` (``precompiled_dir``) by ``hydrosoft-stack compile``, and
-loaded from there at a launch without tracing (``use_precompiled``, set before the part's model is built); a launch
-that finds none compiles the usual way. (The planner's are not: building them took far longer than loading its
-graphs from inductor's cache, and their load was not measured; docs/benchmarks.md, "Stack start".) An artefact is the
+process. So the compiled functions are also precompiled (``compilation.Precompiled``): saved whole, guards and
+graphs, in ``CACHE/hydrosoft-artefacts/PART-KEY/`` (``precompiled_dir``), and loaded from there at a launch without
+tracing (``use_precompiled``, set before the part's model is built). The plant's are built by ``hydrosoft-stack
+compile``; a launch that finds none traces them the usual way. The planner's are built by one process, ``compile``
+or the planner itself at a launch that finds its artefact missing or stale, and loaded by its solver worker
+processes (``services/planner.py``, ``build_precompiled``). An artefact is the
 record ``CACHE/hydrosoft-artefacts/PART-KEY.json`` written once PART compiled completely into that cache, under its
 key (``ArtefactKey``): a hash of the config keys that shape PART's graphs, torch's version, and the model library's
 source. A launch whose key has a record loads
@@ -26,7 +27,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -217,16 +218,19 @@ class PartBuild:
         return f"compiling: {self.state}, building {self.key.key}"
 
     def run(self, compile: Callable[[], str | None], say: Callable[[str], None],
-            period_s: float = PROGRESS_PERIOD_S) -> bool:
+            period_s: float = PROGRESS_PERIOD_S, elsewhere: Callable[[], Mapping[str, int]] | None = None) -> bool:
         """Compile the part by ``compile()`` (None once compiled, or why it fell back to eager), saying what happens
         through ``say`` (a line at the start, one every ``period_s`` while it compiles, one at the end); record the
-        artefact when it was built here. True when the part runs compiled."""
+        artefact when it was built here. ``elsewhere()``: the precompiled functions of the part's other processes
+        (the planner's worker processes: ``WorkerProcesses.precompiled``), counted with this process's. True when
+        the part runs compiled."""
         part = self.key.part
         what = "loading its artefact" if self.ready else "building its artefact (minutes on a small machine)"
         say(f"{part}: {self.status}: {what}; compile cache {self.cache}")
-        started, before = time.monotonic(), _graph_counts()
+        counts = functools.partial(_graph_counts, elsewhere)
+        started, before = time.monotonic(), counts()
         with _progress(lambda: say(f"{part}: still compiling, {time.monotonic() - started:.0f} s, "
-                                   f"{_graphs(before)}"), period_s):
+                                   f"{_graphs(before, counts())}"), period_s):
             fallback = compile()
         seconds = time.monotonic() - started
         if fallback is not None:
@@ -235,10 +239,11 @@ class PartBuild:
             return False
         if not self.ready:
             record(self.cache, self.key, seconds)
-        _, _, built, loaded, traced = (now - then for now, then in zip(_graph_counts(), before))
+        after = counts()
+        _, _, built, loaded, traced = (now - then for now, then in zip(after, before))
         self.precompiled = bool(built + loaded) and not traced
         self.seconds = seconds
-        say(f"{part}: {self.status} in {seconds:.1f} s ({_graphs(before)})")
+        say(f"{part}: {self.status} in {seconds:.1f} s ({_graphs(before, after)})")
         return True
 
 
@@ -260,19 +265,21 @@ def _progress(tick: Callable[[], None], period_s: float) -> Iterator[None]:
         thread.join()
 
 
-def _graph_counts() -> tuple[int, int, int, int, int]:
-    """This process's graphs so far: inductor's (compiled, loaded from the compile cache) and the precompiled
-    functions (built, loaded, and copies that traced instead: ``compilation.PRECOMPILED``)."""
+def _graph_counts(elsewhere: Callable[[], Mapping[str, int]] | None = None) -> tuple[int, int, int, int, int]:
+    """The graphs so far: this process's inductor graphs (compiled, loaded from the compile cache) and precompiled
+    functions (built, loaded, and copies that traced instead: ``compilation.PRECOMPILED``), with ``elsewhere()``'s
+    precompiled functions added (counted the same way in other processes)."""
     from torch._dynamo.utils import counters
 
     from hydrosoft.compilation import PRECOMPILED
     inductor = counters["inductor"]
+    other = {} if elsewhere is None else elsewhere()
     return (inductor["fxgraph_cache_miss"] + inductor["fxgraph_cache_bypass"], inductor["fxgraph_cache_hit"],
-            PRECOMPILED["built"], PRECOMPILED["loaded"], PRECOMPILED["jit"])
+            *(PRECOMPILED[name] + other.get(name, 0) for name in ("built", "loaded", "jit")))
 
 
-def _graphs(before: tuple[int, int, int, int, int]) -> str:
-    """The graphs since ``before`` (``_graph_counts``), in words."""
-    compiled, loaded, built, precompiled, _ = (now - then for now, then in zip(_graph_counts(), before))
+def _graphs(before: tuple[int, int, int, int, int], now: tuple[int, int, int, int, int]) -> str:
+    """The graphs from ``before`` to ``now`` (``_graph_counts``), in words."""
+    compiled, loaded, built, precompiled, traced = (after - then for after, then in zip(now, before))
     return (f"{compiled} graphs compiled, {loaded} loaded from the cache; {built} precompiled functions built, "
-            f"{precompiled} loaded")
+            f"{precompiled} loaded, {traced} traced instead")

@@ -3,7 +3,9 @@
 launch after it loads them instead of compiling them.
 
 Each part says what it does: it loads an artefact built for this config and torch, or builds a missing or stale one
-(``services/bus/artefacts.py``), with a progress line every 15 s, and records it when done. Building from cold takes
+(``services/bus/artefacts.py``), with a progress line every 15 s, and records it when done. The planner's step and
+costs are built once, in this process, for one solver worker's share of the samples, and its worker processes then
+load them, as at a launch. Building from cold takes
 minutes on a 2-core machine; a launch then starts each part from the cache. Run it once after an install, a torch
 upgrade or a config change, as the user the stack runs as (the cache is per directory), before the first
 ``launch``; a launch that finds an artefact missing or stale builds it itself, saying so in its log and status. It
@@ -14,10 +16,10 @@ eager (named with its reason), 2 a config that cannot be used.
 from __future__ import annotations
 
 import argparse
-import functools
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -33,20 +35,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("config", type=Path, help="the stack's TOML config (deploy/lab.toml, deploy/sim.toml)")
 
 
-def compiled_parts(config: StackConfig) -> list[tuple[artefacts.ArtefactKey, int, Callable[[], str | None]]]:
-    """The config's compiled parts, in launch order: each part's key, its torch threads and what compiles it (None
-    once compiled, or why it fell back to eager). The plant is built with its precompiled directory set to build
+class CompiledPart(NamedTuple):
+    """One compiled part of a config: its artefact key, its torch threads, what compiles it (``compile(rebuild)``:
+    None once compiled, or why it fell back to eager; ``rebuild`` when its artefact is missing or stale) and the
+    precompiled functions of its other processes (``artefacts.PartBuild.run``'s ``elsewhere``)."""
+
+    key: artefacts.ArtefactKey
+    threads: int
+    compile: Callable[[bool], str | None]
+    elsewhere: Callable[[], Mapping[str, int]] | None = None
+
+
+def compiled_parts(config: StackConfig) -> list[CompiledPart]:
+    """The config's compiled parts, in launch order. The plant is built with its precompiled directory set to build
     (``artefacts.use_precompiled``), so that its compiled functions are saved there whole, for every launch to load.
-    Building a part's model here raises ValueError for a config whose arms the scene lacks."""
+    The planner builds its precompiled functions in this process (``planner.build_precompiled``) when its artefact
+    is missing or stale, then its solver worker processes load them, as at a launch. Building a part's model here
+    raises ValueError for a config whose arms the scene lacks."""
     parts = []
     if config.mode == "sim" and config.sim.compile:
         artefacts.use_precompiled(config, artefacts.plant_key(config), build=True)
         plant = SimPlant.from_config(config)
-        parts.append((artefacts.plant_key(config), TORCH_THREADS, plant.compile))
-        use_precompiled(None)  # the planner's functions are not precompiled (artefacts)
+        parts.append(CompiledPart(artefacts.plant_key(config), TORCH_THREADS, lambda rebuild: plant.compile()))
+        use_precompiled(None)
     if config.planner.compile:
+        key = artefacts.planner_key(config)
+        directory = artefacts.use_precompiled(config, key)  # its worker processes load from there
         core = PlannerCore.build(config)
-        parts.append((artefacts.planner_key(config), config.planner.threads, functools.partial(compile_planner, core)))
+        use_precompiled(None)
+
+        def compile(rebuild: bool) -> str | None:
+            return compile_planner(core, directory if rebuild else None)
+
+        parts.append(CompiledPart(key, config.planner.threads, compile,
+                                  None if core.processes is None else core.processes.precompiled))
     return parts
 
 
@@ -64,13 +86,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     cache = artefacts.cache_dir(config)
     eager = []
-    for key, threads, compile in parts:
-        torch.set_num_threads(threads)
-        build = artefacts.PartBuild(key, cache)
-        if not build.run(compile, lambda line: print(f"compile: {line}", flush=True)):
-            eager.append(f"{key.part}: {build.fallback}")
+    for part in parts:
+        torch.set_num_threads(part.threads)
+        build = artefacts.PartBuild(part.key, cache)
+        if not build.run(lambda: part.compile(not build.ready), lambda line: print(f"compile: {line}", flush=True),
+                         elsewhere=part.elsewhere):
+            eager.append(f"{part.key.part}: {build.fallback}")
     if eager:
         print(f"compile: fell back to eager ({'; '.join(eager)})", file=sys.stderr)
         return 1
-    print(f"compile: {', '.join(key.part for key, _, _ in parts)} compiled; artefacts in {cache}")
+    print(f"compile: {', '.join(part.key.part for part in parts)} compiled; artefacts in {cache}")
     return 0

@@ -11,7 +11,9 @@ leaves no unsupervised arm commander behind. Every line of its stdout and stderr
 (and appended to ``LOG_DIR/NAME.log`` with ``--log-dir``); each service also writes its own log file
 (``config.service_log_dir()``), which holds its shutdown lines even when the launcher was killed.
 The next service starts once this one printed ``READY NAME PID`` (within its ``ready_timeout_s``); one that exits
-or stays silent fails the launch: the error names it and everything started is stopped again.
+or stays silent fails the launch: the error names it and everything started is stopped again. The planner is the
+exception (``start_order``): it starts right after the arm commanders are ready, and the sensors start while it
+builds and loads its solver; the stack is ready when it is too.
 
 Supervision. A service that exits is restarted by its policy (``never``; ``on-failure``: a non-zero exit or a
 signal; ``always``) after a backoff that doubles from ``backoff_s`` (capped at ``MAX_BACKOFF_S``), at most
@@ -103,6 +105,11 @@ EXIT_USAGE = 2
 CommandFor = Callable[[str, str], list[str]]
 #: The name of the recorder service that ``--record`` and ``--view`` add.
 RECORDER = "recorder"
+#: The planner service (``start_order``).
+PLANNER = "planner"
+#: The services whose start the next ones do not wait for: the launcher starts the next service at once and waits for
+#: these ones' READY at the end (``start_order``).
+STARTS_ALONGSIDE = frozenset({PLANNER})
 
 
 class LaunchError(Exception):
@@ -164,6 +171,21 @@ def select_services(config: StackConfig, only: str | None) -> list[str]:
         raise LaunchError(f"--only {only!r}: no such service {', '.join(unknown) or '(empty list)'}; "
                           f"the services are {', '.join(names)}")
     return [name for name in names if name in wanted]
+
+
+def start_order(names: Sequence[str]) -> list[str]:
+    """The order the launcher starts the services ``names`` (given in ``config.service_names()`` order) in: that
+    order, but the planner right after the services that own the arms (sim_world, which hosts the simulated ones, and
+    every arm commander; first when ``names`` has none of them). Its start-up is the longest (its model, its solver
+    worker processes, its compiled step) and needs none of the sensors, so it runs while they start
+    (``STARTS_ALONGSIDE``); it still starts only once every arm commander is ready, so nothing that commands an arm
+    runs before the arm's owner does."""
+    if PLANNER not in names:
+        return list(names)
+    rest = [name for name in names if name != PLANNER]
+    owners = [index for index, name in enumerate(rest) if name == "sim_world" or module_for(name) == "arm_commander"]
+    at = owners[-1] + 1 if owners else 0
+    return rest[:at] + [PLANNER] + rest[at:]
 
 
 def stop_phases(names: Sequence[str]) -> list[list[str]]:
@@ -470,17 +492,33 @@ class Launcher:
         return process
 
     async def start_all(self) -> None:
-        """Start every service in order, each after the previous one is READY; then supervise them. Raises
-        LaunchError naming the first service that did not get ready."""
+        """Start every service in ``start_order``, each after the previous one is READY, but for those in
+        ``STARTS_ALONGSIDE``, whose READY is waited for beside the next services' starts; then supervise them.
+        Raises LaunchError naming the first service that did not get ready."""
         self.log(f"launch instance {self.instance}")
-        for name in self.names:
-            if self.stopping.is_set():
-                return
-            process = await self._start(name)
-            await process.wait_ready(self.config.service(name).ready_timeout_s)
-            self.log(f"{name} ready (pid {process.pid})")
-            self._keepers[name] = asyncio.create_task(self._keep(name), name=f"keep {name}")
-        self.log(f"stack ready: {', '.join(self.names)}")
+        alongside: list[asyncio.Task[None]] = []
+        try:
+            for name in start_order(self.names):
+                if self.stopping.is_set():
+                    return
+                process = await self._start(name)
+                if name in STARTS_ALONGSIDE:
+                    alongside.append(asyncio.create_task(self._ready(name, process), name=f"ready {name}"))
+                else:
+                    await self._ready(name, process)
+            await asyncio.gather(*alongside)
+        finally:
+            for task in alongside:
+                task.cancel()
+            await asyncio.gather(*alongside, return_exceptions=True)
+        if not self.stopping.is_set():
+            self.log(f"stack ready: {', '.join(self.names)}")
+
+    async def _ready(self, name: str, process: ServiceProcess) -> None:
+        """Wait for ``name``'s READY, log it and supervise it from then on (raises LaunchError when it fails)."""
+        await process.wait_ready(self.config.service(name).ready_timeout_s)
+        self.log(f"{name} ready (pid {process.pid})")
+        self._keepers[name] = asyncio.create_task(self._keep(name), name=f"keep {name}")
 
     async def _keep(self, name: str) -> None:
         """Restart ``name`` by its policy whenever it exits, until the stack stops or it is given up."""

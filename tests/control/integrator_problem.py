@@ -46,3 +46,11 @@ def build_without_compiler(goal: tuple[float, float, float]):
     from hydrosoft.compilation import CompiledFunction
     _, stage, to_goal = build(goal)
     return CompiledFunction(integrator, backend=no_compiler), stage, to_goal
+
+
+def build_compiled(goal: tuple[float, float, float]):
+    """``build`` with its dynamics compiled by inductor (``compilation.CompiledFunction``): precompiled, built or
+    loaded, when the environment names a precompiled directory (``compilation.use_precompiled``)."""
+    from hydrosoft.compilation import CompiledFunction
+    _, stage, to_goal = build(goal)
+    return CompiledFunction(integrator, options={}), stage, to_goal

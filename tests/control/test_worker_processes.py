@@ -7,11 +7,13 @@ import signal
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import pytest
 import torch
 
+from hydrosoft import compilation
 from hydrosoft.control import CemGd, CemGdConfig
 from hydrosoft.control.worker_processes import WorkerError, WorkerProcesses
 
@@ -94,6 +96,41 @@ def test_a_workers_step_that_falls_back_to_eager_is_reported_to_the_parent_once(
     assert sorted(workers.fallbacks) == [0, 1]
     assert all(why.startswith("step: ") and "no C++ compiler here" in why for why in workers.fallbacks.values())
     assert sorted(heard) == sorted(workers.fallbacks.items())
+
+
+def test_worker_processes_load_the_step_one_process_precompiled_and_plan_as_a_fresh_compile(tmp_path, monkeypatch):
+    """The planner's start-up in small: this process builds the step's precompiled functions once, on one share's
+    batch (32 of 64 samples; horizon 1: a gradient rollout and a no-grad one, 2 functions); two worker processes then
+    load them (none builds or traces) and plan what a freshly compiled solver with threads plans: the same plans, so
+    the same values and gradients. The workers report their counts to the parent (``precompiled``)."""
+    monkeypatch.setattr(compilation, "PRECOMPILED", Counter())
+    config = CemGdConfig(seed=3, workers=2, horizon=1, grad_steps=1)
+    share = CemGdConfig(seed=3, workers=1, horizon=1, grad_steps=1, samples=config.samples // 2)
+    try:
+        with compilation.building_precompiled(tmp_path):
+            builder = CemGd(*problem.build_compiled(GOAL), LOW, -LOW, share, dtype=torch.float64)
+        builder.solve(x0())
+        assert compilation.PRECOMPILED == {"built": 2} and len(list(tmp_path.glob("*.pt2"))) == 2
+        compilation.use_precompiled(tmp_path)  # as the planner sets it before it starts its worker processes
+        workers = WorkerProcesses(problem.build_compiled, 2, LOW, -LOW, config, torch.float64, timeout_s=120.0)
+    finally:
+        compilation.use_precompiled(None)
+    pids = workers.pids
+    fresh = CemGd(*problem.build_compiled(GOAL), LOW, -LOW, config, dtype=torch.float64)  # threads, traced here
+    try:
+        workers.set_problem(GOAL)
+        loaded = solver(config, processes=workers)
+        state = x0()
+        for _ in range(2):
+            expected, result = fresh.solve(state), loaded.solve(state)
+            torch.testing.assert_close(result.plan, expected.plan, rtol=0, atol=1e-12)
+            assert result.cost == pytest.approx(expected.cost, rel=1e-12)
+            state = result.states[0]
+    finally:
+        workers.close()
+    assert_stopped(pids)
+    assert workers.precompiled() == {"loaded": 4}  # 2 functions in each of the 2 workers; none built nor traced
+    assert workers.fallbacks == {} and compilation.PRECOMPILED["built"] == 2
 
 
 def test_a_broken_problem_raises_the_workers_error_and_stops_them():

@@ -122,7 +122,31 @@ def test_the_status_says_whether_the_part_was_precompiled_or_traced(counted, pre
     lines = []
     assert build.run(lambda: compilation.PRECOMPILED.update(counted), lines.append)
     assert build.status == f"compiled (artefact {key.key}{', precompiled' if precompiled else ''})"
-    assert f"{counted.get('loaded', 0)} loaded)" in lines[-1]
+    assert f"{counted.get('loaded', 0)} loaded, {counted.get('jit', 0)} traced instead)" in lines[-1]
+
+
+@pytest.mark.parametrize("workers, precompiled", [
+    ({"loaded": 16}, True),  # every worker process loaded every function this process built
+    ({"loaded": 15, "jit": 1}, False),  # a worker process could not load one: it traced it, and the status says so
+])
+def test_the_planners_status_counts_what_its_worker_processes_loaded(workers, precompiled, tmp_path, config,
+                                                                     monkeypatch):
+    """The planner builds its precompiled functions in its own process and its solver worker processes load them:
+    the status and the lines count both (``elsewhere``), and a worker that traced one is no longer "precompiled"."""
+    monkeypatch.setattr(compilation, "PRECOMPILED", Counter())
+    key = artefacts.planner_key(config)
+    build = artefacts.PartBuild(key, tmp_path)
+    elsewhere = Counter()
+    lines = []
+
+    def build_here_then_load_there():
+        compilation.PRECOMPILED.update(built=8)
+        elsewhere.update(workers)
+
+    assert build.run(build_here_then_load_there, lines.append, elsewhere=lambda: elsewhere)
+    assert build.status == f"compiled (artefact {key.key}{', precompiled' if precompiled else ''})"
+    assert (f"8 precompiled functions built, {workers['loaded']} loaded, {workers.get('jit', 0)} traced instead)"
+            in lines[-1])
 
 
 def test_the_cache_is_the_environments_then_the_configs_then_torchs(tmp_path, config, monkeypatch):

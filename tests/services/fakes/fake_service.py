@@ -10,6 +10,7 @@ name by ``$HYDROSOFT_FAKE_MODES`` (``"NAME=MODE,NAME=MODE"``; unnamed services a
 - ``crash``: ready, then raises after ``CRASH_AFTER_S`` (exit 1).
 - ``exit_clean``: ready, then returns after ``CRASH_AFTER_S`` (exit 0).
 - ``never_ready``: never reports READY.
+- ``slow_ready``: reports READY after ``SLOW_READY_S`` (as the planner does after loading its solver).
 - ``hang_on_stop``: ready; its shutdown hook blocks the loop for ``HANG_S`` (only SIGKILL ends it).
 - ``errors``: ready, with one error counted (kind ``fake_input``), shown in its status.
 - ``spawns_child``: ready, after starting a ``sleep`` in its process group that ignores SIGINT, so that it outlives
@@ -33,6 +34,7 @@ MODES_ENV = "HYDROSOFT_FAKE_MODES"
 DATA_RATE_HZ = 20.0
 CRASH_AFTER_S = 0.2
 HANG_S = 60.0
+SLOW_READY_S = 2.0
 
 
 def mode_for(name: str) -> str:
@@ -57,6 +59,8 @@ async def fake_main(service: Service, data_endpoint: str, mode: str) -> None:
     if mode == "spawns_child":
         child = subprocess.Popen(["sh", "-c", f"trap '' INT; exec sleep {HANG_S}"])  # ignores the group's SIGINT
         service.log.info("child %d", child.pid)
+    if mode == "slow_ready":
+        await asyncio.sleep(SLOW_READY_S)
     if mode != "never_ready":
         await service.ready()
     started_s = time.monotonic()
