@@ -45,8 +45,9 @@ def shared_fixtures(item: pytest.Item) -> list[str]:
     """The fixtures of ours (defined under ``tests/``) wider than a test that ``item`` uses, each as the key of its
     one instance: ``NAME`` for a session fixture, ``MODULE::NAME`` for a module (or class, package) one."""
     keys = []
-    for name in item.fixturenames:
-        definitions = item._fixtureinfo.name2fixturedefs.get(name)  # the definitions visible here, the used one last
+    info = getattr(item, "_fixtureinfo", None)  # a test function's; pytest keeps no public handle on it
+    for name in getattr(item, "fixturenames", ()) if info is not None else ():
+        definitions = info.name2fixturedefs.get(name)  # the definitions visible here, the used one last
         if not definitions or definitions[-1].scope == "function" or not definitions[-1].baseid:
             continue  # a test's own, a parameter, or a plugin's (their baseid is empty)
         keys.append(name if definitions[-1].scope == "session" else f"{item.nodeid.split('::')[0]}::{name}")
