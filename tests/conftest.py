@@ -3,12 +3,19 @@
 - torch runs single-threaded: on two shared cores OpenMP worker threads stall each other (a B = 64 step measured
   ~10x slower with 2 threads than with 1 while another process was busy), and the suite's figures stay stable.
 - hypothesis runs derandomized under CI so a red build is reproducible.
-- the suite runs on two pytest-xdist workers (``-n 2 --dist loadgroup``, the README's command): the tests that
-  start the stack's processes or simulated devices (``tests/services``, ``tests/drivers``) form one group that runs
-  one test at a time on one worker, beside the model tests on the other, so two stacks never share two cores.
-- the other tests are handed out one at a time to whichever worker is free, in collection order, except that the
-  modules with a test marked ``slow`` come first: a long test handed out last would leave the other worker idle
-  while it runs (the PF rolling finding, 167 s, was among the last).
+- the suite runs on two pytest-xdist workers (``-n 2 --dist loadgroup --no-loadscope-reorder``, the README's
+  command), which take the units of work in the order this file sorts them (``pytest_collection_modifyitems``):
+  1. the ``stacks`` group, the modules that launch a whole stack or the real launcher on the split-stack hosts
+     (``STACK_MODULES``), one test after another on one worker: two stacks never share two cores;
+  2. the modules with a test marked ``slow``: a long test handed out last would leave the other worker idle while it
+     runs (the PF rolling finding, 167 s, was among the last once);
+  3. the rest.
+  Each test is a unit of its own, except the tests that share a fixture of ours wider than a test (module or
+  session scope: one stack launch, one simulated controller, one recorded run): those are one group, so the fixture
+  is set up once, not once on each worker (both workers launched test_stack_requests.py's module stack). The
+  groups are xdist's ``xdist_group`` marks, set before xdist reads them (``tryfirst``: set after, as they once
+  were, xdist never saw them and every test went its own way). ``--no-loadscope-reorder`` keeps this order
+  (xdist's own puts the units with the most tests first).
 """
 
 import os
@@ -28,21 +35,67 @@ if os.environ.get("CI"):
     settings.load_profile("ci")
 
 
-def in_process_group(item: pytest.Item) -> bool:
-    """Whether ``item`` lies under ``PROCESS_DIRS``."""
-    return item.path.resolve().relative_to(TESTS).parts[0] in PROCESS_DIRS
+STACK_MODULES = ("test_*stack*.py", "test_two_hosts.py")
+"""The modules under ``tests/services`` of the ``stacks`` group: each launches a whole stack, or the real launcher on
+the loopback hosts and ports of the split-stack tests (``test_two_hosts.py`` shares them with
+``test_two_hosts_stack.py``)."""
 
 
-def pytest_collection_modifyitems(config, items):
-    """Put the tests under ``PROCESS_DIRS`` into one xdist group, and the other modules with a ``slow`` test
-    first, each module's tests together and in their order (module docstring)."""
-    slow_modules = set()
+def shared_fixtures(item: pytest.Item) -> list[str]:
+    """The fixtures of ours (defined under ``tests/``) wider than a test that ``item`` uses, each as the key of its
+    one instance: ``NAME`` for a session fixture, ``MODULE::NAME`` for a module (or class, package) one."""
+    keys = []
+    info = getattr(item, "_fixtureinfo", None)  # a test function's; pytest keeps no public handle on it
+    for name in getattr(item, "fixturenames", ()) if info is not None else ():
+        definitions = info.name2fixturedefs.get(name)  # the definitions visible here, the used one last
+        if not definitions or definitions[-1].scope == "function" or not definitions[-1].baseid:
+            continue  # a test's own, a parameter, or a plugin's (their baseid is empty)
+        keys.append(name if definitions[-1].scope == "session" else f"{item.nodeid.split('::')[0]}::{name}")
+    return keys
+
+
+def xdist_groups(items: list[pytest.Item]) -> dict[str, str]:
+    """Each grouped item's xdist group by node id: ``stacks`` for ``STACK_MODULES``, else the first shared fixture
+    (``shared_fixtures``) of the tests joined by sharing one, directly or through others; ungrouped items are left
+    out."""
+    parent: dict[str, str] = {}
+
+    def root(key: str) -> str:
+        while parent.setdefault(key, key) != key:
+            key = parent[key]
+        return key
+
+    keys_of = {}
     for item in items:
-        if in_process_group(item):
-            item.add_marker(pytest.mark.xdist_group("processes"))
-        elif item.get_closest_marker("slow"):
-            slow_modules.add(item.path)
-    items.sort(key=lambda item: item.path not in slow_modules)  # stable: the order within each part is kept
+        keys = shared_fixtures(item)
+        path = item.path.resolve()
+        if path.relative_to(TESTS).parts[0] == "services" and any(path.match(p) for p in STACK_MODULES):
+            keys.insert(0, "stacks")
+        for key in keys[1:]:
+            first, other = root(keys[0]), root(key)
+            if first != other:
+                first, other = (other, first) if other == "stacks" else (first, other)
+                parent[other] = first  # "stacks", or the first key seen, names the union
+        keys_of[item.nodeid] = keys
+    return {nodeid: root(keys[0]) for nodeid, keys in keys_of.items() if keys}
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's worker reads the xdist_group marks into the node ids
+def pytest_collection_modifyitems(config, items):
+    """Mark the xdist groups (``xdist_groups``) and sort the items in the order their units are handed out: the
+    ``stacks`` group, the other modules with a ``slow`` test, the rest; each part in collection order, each group
+    together where its first test is (module docstring)."""
+    groups = xdist_groups(items)
+    for item in items:
+        if item.nodeid in groups:
+            item.add_marker(pytest.mark.xdist_group(groups[item.nodeid]))
+    slow_modules = {item.path for item in items if item.get_closest_marker("slow")}
+    first_rank: dict[str, int] = {}
+    for item in items:
+        rank = 0 if groups.get(item.nodeid) == "stacks" else 1 if item.path in slow_modules else 2
+        first_rank.setdefault(groups.get(item.nodeid, item.nodeid), rank)
+    order = {unit: index for index, unit in enumerate(first_rank)}
+    items.sort(key=lambda item: (first_rank[unit := groups.get(item.nodeid, item.nodeid)], order[unit]))
 
 
 @pytest.fixture
