@@ -46,11 +46,12 @@ from hydrosoft.bench.material_parameters import FIT_MODELS, MU_MAX, PARAMETERS
 from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, replay_tcp_wrenches, trajectory_errors
 from hydrosoft.bench.wrench_scenes import BUBBLE_E, BUBBLE_K, BUBBLE_MU
 from hydrosoft.contact import Material
+from hydrosoft.drivers.robotiq_ft300.noise import SIGNAL_NOISE
 
 START = {"E": BUBBLE_E, "K": BUBBLE_K, "mu": BUBBLE_MU}  # the scenes' Soft Bubble (hydrosoft/tasks/pushing.toml)
-#: The FT 300's signal noise per frame, standard deviation of Fx, Fy, Fz (N), Mx, My (N m), Mz (N m): Robotiq's
-#: datasheet figures. The fit weighs each wrench component by it; its absolute level cancels (see ``s2``).
-FT300_NOISE = np.array([0.1, 0.1, 0.1, 0.005, 0.005, 0.003])
+#: The FT 300's signal noise per frame (``noise.SIGNAL_NOISE``, the simulator's): the fit weighs each wrench
+#: component by it; its absolute level cancels (see ``s2``).
+FT300_NOISE = SIGNAL_NOISE
 Z95 = 1.959964  # two-sided 95 % quantile of the standard normal
 UNIDENTIFIED_RELATIVE_SIGMA = 0.25  # a parameter known only to +-25 % (1 sigma) or worse is not identified
 SINGULAR_RCOND = 1e-10  # eigenvalues of J^T J below this fraction of the largest count as zero (no information)
