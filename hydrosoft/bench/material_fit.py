@@ -66,7 +66,9 @@ MAX_AUTO_SUBSTEPS = 8
 class ReplayBatch:
     """Trajectories of one object and length, replayed together. ``object_poses``, ``bubble_poses``: ``(B, K + 1,
     7)`` (m, wxyz); ``measured``: ``(B, K + 1, 6)`` TCP-frame wrenches less the tare (N, N m); ``labels``: each
-    trajectory's ``(object, trajectory index)``; ``spacing_m``: the replay's surface spacing (m)."""
+    trajectory's ``(object, trajectory index)``; ``spacing_m``: the replay's surface spacing (m); ``pretared``: its
+    trajectories start in contact with wrenches tared before them (``RecordedTrajectory.pretared``), so every row,
+    row 0 included, is compared as measured and no row shares a tare's noise."""
 
     object: str
     spacing_m: float
@@ -74,6 +76,7 @@ class ReplayBatch:
     bubble_poses: np.ndarray
     measured: np.ndarray
     labels: tuple[tuple[str, int], ...]
+    pretared: bool = False
 
 
 def replay_batches(groups: Sequence, chosen: set[tuple[str, int]]) -> list[ReplayBatch]:
@@ -92,7 +95,7 @@ def replay_batches(groups: Sequence, chosen: set[tuple[str, int]]) -> list[Repla
                 object_poses=np.stack([t.object_poses for t in trajectories]),
                 bubble_poses=np.stack([t.bubble_poses for t in trajectories]),
                 measured=np.stack([group.measured[members[r]] for r in rows]),
-                labels=tuple((group.object, t.index) for t in trajectories)))
+                labels=tuple((group.object, t.index) for t in trajectories), pretared=trajectories[0].pretared))
     return batches
 
 
@@ -145,13 +148,17 @@ def _whiten(errors: torch.Tensor) -> torch.Tensor:
 
 def residuals(theta: torch.Tensor, batches: Sequence[ReplayBatch], contact: str, start: dict[str, float],
               substeps: int = DEFAULT_SUBSTEPS) -> torch.Tensor:
-    """Whitened, noise-weighted residuals ``(n,)`` of every batch at ``theta (3,)`` (differentiable in theta)."""
+    """Whitened, noise-weighted residuals ``(n,)`` of every batch at ``theta (3,)`` (differentiable in theta): rows
+    1..K less the tare row's share, or, for a ``pretared`` batch, rows 0..K as they are."""
     material = to_material(theta, start)
     weight = torch.as_tensor(1 / FT300_NOISE, dtype=torch.float64)
     out = []
     for batch in batches:
         predicted = replay_tcp_wrenches(batch.object, batch.object_poses, batch.bubble_poses, contact,
                                         batch.spacing_m, substeps, material)
+        if batch.pretared:  # tared before the trajectory: every row on its own
+            out.append(((predicted - torch.as_tensor(batch.measured)) * weight).flatten())
+            continue
         error = (predicted[:, 1:] - torch.as_tensor(batch.measured[:, 1:])) * weight
         out.append(_whiten(error).flatten())
     return torch.cat(out)
