@@ -59,7 +59,8 @@ def stack_options(args: argparse.Namespace) -> dict:
     (``split_at_free_samples``'s), from the stack recording options that were given."""
     options = {"object_name": args.object, "arm": args.arm, "clamped": args.clamped,
                "tcp_in_sensor": args.tcp_in_sensor, "max_gap_s": args.max_gap, "period_s": args.period,
-               "contact_force_n": args.contact_force, "start_pressed": args.start_pressed or None}
+               "contact_force_n": args.contact_force, "start_pressed": args.start_pressed or None,
+               "true_object": args.true_object or None}
     return {key: value for key, value in options.items() if value is not None}
 
 
@@ -112,6 +113,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="the recording starts at rest with the bubble pressed straight into the object (the sim "
                             "scenes' start): fit that first contact too, its wrenches as the F/T reader tared them and "
                             "its first sample replayed pressed in (default: a contact from the start is skipped)")
+    stack.add_argument("--true-object", action="store_true",
+                       help="sim recordings: replay the sim's true object pose (eval/object_pose, 10 Hz: give "
+                            "--max-gap 0.05) instead of the tracked one, to see the tracker's share of the error")
     stack.add_argument("--period", type=float, default=None, metavar="S",
                        help="keep at most one wrench sample per this many seconds (default 0.05)")
 

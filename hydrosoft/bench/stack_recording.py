@@ -30,6 +30,7 @@ from hydrosoft.bench.wrench_recording import RecordedTrajectory, RecordingInfo
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 OBJECT_TOPIC = "object_pose/object"
+TRUE_OBJECT_TOPIC = "eval/object_pose"  # the sim's true object pose (10 Hz), beside the tracked one
 DEFAULT_MAX_GAP_S = 0.02  # the arm state comes at 125 Hz (8 ms) or faster, the tracked pose at the camera's 30 Hz
 DEFAULT_PERIOD_S = 0.05  # collect wrench's sample spacing
 #: A sample whose force (the tared wrench's force norm, N) exceeds this is in contact: 5 times the FT 300's noise per
@@ -135,10 +136,12 @@ def split_at_free_samples(trajectory: RecordedTrajectory, contact_force_n: float
 
 def read_stack_recording(path: str | Path, object_name: str | None = None, arm: str | None = None,
                          clamped: bool = False, tcp_in_sensor=IDENTITY, max_gap_s: float = DEFAULT_MAX_GAP_S,
-                         period_s: float = DEFAULT_PERIOD_S) -> StackTrajectory:
+                         period_s: float = DEFAULT_PERIOD_S, true_object: bool = False) -> StackTrajectory:
     """The fit's trajectory of the stack recording ``path`` (module docstring). ``object_name``: the benchmark object
     to replay (default: the tracked pose's ``object`` when that is one); ``arm``: whose wrench and TCP (default: the
-    only one recorded); ``tcp_in_sensor``: ``(7,)`` the TCP frame in the F/T sensor's frame (m, wxyz). ValueError
+    only one recorded); ``tcp_in_sensor``: ``(7,)`` the TCP frame in the F/T sensor's frame (m, wxyz);
+    ``true_object``: take the sim's true object pose (``TRUE_OBJECT_TOPIC``) instead of the tracked one, to tell
+    the tracker's share of a sim fit's error. ValueError
     naming the file and the missing topic, or when no sample is left."""
     from hydrosoft.bench.wrench_scenes import BENCH_OBJECTS
     from hydrosoft.services.bus import messages as msg
@@ -149,12 +152,13 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     values: dict[str, list[np.ndarray]] = {}
     names: dict[str, str] = {}
     tared: dict[str, list[bool]] = {}  # per wrench topic and message: tared by the F/T reader
-    reader = RecordingReader(path, ["wrench", "arm_state", "object_pose"])
+    object_topic = TRUE_OBJECT_TOPIC if true_object else OBJECT_TOPIC
+    reader = RecordingReader(path, ["wrench", "arm_state", object_topic])
     try:
         for item in reader:  # one pass, one message at a time; only these topics' poses and wrenches are kept
             message = item.message
             stamps.setdefault(item.topic, []).append(message.stamp_ns)
-            if isinstance(message, msg.ObjectPose):
+            if isinstance(message, (msg.ObjectPose, msg.EvalObjectPose)):
                 values.setdefault(item.topic, []).append(np.array(message.pose))
                 names.setdefault(item.topic, message.object)
             elif isinstance(message, msg.Wrench):
@@ -170,14 +174,14 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
         if len(arms) > 1:
             raise ValueError(f"{path}: recording of several arms ({', '.join(arms)}); name one with --arm")
         arm = arms[0] if arms else "ARM"
-    needed = [f"wrench/{arm}", f"arm_state/{arm}", OBJECT_TOPIC]
+    needed = [f"wrench/{arm}", f"arm_state/{arm}", object_topic]
     missing = [t for t in needed if t not in topics]
     if missing:
         raise ValueError(f"{path}: recording has no topic {', '.join(missing)}, which the fit needs")
     missing = [t for t in needed if not stamps.get(t)]
     if missing:
         raise ValueError(f"{path}: recording has no message on {', '.join(missing)}, which the fit needs")
-    object_name = object_name or names[OBJECT_TOPIC]
+    object_name = object_name or names[object_topic]
     if object_name not in BENCH_OBJECTS:
         raise ValueError(f"{path}: object {object_name!r} is not a benchmark object the fit can replay "
                          f"({', '.join(BENCH_OBJECTS)}); name one with --object")

@@ -435,7 +435,7 @@ class SimConfig(Strict):
     sim_world stores it as the arm's tare (``services/arm/ft_bias.py``) at its start, a tare taken before the membrane
     touched anything. ft_noise: the simulated FT 300's signal noise per frame, as a multiple of the datasheet's
     (``hydrosoft.drivers.robotiq_ft300.noise``: 0.1 N, 0.005 N m for Mx and My, 0.003 N m for Mz at 1), drawn per
-    frame from a generator seeded per arm; 0 turns it off. sdf_solver_steps: the plant's bubble closest points, as ``planner.sdf_solver_steps`` (None:
+    frame from a generator seeded per arm; 0 (the default; deploy/sim.toml sets 1) turns it off. sdf_solver_steps: the plant's bubble closest points, as ``planner.sdf_solver_steps`` (None:
     solved to convergence, a ``torch.while_loop`` that torch's compile cache cannot keep, so a compiled plant
     compiles at every launch; 3 fixed steps: within 1e-7 m up to 2 cm deep, kept by the cache)."""
 
@@ -449,7 +449,7 @@ class SimConfig(Strict):
     object_offset_m: tuple[float, float] = (0.0, 0.0)
     sdf_solver_steps: int | None = None
     ft_bias: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    ft_noise: float = 1.0
+    ft_noise: float = 0.0
 
     def __post_init__(self) -> None:
         _require(self.sdf_solver_steps is None or 0 <= self.sdf_solver_steps <= SDF_SOLVER_STEPS_MAX,
