@@ -10,7 +10,9 @@ lies in its reported 95 % interval. First the same without noise (the FT 300's r
 With ``--draws N`` each seed's fit is also bootstrapped (``fit_bootstrap``, N refits), and the coverage of the
 bootstrap's percentile and basic intervals is counted beside Gauss-Newton's. With ``--pose-noise MM,DEG`` the
 recorded object poses carry tracker noise (``synthetic_wrench.tracked_poses``) and the mean relative error over the
-seeds shows the bias it causes.
+seeds shows the bias it causes. ``--plant-substeps N --substeps N`` makes the fit's replay the plant exactly (the
+plant otherwise takes ``synthetic_wrench.PLANT_SUBSTEPS`` and the replay is chosen by the fit's resolution rule), to
+tell their mismatch from the noise; ``--no-recovery`` skips the noise-free run (for many seeds in chunks).
 
 Prints one row per run (the recovered values, their relative error, 1 sigma and whether covered) and per
 parameter and method the count of seeds that cover it; ``--json`` prints one JSON document instead.
