@@ -190,7 +190,7 @@ def test_with_noise_each_frame_carries_the_datasheet_noise_drawn_from_its_seed(m
         with open_client(simulator.port_path) as port:
             port.write(start_stream_request())
             assert port.read(WRITE_REPLY_SIZE) == start_stream_reply()
-            received[name] = np.array(read_frames(port, 400, timeout_s=10.0))
+            received[name] = np.array(read_frames(port, 400, timeout_s=10.0)[:400])
             port.write(STOP_BURST)
     assert len(received["noisy"]) == 400 and len(received["quiet"]) == 400
     assert np.all(np.abs(received["noisy"].mean(axis=0) - wrench) < 4 * SIGNAL_NOISE / np.sqrt(400))
