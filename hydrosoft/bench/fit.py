@@ -175,7 +175,9 @@ class RecordingReaders:
             first = self.STACK_INDEX_BASE + sum(len(s["indices"]) for s in self.stack.values())
             indices = list(range(first, first + len(pieces)))
             self.stack[str(path)] = {"indices": indices, "arm": read.arm, "object": read.info.object,
-                                     "clamped": bool(self.stack_options.get("clamped", False)), "kept": read.kept,
+                                     "clamped": bool(self.stack_options.get("clamped", False)),
+                                     "true_object": bool(self.stack_options.get("true_object", False)),
+                                     "kept": read.kept,
                                      "dropped": read.dropped, "trajectories": len(pieces),
                                      "skipped_in_contact": skipped, "tared": read.tared,
                                      "start_pressed": sum(p.pretared for p in pieces)}
@@ -312,8 +314,9 @@ def format_tables(document: dict) -> str:
              f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
     for path, stack in document["settings"]["stack_recordings"].items():
-        lines.append(f"  stack recording {path}: arm {stack['arm']}, object {stack['object']}"
-                     f"{' (clamped)' if stack['clamped'] else ' (tracked)'}, {stack['kept']} samples kept, "
+        poses = " (clamped)" if stack["clamped"] else " (true pose)" if stack.get("true_object") else " (tracked)"
+        lines.append(f"  stack recording {path}: arm {stack['arm']}, object {stack['object']}{poses}, "
+                     f"{stack['kept']} samples kept, "
                      f"{stack['dropped']} dropped (no pose within the max gap), {stack['trajectories']} "
                      f"trajectories ({stack['start_pressed']} started pressed in), {stack['skipped_in_contact']} "
                      "contacts skipped (in contact from the start)")
