@@ -60,6 +60,7 @@ DEFAULT_MAX_ITERATIONS = 60
 #: its discretisation error would bias the fit (``fit_material`` with ``substeps=None``).
 REPLAY_SHIFT_SIGMA = 0.1
 MAX_AUTO_SUBSTEPS = 8
+MU_BOUND_LOGIT = 36.0  # |logit(mu / MU_MAX)| at most this: beyond it float64's sigmoid is 0 or 1
 
 
 @dataclass(frozen=True)
@@ -117,8 +118,10 @@ def split_trajectories(labels: Sequence[tuple[str, int]], holdout: float, seed: 
 
 
 def to_theta(values: dict[str, float], start: dict[str, float]) -> torch.Tensor:
-    """Unconstrained coordinates ``(3,)`` of a material ``values`` (E, K in Pa/m; mu in ``(0, MU_MAX)``)."""
-    mu = values["mu"] / MU_MAX
+    """Unconstrained coordinates ``(3,)`` of a material ``values`` (E, K in Pa/m; mu in ``[0, MU_MAX]``). A mu on a
+    bound, where a fit that drives it there ends (the sigmoid saturates), maps to the largest finite coordinate
+    (``MU_BOUND_LOGIT``)."""
+    mu = min(max(values["mu"] / MU_MAX, 1 / (1 + math.exp(MU_BOUND_LOGIT))), 1 / (1 + math.exp(-MU_BOUND_LOGIT)))
     return torch.tensor([math.log(values["E"] / start["E"]), math.log(values["K"] / start["K"]),
                          math.log(mu / (1 - mu))], dtype=torch.float64)
 
