@@ -333,7 +333,7 @@ async def start_devices(service: Service, config: StackConfig,
     """Start each arm's simulated UR controller (returned by arm) and FT 300; register their shutdown."""
     loop = asyncio.get_running_loop()
     controllers = {}
-    for arm in config.arms:
+    for index, arm in enumerate(config.arms):
         controller = SimulatedURController(URSimulatorConfig(host=arm.ur_host, tick_hz=config.sim.ur_tick_hz,
                                                              tcp_pose=plant.snapshot.tcp_poses[arm.name]))
         try:
@@ -349,7 +349,8 @@ async def start_devices(service: Service, config: StackConfig,
         Path(arm.ft_port).parent.mkdir(parents=True, exist_ok=True)
         store_sim_tare(config, arm.name)
         sensor = SimulatedFT300(functools.partial(plant.tcp_wrench, arm.name), link=arm.ft_port,
-                                bias=np.array(config.sim.ft_bias)).start()
+                                bias=np.array(config.sim.ft_bias), noise_scale=config.sim.ft_noise,
+                                seed=index).start()
         service.on_shutdown(functools.partial(loop.run_in_executor, None, sensor.stop))
         service.log.info("arm %s: UR controller on %s, FT 300 at %s", arm.name, arm.ur_host, arm.ft_port)
     return controllers

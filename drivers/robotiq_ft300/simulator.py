@@ -3,7 +3,9 @@
 ``SimulatedFT300`` opens a pty, sets its slave side to raw mode and, on a background thread, behaves like the
 device (``protocol.py`` has the facts): idle as a Modbus slave until it receives the start-stream request, which it
 answers as the sensor does; then it writes 16-byte frames with real CRCs at ``rate_hz`` from ``wrench_source``
-until a 0xFF byte arrives. Its path is the pty's slave (``slave_path``) or, with ``link``, a symlink to it, which
+until a 0xFF byte arrives. Each frame carries the source's wrench plus ``bias`` and, with ``noise_scale``, the
+sensor's signal noise drawn afresh per frame (``noise.py``: the datasheet's figures, the model the material fit
+weighs by), rounded to the frame's resolution. Its path is the pty's slave (``slave_path``) or, with ``link``, a symlink to it, which
 survives a simulated unplug and replug as ``/dev/serial/by-id`` links do.
 
 Fault knobs for tests, each counted in ``stats()``: bit flips, dropped bytes and inserted garbage on stream frames
@@ -36,6 +38,7 @@ from typing import NamedTuple
 import numpy as np
 
 from hydrosoft.drivers.errors import ProtocolError
+from hydrosoft.drivers.robotiq_ft300.noise import frame_noise
 from hydrosoft.drivers.robotiq_ft300.protocol import (
     FC_WRITE_MULTIPLE_REGISTERS,
     FRAME_HEADER,
@@ -62,6 +65,7 @@ IDLE_WAIT_S = 0.05  # longest sleep of the thread while idle; commands wake it a
 COMMAND_TIMEOUT_S = 2.0  # wait for the thread to carry out stop/stall/disconnect/reconnect
 JOIN_TIMEOUT_S = 2.0  # wait for the thread to end on ``stop``
 READ_CHUNK = 4096
+NOISE_STREAM = 0xF7300  # first word of the noise generator's seed, apart from the fault generator's
 
 
 @dataclass(frozen=True)
@@ -165,6 +169,9 @@ class SimulatedFT300:
         streaming: start out streaming, as a sensor left streaming by an earlier run.
         bias: ``(6,)`` the sensor's zero-load reading (N, N m), added to every wrench sent, as a real sensor's
             offset (a tare removes it); zeros by default.
+        noise_scale: the signal noise added to every frame, as a multiple of the datasheet's (``noise.SIGNAL_NOISE``,
+            0.1 N and 0.005/0.003 N m per frame at 1); 0 (the default) sends the wrench noise-free. Drawn from a
+            generator seeded by ``seed`` of its own, so the same seed gives the same noise.
     """
 
     def __init__(
@@ -178,9 +185,12 @@ class SimulatedFT300:
         seed: int = 0,
         streaming: bool = False,
         bias: np.ndarray | None = None,
+        noise_scale: float = 0.0,
     ) -> None:
         if not rate_hz > 0:
             raise ValueError(f"rate_hz={rate_hz} must be positive")
+        if not (np.isfinite(noise_scale) and noise_scale >= 0):
+            raise ValueError(f"noise_scale={noise_scale} must be a finite number, 0 or more")
         self.bias = np.zeros(6) if bias is None else np.array(bias, dtype=np.float64).reshape(6)
         if not np.isfinite(self.bias).all():
             raise ValueError(f"bias={self.bias} must be 6 finite numbers")
@@ -192,6 +202,8 @@ class SimulatedFT300:
         self.slave_address = slave_address
         self._faults = faults
         self._rng = np.random.default_rng(seed)
+        self.noise_scale = float(noise_scale)
+        self._noise_rng = np.random.default_rng((NOISE_STREAM, seed))
         self._initially_streaming = streaming
 
         self._lock = threading.Lock()
@@ -242,7 +254,7 @@ class SimulatedFT300:
 
     def sent_wrenches(self) -> np.ndarray:
         """``(K, 6)`` the wrenches of the last frames sent (up to ``HISTORY_FRAMES``), as the frames carry them
-        (``bias`` included, rounded to 0.01 N, 0.001 N m), before any fault was applied."""
+        (``bias`` and noise included, rounded to 0.01 N, 0.001 N m), before any fault was applied."""
         with self._lock:
             return np.array(self._history).reshape(-1, 6)
 
@@ -497,7 +509,10 @@ class SimulatedFT300:
 
     def _send_frame(self) -> None:
         try:
-            frame, carried = self._encoded(np.asarray(self._source(), dtype=np.float64) + self.bias)
+            wrench = np.asarray(self._source(), dtype=np.float64) + self.bias
+            if self.noise_scale:
+                wrench = wrench + frame_noise(self._noise_rng, (6,), self.noise_scale)
+            frame, carried = self._encoded(wrench)
         except Exception:
             log.exception("%r: wrench source failed; frame skipped", self)
             self._count(source_errors=1)
@@ -562,7 +577,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bit-flip-rate", type=float, default=0.0, help="per frame byte, chance of a bit flip")
     parser.add_argument("--drop-rate", type=float, default=0.0, help="per frame byte, chance it is lost")
     parser.add_argument("--garbage-rate", type=float, default=0.0, help="per frame, chance of garbage before it")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the fault generator")
+    parser.add_argument("--noise", type=float, default=0.0,
+                        help="signal noise per frame, as a multiple of the datasheet's (default 0: none)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the fault and noise generators")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -571,7 +588,8 @@ def run(args: argparse.Namespace) -> int:
     wrench = np.array(args.wrench, dtype=np.float64)
     try:
         faults = FT300Faults(args.bit_flip_rate, args.drop_rate, args.garbage_rate)
-        simulator = SimulatedFT300(lambda: wrench, rate_hz=args.rate, link=args.link, faults=faults, seed=args.seed)
+        simulator = SimulatedFT300(lambda: wrench, rate_hz=args.rate, link=args.link, faults=faults, seed=args.seed,
+                                   noise_scale=args.noise)
         simulator.start()
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)

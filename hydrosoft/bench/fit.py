@@ -55,11 +55,12 @@ def _floats(text: str) -> tuple[float, ...]:
 
 
 def stack_options(args: argparse.Namespace) -> dict:
-    """``read_stack_recording``'s keyword arguments, and ``contact_force_n`` (``split_at_free_samples``'s), from the
-    stack recording options that were given."""
+    """``read_stack_recording``'s keyword arguments, and ``contact_force_n`` and ``start_pressed``
+    (``split_at_free_samples``'s), from the stack recording options that were given."""
     options = {"object_name": args.object, "arm": args.arm, "clamped": args.clamped,
                "tcp_in_sensor": args.tcp_in_sensor, "max_gap_s": args.max_gap, "period_s": args.period,
-               "contact_force_n": args.contact_force}
+               "contact_force_n": args.contact_force, "start_pressed": args.start_pressed or None,
+               "true_object": args.true_object or None}
     return {key: value for key, value in options.items() if value is not None}
 
 
@@ -108,6 +109,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="cut the recording into one trajectory per contact, where the force exceeds N newtons, "
                             "each with its own tare before it; 0 keeps it whole, its first sample the tare "
                             "(default 0.5)")
+    stack.add_argument("--start-pressed", action="store_true",
+                       help="the recording starts at rest with the bubble pressed straight into the object (the sim "
+                            "scenes' start): fit that first contact too, its wrenches as the F/T reader tared them and "
+                            "its first sample replayed pressed in (default: a contact from the start is skipped)")
+    stack.add_argument("--true-object", action="store_true",
+                       help="sim recordings: replay the sim's true object pose (eval/object_pose, 10 Hz: give "
+                            "--max-gap 0.05) instead of the tracked one, to see the tracker's share of the error")
     stack.add_argument("--period", type=float, default=None, metavar="S",
                        help="keep at most one wrench sample per this many seconds (default 0.05)")
 
@@ -152,18 +160,27 @@ class RecordingReaders:
         if str(path) not in self._read:
             options = dict(self.stack_options)
             contact_force = options.pop("contact_force_n", DEFAULT_CONTACT_FORCE_N)
+            start_pressed = options.pop("start_pressed", False)
             read = read_stack_recording(path, **options)
+            if start_pressed and not read.tared:
+                raise ValueError(f"{path}: --start-pressed needs wrenches tared by the F/T reader, and some samples "
+                                 "are raw (tared=False): tare the sensor out of contact first")
             pieces, skipped = ([read.trajectory], 0) if contact_force <= 0 else \
-                split_at_free_samples(read.trajectory, contact_force)
+                split_at_free_samples(read.trajectory, contact_force, start_pressed)
             if not pieces:
                 raise ValueError(f"{path}: no contact with an out-of-contact sample before it (force over "
-                                 f"{contact_force} N; {skipped} contact(s) from the start): nothing to fit")
+                                 f"{contact_force} N; {skipped} contact(s) from the start"
+                                 + ("" if start_pressed else ": --start-pressed fits one the recording starts "
+                                    "pressed in, as the sim scenes do") + "): nothing to fit")
             first = self.STACK_INDEX_BASE + sum(len(s["indices"]) for s in self.stack.values())
             indices = list(range(first, first + len(pieces)))
             self.stack[str(path)] = {"indices": indices, "arm": read.arm, "object": read.info.object,
-                                     "clamped": bool(self.stack_options.get("clamped", False)), "kept": read.kept,
+                                     "clamped": bool(self.stack_options.get("clamped", False)),
+                                     "true_object": bool(self.stack_options.get("true_object", False)),
+                                     "kept": read.kept,
                                      "dropped": read.dropped, "trajectories": len(pieces),
-                                     "skipped_in_contact": skipped}
+                                     "skipped_in_contact": skipped, "tared": read.tared,
+                                     "start_pressed": sum(p.pretared for p in pieces)}
             self._read[str(path)] = read.info, [replace(t, index=i) for t, i in zip(pieces, indices)]
         return self._read[str(path)]
 
@@ -297,10 +314,12 @@ def format_tables(document: dict) -> str:
              f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
     for path, stack in document["settings"]["stack_recordings"].items():
-        lines.append(f"  stack recording {path}: arm {stack['arm']}, object {stack['object']}"
-                     f"{' (clamped)' if stack['clamped'] else ' (tracked)'}, {stack['kept']} samples kept, "
+        poses = " (clamped)" if stack["clamped"] else " (true pose)" if stack.get("true_object") else " (tracked)"
+        lines.append(f"  stack recording {path}: arm {stack['arm']}, object {stack['object']}{poses}, "
+                     f"{stack['kept']} samples kept, "
                      f"{stack['dropped']} dropped (no pose within the max gap), {stack['trajectories']} "
-                     f"trajectories, {stack['skipped_in_contact']} contacts skipped (in contact from the start)")
+                     f"trajectories ({stack['start_pressed']} started pressed in), {stack['skipped_in_contact']} "
+                     "contacts skipped (in contact from the start)")
     index = {(r["set"], r["when"]): r for r in document["rows"]}
 
     def table(title: str, key: str, digits: int = 3) -> list[str]:

@@ -65,11 +65,11 @@ class Bootstrap:
 def noisy_batches(batches: Sequence[ReplayBatch], predicted: Sequence[np.ndarray], rng: np.random.Generator,
                   noise_scale: float) -> list[ReplayBatch]:
     """``batches`` with their measurements replaced by ``predicted`` (per batch ``(B, K + 1, 6)``, N and N m) plus
-    fresh sensor noise (``measured_wrenches``) less the noisy tare row 0."""
+    fresh sensor noise (``measured_wrenches``) less the noisy tare row 0 (none for a ``pretared`` batch)."""
     out = []
     for batch, truth in zip(batches, predicted):
         wrenches = measured_wrenches(truth, rng, noise_scale)
-        out.append(replace(batch, measured=wrenches - wrenches[:, :1]))
+        out.append(replace(batch, measured=wrenches if batch.pretared else wrenches - wrenches[:, :1]))
     return out
 
 

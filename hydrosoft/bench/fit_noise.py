@@ -10,7 +10,9 @@ lies in its reported 95 % interval. First the same without noise (the FT 300's r
 With ``--draws N`` each seed's fit is also bootstrapped (``fit_bootstrap``, N refits), and the coverage of the
 bootstrap's percentile and basic intervals is counted beside Gauss-Newton's. With ``--pose-noise MM,DEG`` the
 recorded object poses carry tracker noise (``synthetic_wrench.tracked_poses``) and the mean relative error over the
-seeds shows the bias it causes.
+seeds shows the bias it causes. ``--plant-substeps N --substeps N`` makes the fit's replay the plant exactly (the
+plant otherwise takes ``synthetic_wrench.PLANT_SUBSTEPS`` and the replay is chosen by the fit's resolution rule), to
+tell their mismatch from the noise; ``--no-recovery`` skips the noise-free run (for many seeds in chunks).
 
 Prints one row per run (the recovered values, their relative error, 1 sigma and whether covered) and per
 parameter and method the count of seeds that cover it; ``--json`` prints one JSON document instead.
@@ -51,6 +53,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pose-noise", type=_pose_noise, default=(0.0, 0.0), metavar="MM,DEG",
                         help="tracker noise on the recorded object poses, standard deviation per axis of position (mm) "
                              "and rotation (deg); the plant pressed the true pose (default none)")
+    parser.add_argument("--plant-substeps", type=int, default=None,
+                        help="the synthetic plant's steps per recorded step (default: the plant's own, "
+                             "synthetic_wrench.PLANT_SUBSTEPS); the same as --substeps makes the replay the plant "
+                             "exactly")
+    parser.add_argument("--substeps", type=int, default=None,
+                        help="the fit's replay steps per recorded step (default: chosen by the fit's resolution rule)")
+    parser.add_argument("--no-recovery", action="store_true", help="skip the noise-free recovery run")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
 
@@ -71,30 +80,38 @@ def _covered(interval, truth: float) -> bool:
 
 
 def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
-            pose_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
+            pose_noise: tuple[float, float] = (0.0, 0.0), plant_substeps: int | None = None,
+            substeps: int | None = None) -> dict:
     """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0) and ``pose_noise``
-    ``(mm, deg)`` of tracker noise on its object poses; its row of the
-    benchmark's document: per parameter the fit's value, error, Gauss-Newton sigma and interval, and, with draws,
+    ``(mm, deg)`` of tracker noise on its object poses, the plant at ``plant_substeps`` (None: its default) and the fit's replay at
+    ``substeps`` (None: chosen by the fit); its row of the benchmark's document: per parameter the fit's value,
+    error, Gauss-Newton sigma, interval and ``z`` (the error in Gauss-Newton standard deviations, in the fit's
+    log and logit coordinates), and, with draws,
     ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth."""
+    import numpy as np
+
     from hydrosoft.bench import material_fit
     from hydrosoft.bench.fit_bootstrap import bootstrap
-    from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
+    from hydrosoft.bench.synthetic_wrench import PLANT_SUBSTEPS, write_synthetic_recording
     from hydrosoft.bench.wrench_replay import load_recordings
 
     path = folder / f"wrench-{OBJECT}-{seed}-{noise_scale:g}.mcap"
     tic = time.perf_counter()
     write_synthetic_recording(path, OBJECT, TRUTH, KINDS, STEPS, seed, noise_scale,
-                              pose_noise=(pose_noise[0] / 1000, math.radians(pose_noise[1])))
+                              pose_noise=(pose_noise[0] / 1000, math.radians(pose_noise[1])),
+                              plant_substeps=plant_substeps or PLANT_SUBSTEPS)
     groups = load_recordings([path])
     labels = {(g.object, t.index) for g in groups for t in g.trajectories}
     batches = material_fit.replay_batches(groups, labels)
-    result = material_fit.fit_material(batches, "nh", list(TRUTH))
+    result = material_fit.fit_material(batches, "nh", list(TRUTH), substeps=substeps)
     row = {"seed": seed, "noise_scale": noise_scale, "reduced_chi2": result.reduced_chi2, "substeps": result.substeps,
-           "seconds": time.perf_counter() - tic}
-    for e in result.estimates:
+           "replay_shift_sigma": result.replay_shift_sigma, "seconds": time.perf_counter() - tic}
+    errors = result.theta - material_fit.to_theta(TRUTH, material_fit.START).numpy()
+    sigmas = np.sqrt(np.diag(result.covariance))
+    for e, error, sigma in zip(result.estimates, errors, sigmas):
         row[e.name] = {"value": e.value, "relative_error": e.value / TRUTH[e.name] - 1, "sigma": e.sigma,
                        "interval95": list(e.interval95), "identified": e.identified,
-                       "covered": _covered(e.interval95, TRUTH[e.name])}
+                       "covered": _covered(e.interval95, TRUTH[e.name]), "z": float(error / sigma)}
     if draws:
         boot = bootstrap(result, batches, "nh", list(TRUTH), draws, seed)
         row["bootstrap"] = {"draws": len(boot.draws), "failed": boot.failed, "noise_scale": boot.noise_scale,
@@ -113,25 +130,39 @@ def covered_of(row: dict, name: str, method: str) -> bool:
 
 
 def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
-             pose_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
+             pose_noise: tuple[float, float] = (0.0, 0.0), plant_substeps: int | None = None,
+             substeps: int | None = None, recovery: bool = True) -> dict:
     """The benchmark's document: ``recovery`` (the noise-free row, no bootstrap), ``noisy`` (one row per seed,
     ``first_seed`` on), ``covered`` (per parameter the count of noisy seeds whose Gauss-Newton 95 % interval holds
     the truth), ``all_covered`` (seeds covering all three), and ``covered_by`` and ``all_covered_by``: the same per
     method (``hessian``, and with ``draws`` the bootstrap's ``percentile`` and ``basic``); ``mean_relative_error``
-    per parameter over the noisy seeds (the bias, with its standard error); ``pose_noise`` ``(mm, deg)``."""
+    per parameter over the noisy seeds (the bias, with its standard error); ``pose_noise`` ``(mm, deg)``;
+    ``coverage_interval95``: per method and parameter the exact (Clopper-Pearson) 95 % confidence interval of the
+    coverage fraction; ``mean_square_z``: per parameter the mean squared ``z`` (1 for right intervals).
+    ``plant_substeps`` and ``substeps``: as ``fit_one``'s; ``recovery``: whether to run the noise-free row (else
+    None)."""
+    from scipy.stats import binomtest
+
     with tempfile.TemporaryDirectory(prefix="hydrosoft-fit-bench-") as folder:
-        recovery = fit_one(Path(folder), 0, 0.0, pose_noise=pose_noise)
-        if progress:
-            progress(f"noise-free recovery in {recovery['seconds']:.1f} s")
+        recovery_row = None
+        if recovery:
+            recovery_row = fit_one(Path(folder), 0, 0.0, pose_noise=pose_noise, plant_substeps=plant_substeps,
+                                   substeps=substeps)
+            if progress:
+                progress(f"noise-free recovery in {recovery_row['seconds']:.1f} s")
         noisy = []
         for seed in range(first_seed, first_seed + seeds):
-            noisy.append(fit_one(Path(folder), seed, 1.0, draws, pose_noise))
+            noisy.append(fit_one(Path(folder), seed, 1.0, draws, pose_noise, plant_substeps, substeps))
             if progress:
                 progress(f"seed {seed} in {noisy[-1]['seconds']:.1f} s")
     methods = METHODS if draws else METHODS[:1]
     covered_by = {m: {name: sum(covered_of(r, name, m) for r in noisy) for name in TRUTH} for m in methods}
     all_covered_by = {m: sum(all(covered_of(r, name, m) for name in TRUTH) for r in noisy) for m in methods}
-    return {"truth": TRUTH, "object": OBJECT, "trajectories": len(KINDS), "steps": STEPS, "recovery": recovery,
+    coverage_interval95 = {m: {name: list(binomtest(count, seeds).proportion_ci(0.95)) for name, count in c.items()}
+                           for m, c in covered_by.items()}
+    return {"truth": TRUTH, "object": OBJECT, "trajectories": len(KINDS), "steps": STEPS, "recovery": recovery_row,
+            "plant_substeps": plant_substeps, "substeps": substeps, "coverage_interval95": coverage_interval95,
+            "mean_square_z": {name: sum(r[name]["z"] ** 2 for r in noisy) / seeds for name in TRUTH},
             "noisy": noisy, "covered": covered_by["hessian"], "all_covered": all_covered_by["hessian"],
             "covered_by": covered_by, "all_covered_by": all_covered_by, "seeds": seeds,
             "first_seed": first_seed, "draws": draws, "pose_noise": list(pose_noise),
@@ -174,7 +205,8 @@ def format_table(document: dict) -> str:
                                  for kind in BOOTSTRAP_INTERVALS)
         return f"{title:<12}{cells}| {row['reduced_chi2']:<8.3g} | {row['substeps']}"
 
-    lines.append(line("no noise", document["recovery"]))
+    if document["recovery"] is not None:
+        lines.append(line("no noise", document["recovery"]))
     lines += [line(f"noise s{r['seed']}", r) for r in document["noisy"]]
     lines.append("")
     seeds = f"seeds {document['first_seed']}-{document['first_seed'] + document['seeds'] - 1}"
@@ -182,8 +214,11 @@ def format_table(document: dict) -> str:
         f"{n} {100 * m:+.2f} +- {100 * e:.2f} %" for n, (m, e) in document["mean_relative_error"].items()))
     for method, covered in document["covered_by"].items():
         lines.append(f"Truth inside the 95 % interval ({method}, {seeds}): " + ", ".join(
-            f"{n} {covered[n]}/{document['seeds']}" for n in names)
+            f"{n} {covered[n]}/{document['seeds']} [{100 * low:.0f}, {100 * high:.0f}] %"
+            for n in names for low, high in [document["coverage_interval95"][method][n]])
             + f"; all three {document['all_covered_by'][method]}/{document['seeds']}")
+    lines.append("Mean squared z (1 for right intervals): " + ", ".join(
+        f"{n} {z:.2f}" for n, z in document["mean_square_z"].items()))
     return "\n".join(lines)
 
 
@@ -197,8 +232,14 @@ def run(args: argparse.Namespace) -> int:
     if args.draws < 0 or args.draws == 1:
         print(f"bench fit: --draws must be 0 (no bootstrap) or at least 2, got {args.draws}", file=sys.stderr)
         return 2
+    for option in ("plant_substeps", "substeps"):
+        if getattr(args, option) is not None and getattr(args, option) < 1:
+            print(f"bench fit: --{option.replace('_', '-')} must be at least 1, got {getattr(args, option)}",
+                  file=sys.stderr)
+            return 2
     torch.set_num_threads(args.threads)
     document = evaluate(args.seeds, lambda text: print(f"[bench fit] {text}", file=sys.stderr, flush=True),
-                        args.draws, args.first_seed, args.pose_noise)
+                        args.draws, args.first_seed, args.pose_noise, args.plant_substeps, args.substeps,
+                        not args.no_recovery)
     print(json.dumps(document) if args.json else format_table(document))
     return 0

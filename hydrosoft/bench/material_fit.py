@@ -46,11 +46,12 @@ from hydrosoft.bench.material_parameters import FIT_MODELS, MU_MAX, PARAMETERS
 from hydrosoft.bench.wrench_replay import DEFAULT_SUBSTEPS, replay_tcp_wrenches, trajectory_errors
 from hydrosoft.bench.wrench_scenes import BUBBLE_E, BUBBLE_K, BUBBLE_MU
 from hydrosoft.contact import Material
+from hydrosoft.drivers.robotiq_ft300.noise import SIGNAL_NOISE
 
 START = {"E": BUBBLE_E, "K": BUBBLE_K, "mu": BUBBLE_MU}  # the scenes' Soft Bubble (hydrosoft/tasks/pushing.toml)
-#: The FT 300's signal noise per frame, standard deviation of Fx, Fy, Fz (N), Mx, My (N m), Mz (N m): Robotiq's
-#: datasheet figures. The fit weighs each wrench component by it; its absolute level cancels (see ``s2``).
-FT300_NOISE = np.array([0.1, 0.1, 0.1, 0.005, 0.005, 0.003])
+#: The FT 300's signal noise per frame (``noise.SIGNAL_NOISE``, the simulator's): the fit weighs each wrench
+#: component by it; its absolute level cancels (see ``s2``).
+FT300_NOISE = SIGNAL_NOISE
 Z95 = 1.959964  # two-sided 95 % quantile of the standard normal
 UNIDENTIFIED_RELATIVE_SIGMA = 0.25  # a parameter known only to +-25 % (1 sigma) or worse is not identified
 SINGULAR_RCOND = 1e-10  # eigenvalues of J^T J below this fraction of the largest count as zero (no information)
@@ -59,13 +60,16 @@ DEFAULT_MAX_ITERATIONS = 60
 #: its discretisation error would bias the fit (``fit_material`` with ``substeps=None``).
 REPLAY_SHIFT_SIGMA = 0.1
 MAX_AUTO_SUBSTEPS = 8
+MU_BOUND_LOGIT = 36.0  # |logit(mu / MU_MAX)| at most this: beyond it float64's sigmoid is 0 or 1
 
 
 @dataclass(frozen=True)
 class ReplayBatch:
     """Trajectories of one object and length, replayed together. ``object_poses``, ``bubble_poses``: ``(B, K + 1,
     7)`` (m, wxyz); ``measured``: ``(B, K + 1, 6)`` TCP-frame wrenches less the tare (N, N m); ``labels``: each
-    trajectory's ``(object, trajectory index)``; ``spacing_m``: the replay's surface spacing (m)."""
+    trajectory's ``(object, trajectory index)``; ``spacing_m``: the replay's surface spacing (m); ``pretared``: its
+    trajectories start in contact with wrenches tared before them (``RecordedTrajectory.pretared``), so every row,
+    row 0 included, is compared as measured and no row shares a tare's noise."""
 
     object: str
     spacing_m: float
@@ -73,6 +77,7 @@ class ReplayBatch:
     bubble_poses: np.ndarray
     measured: np.ndarray
     labels: tuple[tuple[str, int], ...]
+    pretared: bool = False
 
 
 def replay_batches(groups: Sequence, chosen: set[tuple[str, int]]) -> list[ReplayBatch]:
@@ -91,7 +96,7 @@ def replay_batches(groups: Sequence, chosen: set[tuple[str, int]]) -> list[Repla
                 object_poses=np.stack([t.object_poses for t in trajectories]),
                 bubble_poses=np.stack([t.bubble_poses for t in trajectories]),
                 measured=np.stack([group.measured[members[r]] for r in rows]),
-                labels=tuple((group.object, t.index) for t in trajectories)))
+                labels=tuple((group.object, t.index) for t in trajectories), pretared=trajectories[0].pretared))
     return batches
 
 
@@ -113,8 +118,10 @@ def split_trajectories(labels: Sequence[tuple[str, int]], holdout: float, seed: 
 
 
 def to_theta(values: dict[str, float], start: dict[str, float]) -> torch.Tensor:
-    """Unconstrained coordinates ``(3,)`` of a material ``values`` (E, K in Pa/m; mu in ``(0, MU_MAX)``)."""
-    mu = values["mu"] / MU_MAX
+    """Unconstrained coordinates ``(3,)`` of a material ``values`` (E, K in Pa/m; mu in ``[0, MU_MAX]``). A mu on a
+    bound, where a fit that drives it there ends (the sigmoid saturates), maps to the largest finite coordinate
+    (``MU_BOUND_LOGIT``)."""
+    mu = min(max(values["mu"] / MU_MAX, 1 / (1 + math.exp(MU_BOUND_LOGIT))), 1 / (1 + math.exp(-MU_BOUND_LOGIT)))
     return torch.tensor([math.log(values["E"] / start["E"]), math.log(values["K"] / start["K"]),
                          math.log(mu / (1 - mu))], dtype=torch.float64)
 
@@ -144,13 +151,17 @@ def _whiten(errors: torch.Tensor) -> torch.Tensor:
 
 def residuals(theta: torch.Tensor, batches: Sequence[ReplayBatch], contact: str, start: dict[str, float],
               substeps: int = DEFAULT_SUBSTEPS) -> torch.Tensor:
-    """Whitened, noise-weighted residuals ``(n,)`` of every batch at ``theta (3,)`` (differentiable in theta)."""
+    """Whitened, noise-weighted residuals ``(n,)`` of every batch at ``theta (3,)`` (differentiable in theta): rows
+    1..K less the tare row's share, or, for a ``pretared`` batch, rows 0..K as they are."""
     material = to_material(theta, start)
     weight = torch.as_tensor(1 / FT300_NOISE, dtype=torch.float64)
     out = []
     for batch in batches:
         predicted = replay_tcp_wrenches(batch.object, batch.object_poses, batch.bubble_poses, contact,
                                         batch.spacing_m, substeps, material)
+        if batch.pretared:  # tared before the trajectory: every row on its own
+            out.append(((predicted - torch.as_tensor(batch.measured)) * weight).flatten())
+            continue
         error = (predicted[:, 1:] - torch.as_tensor(batch.measured[:, 1:])) * weight
         out.append(_whiten(error).flatten())
     return torch.cat(out)

@@ -14,7 +14,8 @@ does not move; tracker noise stays out of the replay).
 ``read_stack_recording`` gives the whole recording as one trajectory, its first kept sample the tare row
 (``wrench_replay.measured_tcp_wrenches`` subtracts it). ``split_at_free_samples`` cuts it into one trajectory per
 contact: a run of samples whose force exceeds ``contact_force_n``, after up to ``APPROACH_SAMPLES`` out-of-contact
-ones, the first of which is its tare. The file is only read, in one pass, one message at a time (images and other
+ones, the first of which is its tare; a contact the recording starts in is kept only when it started pressed straight
+in and the stream was tared (``start_pressed``, ``pretared``: the sim scenes start so). The file is only read, in one pass, one message at a time (images and other
 topics are never decoded); only these topics' stamps, poses and wrenches are held.
 """
 
@@ -29,6 +30,7 @@ from hydrosoft.bench.wrench_recording import RecordedTrajectory, RecordingInfo
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 OBJECT_TOPIC = "object_pose/object"
+TRUE_OBJECT_TOPIC = "eval/object_pose"  # the sim's true object pose (10 Hz), beside the tracked one
 DEFAULT_MAX_GAP_S = 0.02  # the arm state comes at 125 Hz (8 ms) or faster, the tracked pose at the camera's 30 Hz
 DEFAULT_PERIOD_S = 0.05  # collect wrench's sample spacing
 #: A sample whose force (the tared wrench's force norm, N) exceeds this is in contact: 5 times the FT 300's noise per
@@ -41,13 +43,15 @@ APPROACH_SAMPLES = 10
 @dataclass(frozen=True)
 class StackTrajectory:
     """A stack recording read for the fit: ``info`` (as a ``collect wrench`` file's, ``mode`` "stack"), its one
-    ``trajectory``, the ``arm`` read, ``kept`` samples and ``dropped`` ones (no fresh pose within the max gap)."""
+    ``trajectory``, the ``arm`` read, ``kept`` samples and ``dropped`` ones (no fresh pose within the max gap);
+    ``tared``: every kept wrench was tared by the F/T reader (``Wrench.tared``)."""
 
     info: RecordingInfo
     trajectory: RecordedTrajectory
     arm: str
     kept: int
     dropped: int
+    tared: bool = False
 
 
 def is_stack_recording(path: str | Path) -> bool:
@@ -92,14 +96,18 @@ def pose_at(stamps: np.ndarray, poses: np.ndarray, at: int, max_gap_ns: int) -> 
     return poses[best] if abs(int(stamps[best]) - at) <= max_gap_ns else None
 
 
-def split_at_free_samples(trajectory: RecordedTrajectory, contact_force_n: float = DEFAULT_CONTACT_FORCE_N
-                          ) -> tuple[list[RecordedTrajectory], int]:
+def split_at_free_samples(trajectory: RecordedTrajectory, contact_force_n: float = DEFAULT_CONTACT_FORCE_N,
+                          start_pressed: bool = False) -> tuple[list[RecordedTrajectory], int]:
     """One trajectory per contact of ``trajectory`` (a whole stack recording, ``read_stack_recording``), and the
     count of contacts left out because no out-of-contact sample precedes them (the recording starts in contact).
 
     A sample is in contact when its force norm (N) exceeds ``contact_force_n``. Each maximal run of such samples
     becomes a trajectory: up to ``APPROACH_SAMPLES`` out-of-contact samples before it (the first is its tare row),
-    then the run. Trajectories keep ``trajectory.index``; the caller numbers them."""
+    then the run. A contact the recording starts in has no such sample, so it is left out, unless ``start_pressed``
+    (the caller knows the recording starts at rest with the bubble pressed straight in, as the sim scenes start, and
+    that the F/T reader tared the stream out of contact): then it becomes a ``pretared`` trajectory, its wrenches
+    taken as they are and its first row replayed pressed in. Trajectories keep ``trajectory.index``; the caller
+    numbers them."""
     force = np.linalg.norm(trajectory.wrenches[:, :3], axis=-1)
     touching = force > contact_force_n
     pieces, skipped, k = [], 0, 0
@@ -113,24 +121,27 @@ def split_at_free_samples(trajectory: RecordedTrajectory, contact_force_n: float
         free = k
         while free > 0 and not touching[free - 1] and k - free < APPROACH_SAMPLES:
             free -= 1
-        if free == k:
+        pretared = free == k == 0 and start_pressed and end > 1
+        if free == k and not pretared:
             skipped += 1
         else:
             rows = slice(free, end)
             pieces.append(replace(trajectory, bubble_poses=trajectory.bubble_poses[rows],
                                   target_poses=trajectory.target_poses[rows],
                                   object_poses=trajectory.object_poses[rows], wrenches=trajectory.wrenches[rows],
-                                  phases=("start",) + ("stack",) * (end - free - 1)))
+                                  phases=("start",) + ("stack",) * (end - free - 1), pretared=pretared))
         k = end
     return pieces, skipped
 
 
 def read_stack_recording(path: str | Path, object_name: str | None = None, arm: str | None = None,
                          clamped: bool = False, tcp_in_sensor=IDENTITY, max_gap_s: float = DEFAULT_MAX_GAP_S,
-                         period_s: float = DEFAULT_PERIOD_S) -> StackTrajectory:
+                         period_s: float = DEFAULT_PERIOD_S, true_object: bool = False) -> StackTrajectory:
     """The fit's trajectory of the stack recording ``path`` (module docstring). ``object_name``: the benchmark object
     to replay (default: the tracked pose's ``object`` when that is one); ``arm``: whose wrench and TCP (default: the
-    only one recorded); ``tcp_in_sensor``: ``(7,)`` the TCP frame in the F/T sensor's frame (m, wxyz). ValueError
+    only one recorded); ``tcp_in_sensor``: ``(7,)`` the TCP frame in the F/T sensor's frame (m, wxyz);
+    ``true_object``: take the sim's true object pose (``TRUE_OBJECT_TOPIC``) instead of the tracked one, to tell
+    the tracker's share of a sim fit's error. ValueError
     naming the file and the missing topic, or when no sample is left."""
     from hydrosoft.bench.wrench_scenes import BENCH_OBJECTS
     from hydrosoft.services.bus import messages as msg
@@ -140,16 +151,19 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     stamps: dict[str, list[int]] = {}
     values: dict[str, list[np.ndarray]] = {}
     names: dict[str, str] = {}
-    reader = RecordingReader(path, ["wrench", "arm_state", "object_pose"])
+    tared: dict[str, list[bool]] = {}  # per wrench topic and message: tared by the F/T reader
+    object_topic = TRUE_OBJECT_TOPIC if true_object else OBJECT_TOPIC
+    reader = RecordingReader(path, ["wrench", "arm_state", object_topic])
     try:
         for item in reader:  # one pass, one message at a time; only these topics' poses and wrenches are kept
             message = item.message
             stamps.setdefault(item.topic, []).append(message.stamp_ns)
-            if isinstance(message, msg.ObjectPose):
+            if isinstance(message, (msg.ObjectPose, msg.EvalObjectPose)):
                 values.setdefault(item.topic, []).append(np.array(message.pose))
                 names.setdefault(item.topic, message.object)
             elif isinstance(message, msg.Wrench):
                 values.setdefault(item.topic, []).append(np.array(message.wrench))
+                tared.setdefault(item.topic, []).append(message.tared)
             elif isinstance(message, msg.ArmState):
                 values.setdefault(item.topic, []).append(np.array(message.tcp_pose))
     except RecordingError as error:
@@ -160,14 +174,14 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
         if len(arms) > 1:
             raise ValueError(f"{path}: recording of several arms ({', '.join(arms)}); name one with --arm")
         arm = arms[0] if arms else "ARM"
-    needed = [f"wrench/{arm}", f"arm_state/{arm}", OBJECT_TOPIC]
+    needed = [f"wrench/{arm}", f"arm_state/{arm}", object_topic]
     missing = [t for t in needed if t not in topics]
     if missing:
         raise ValueError(f"{path}: recording has no topic {', '.join(missing)}, which the fit needs")
     missing = [t for t in needed if not stamps.get(t)]
     if missing:
         raise ValueError(f"{path}: recording has no message on {', '.join(missing)}, which the fit needs")
-    object_name = object_name or names[OBJECT_TOPIC]
+    object_name = object_name or names[object_topic]
     if object_name not in BENCH_OBJECTS:
         raise ValueError(f"{path}: object {object_name!r} is not a benchmark object the fit can replay "
                          f"({', '.join(BENCH_OBJECTS)}); name one with --object")
@@ -177,6 +191,7 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     sorted_poses = {t: np.stack(values[t])[order[t]] for t in (state_t, object_t)}
     max_gap_ns, period_ns = int(max_gap_s * 1e9), int(period_s * 1e9)
     rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (TCP pose, object pose, wrench)
+    all_tared = True
     dropped, last = 0, None
     for w in order[wrench_t]:
         at = int(stamps[wrench_t][w])
@@ -189,6 +204,7 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
             dropped += 1
             continue
         rows.append((tcp, tracked, values[wrench_t][w]))
+        all_tared = all_tared and tared[wrench_t][w]
         last = at
     if len(rows) < 2:
         raise ValueError(f"{path}: {len(rows)} sample(s) with a pose within {max_gap_s} s of the wrench "
@@ -199,4 +215,4 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     trajectory = RecordedTrajectory(object=object_name, index=0, bubble_poses=bubbles, target_poses=bubbles,
                                     object_poses=objects, wrenches=wrenches,
                                     phases=("start",) + ("stack",) * (len(rows) - 1))
-    return StackTrajectory(info, trajectory, arm, len(rows), dropped)
+    return StackTrajectory(info, trajectory, arm, len(rows), dropped, all_tared)

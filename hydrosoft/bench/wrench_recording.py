@@ -142,7 +142,10 @@ class WrenchRecordingWriter:
 @dataclass(frozen=True)
 class RecordedTrajectory:
     """One trajectory read back: ``bubble_poses``, ``target_poses``, ``object_poses`` ``(K + 1, 7)``, ``wrenches``
-    ``(K + 1, 6)`` (sensor frame, as measured), ``phases`` per row; row 0 is the tare sample."""
+    ``(K + 1, 6)`` (sensor frame, as measured), ``phases`` per row; row 0 is the tare sample, unless ``pretared``:
+    then the wrenches were tared before the trajectory (a stack recording that starts in contact, its stream tared by
+    the F/T reader out of contact), row 0 is in contact and is measured as it is, and the replay starts it pressed
+    in (``dynamics.press_in``)."""
 
     object: str
     index: int
@@ -151,6 +154,7 @@ class RecordedTrajectory:
     object_poses: np.ndarray
     wrenches: np.ndarray
     phases: tuple[str, ...]
+    pretared: bool = False
 
 
 def read_wrench_recording(path: str | Path) -> tuple[RecordingInfo, list[RecordedTrajectory]]:

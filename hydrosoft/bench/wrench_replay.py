@@ -43,9 +43,11 @@ def sensor_to_tcp(wrenches: np.ndarray, tcp_in_sensor: Sequence[float]) -> np.nd
     return np.concatenate([force @ R, (torque - np.cross(p, force)) @ R], axis=-1)
 
 
-def measured_tcp_wrenches(wrenches: np.ndarray, tcp_in_sensor: Sequence[float]) -> np.ndarray:
-    """Measured wrenches ``(K + 1, 6)`` (sensor frame) minus the tare row 0, in the TCP frame about its origin."""
-    return sensor_to_tcp(wrenches - wrenches[0], tcp_in_sensor)
+def measured_tcp_wrenches(wrenches: np.ndarray, tcp_in_sensor: Sequence[float], pretared: bool = False
+                          ) -> np.ndarray:
+    """Measured wrenches ``(K + 1, 6)`` (sensor frame) minus the tare row 0 (as they are when ``pretared``: tared
+    before the trajectory), in the TCP frame about its origin."""
+    return sensor_to_tcp(wrenches if pretared else wrenches - wrenches[0], tcp_in_sensor)
 
 
 def rmse(errors: np.ndarray) -> float:
@@ -125,7 +127,7 @@ def load_recordings(files: Sequence[Path], spacing: float | None = None, read=No
         info = infos[name]
         groups.append(ObjectRecordings(
             object=name, info=info, trajectories=by_object[name],
-            measured=[measured_tcp_wrenches(t.wrenches, info.tcp_in_sensor) for t in by_object[name]],
+            measured=[measured_tcp_wrenches(t.wrenches, info.tcp_in_sensor, t.pretared) for t in by_object[name]],
             spacing_m=spacing if spacing is not None else (info.plant_spacing_m or SPACING_M),
             modes=tuple(sorted(modes[name]))))
     return groups
@@ -203,10 +205,10 @@ def predict_tcp_wrenches(object_name: str, object_poses: np.ndarray, bubble_pose
 
 
 def length_batches(trajectories: Sequence) -> list[list[int]]:
-    """Indices of ``trajectories`` grouped by length (``len(t.phases)``), shortest first: each group replays as one
-    batch."""
-    lengths = sorted({len(t.phases) for t in trajectories})
-    return [[i for i, t in enumerate(trajectories) if len(t.phases) == length] for length in lengths]
+    """Indices of ``trajectories`` grouped by length (``len(t.phases)``), shortest first, and by whether they are
+    ``pretared`` (those last): each group replays as one batch."""
+    keys = sorted({(t.pretared, len(t.phases)) for t in trajectories})
+    return [[i for i, t in enumerate(trajectories) if (t.pretared, len(t.phases)) == key] for key in keys]
 
 
 def predict_grouped(name: str, trajectories: Sequence, model: str, spacing: float, substeps: int,

@@ -9,7 +9,8 @@ load from every later reading (and from ``limits.max_force_n``). So the F/T read
   planner could move the arm into contact during the average);
 - the bubble shows no contact: a fresh ``deformation/ARM`` (at most ``DEFORMATION_MAX_AGE_S`` old) in which the
   membrane returns depth on most of the image and no patch is pressed in (``contact_pixels``);
-- the readings averaged stayed steady (``spread_refusal``): nothing bumped the sensor meanwhile.
+- the readings averaged stayed steady (``spread_refusal``): nothing bumped the sensor meanwhile, judged on means of
+  a few frames so the sensor's own noise does not count as a bump.
 
 Each rule returns None when it is met, else the reason, a sentence the operator reads.
 """
@@ -39,11 +40,15 @@ CONTACT_DEFORMATION_M = 5e-4
 MIN_CONTACT_PIXELS = 4
 #: The membrane must return depth on at least this fraction of the image, or contact cannot be ruled out.
 MIN_RETURN_FRACTION = 0.5
-#: Largest peak-to-peak change of the force (N) and torque (N m) components over the averaged readings: above it,
-#: something touched the sensor or the arm moved during the tare. The FT 300's own noise is of the order of 0.1 N
-#: and 0.005 N m (Robotiq's datasheet figure, not yet measured on the lab's sensor: check the spread a tare logs).
+#: Largest peak-to-peak change of the force (N) and torque (N m) components over the averaged readings, each first
+#: smoothed over ``SPREAD_MEAN_FRAMES``: above it, something touched the sensor or the arm moved during the tare.
 MAX_SPREAD_N = 0.5
 MAX_SPREAD_NM = 0.05
+#: The readings are compared as means of this many frames (0.05 s at 100 Hz). The FT 300's own noise (0.1 N and
+#: 0.005 N m per frame, Robotiq's datasheet, ``drivers.robotiq_ft300.noise``; not yet measured on the lab's sensor)
+#: spans 0.5 N peak to peak over a tare's 50 raw frames about every second tare (a force axis's range is 4.5 sigma
+#: on average); over 5-frame means it spans about 0.2 N, and 0.33 N in one tare of 10,000.
+SPREAD_MEAN_FRAMES = 5
 
 
 def rest_refusal(state: msg.ArmState | None, arm: str) -> str | None:
@@ -91,10 +96,13 @@ def contact_refusal(deformation: msg.MembraneDeformation | None, arm: str) -> st
 
 
 def spread_refusal(wrenches: np.ndarray) -> str | None:
-    """Why the readings ``(K, 6)`` (N, N m) averaged for a tare are not steady (None: they are)."""
+    """Why the readings ``(K, 6)`` (N, N m) averaged for a tare are not steady (None: they are): the peak-to-peak
+    change of their ``SPREAD_MEAN_FRAMES``-frame means (of the readings themselves when fewer)."""
     wrenches = np.asarray(wrenches, dtype=np.float64).reshape(-1, 6)
     if wrenches.shape[0] == 0:
         return "no F/T reading to average"
+    if wrenches.shape[0] >= SPREAD_MEAN_FRAMES:
+        wrenches = np.lib.stride_tricks.sliding_window_view(wrenches, SPREAD_MEAN_FRAMES, axis=0).mean(axis=-1)
     spread = wrenches.max(axis=0) - wrenches.min(axis=0)
     force_n, torque_nm = float(spread[:3].max()), float(spread[3:].max())
     if force_n > MAX_SPREAD_N or torque_nm > MAX_SPREAD_NM:

@@ -420,6 +420,8 @@ MAX_SIM_FT_BIAS_N = 100.0
 """The largest simulated F/T offset force, N: a third of the FT 300's +-300 N range, above any real mounting offset."""
 MAX_SIM_FT_BIAS_NM = 10.0
 """The largest simulated F/T offset torque, N m (the FT 300's range is +-30 N m)."""
+MAX_SIM_FT_NOISE = 10.0
+"""The largest simulated F/T noise, as a multiple of the datasheet's: 1 N per frame."""
 
 
 class SimConfig(Strict):
@@ -437,7 +439,9 @@ class SimConfig(Strict):
     a lost object for the planner to re-approach (``services/arm/reapproach.py``). ft_bias: the simulated FT 300's
     zero-load reading ``[Fx, Fy, Fz, Mx, My, Mz]`` (N, N m), which it adds to every frame as a real sensor's offset;
     sim_world stores it as the arm's tare (``services/arm/ft_bias.py``) at its start, a tare taken before the membrane
-    touched anything. sdf_solver_steps: the plant's bubble closest points, as ``planner.sdf_solver_steps`` (None:
+    touched anything. ft_noise: the simulated FT 300's signal noise per frame, as a multiple of the datasheet's
+    (``hydrosoft.drivers.robotiq_ft300.noise``: 0.1 N, 0.005 N m for Mx and My, 0.003 N m for Mz at 1), drawn per
+    frame from a generator seeded per arm; 0 (the default; deploy/sim.toml sets 1) turns it off. sdf_solver_steps: the plant's bubble closest points, as ``planner.sdf_solver_steps`` (None:
     solved to convergence, a ``torch.while_loop`` that torch's compile cache cannot keep, so a compiled plant
     compiles at every launch; 3 fixed steps: within 1e-7 m up to 2 cm deep, kept by the cache)."""
 
@@ -451,6 +455,7 @@ class SimConfig(Strict):
     object_offset_m: tuple[float, float] = (0.0, 0.0)
     sdf_solver_steps: int | None = None
     ft_bias: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    ft_noise: float = 0.0
 
     def __post_init__(self) -> None:
         _require(self.sdf_solver_steps is None or 0 <= self.sdf_solver_steps <= SDF_SOLVER_STEPS_MAX,
@@ -462,6 +467,8 @@ class SimConfig(Strict):
                  and max(abs(v) for v in self.ft_bias[3:]) <= MAX_SIM_FT_BIAS_NM, "sim.ft_bias",
                  f"must be 6 finite numbers, forces within {MAX_SIM_FT_BIAS_N} N and torques within "
                  f"{MAX_SIM_FT_BIAS_NM} N m, got {list(self.ft_bias)}")
+        _require(math.isfinite(self.ft_noise) and 0 <= self.ft_noise <= MAX_SIM_FT_NOISE, "sim.ft_noise",
+                 f"must be a number from 0 (no noise) to {MAX_SIM_FT_NOISE} times the datasheet's, got {self.ft_noise}")
         _require(all(math.isfinite(v) and abs(v) <= 0.5 for v in self.object_offset_m), "sim.object_offset_m",
                  f"must be two finite numbers within 0.5 m, got {list(self.object_offset_m)}")
         _require(self.rate_hz >= 50.0, "sim.rate_hz", f"must be at least 50 Hz, got {self.rate_hz}")

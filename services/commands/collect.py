@@ -48,6 +48,8 @@ import numpy as np
 from hydrosoft.drivers.base import Arm, ArmState, ForceTorqueSensor
 from hydrosoft.drivers.base import WrenchSample as WrenchReading
 from hydrosoft.drivers.errors import DriverError, Stale
+from hydrosoft.drivers.robotiq_ft300.noise import RESOLUTION, SIGNAL_NOISE
+from hydrosoft.drivers.robotiq_ft300.protocol import STREAM_RATE_HZ
 from hydrosoft.services.bus.config import ConfigError, LimitsConfig, StackConfig, load_config
 from hydrosoft.services.arm.safety import check_target, interpolate, is_moving, rotation_angle_rad
 
@@ -57,8 +59,11 @@ PLANT_STOP_TIMEOUT_S = 10.0
 APPROACH_LIFT_M = 0.01  # trajectories start and end this far above their start pose
 LIFT = np.array([0.0, 0.0, APPROACH_LIFT_M, 0.0, 0.0, 0.0, 0.0])
 WRENCH_AVERAGE_S = 0.05  # a sample's wrench is the mean of the F/T frames of this window (5 at 100 Hz)
-SETTLE_FORCE_N = 0.02  # two windows agreeing within 2 counts of the FT 300 (0.01 N, 0.001 N m): settled
-SETTLE_TORQUE_NM = 0.002
+#: Two windows in a row agree (settled) when each component changed by at most this many counts of the FT 300
+#: (0.01 N, 0.001 N m) or ``SETTLE_SIGMAS`` standard deviations of the sensor's noise on the change, whichever is
+#: more (``settle_change``): the datasheet's noise (0.1 N per frame) alone moves a 5-frame mean by 0.06 N.
+SETTLE_COUNTS = 2
+SETTLE_SIGMAS = 4.0
 SETTLE_TIMEOUT_S = 2.0
 WRENCH_MAX_AGE_S = 1.0  # the arm holds still while the F/T reading is stale; stale longer than this: stop, retry
 POSITION_TOLERANCE_M = 1e-4  # a step's target counts as reached within this distance and angle, at rest
@@ -109,13 +114,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 # --- one trajectory's motion and samples ----------------------------------------------------------------------------
 
 
+def settle_change(noise_scale: float) -> np.ndarray:
+    """The largest change ``(6,)`` (N, N m) between two ``WRENCH_AVERAGE_S`` windows of a settled wrench, for an FT
+    300 whose noise is ``noise_scale`` times the datasheet's (1 in the lab; ``sim.ft_noise`` in sim): the larger of
+    ``SETTLE_COUNTS`` counts and ``SETTLE_SIGMAS`` standard deviations of the difference of two windows' means."""
+    frames = WRENCH_AVERAGE_S * STREAM_RATE_HZ
+    return np.maximum(SETTLE_COUNTS * RESOLUTION, SETTLE_SIGMAS * noise_scale * SIGNAL_NOISE * math.sqrt(2 / frames))
+
+
 class Collector:
     """Drives ``arm`` (an ``Arm`` with ``restart_script``: ``URArm``) through targets and samples ``sensor``, within
     ``limits``; ``collect_object`` stops the arm on any error. ``tare`` is the wrench the force limit is judged
-    against (set at each trajectory's start)."""
+    against (set at each trajectory's start). ``noise_scale``: the F/T sensor's noise, times the datasheet's, which
+    sets how far two windows of a settled wrench may differ (``settle_change``)."""
 
-    def __init__(self, arm: Arm, sensor: ForceTorqueSensor, limits: LimitsConfig, hold_s: float, log=print) -> None:
+    def __init__(self, arm: Arm, sensor: ForceTorqueSensor, limits: LimitsConfig, hold_s: float, log=print,
+                 noise_scale: float = 1.0) -> None:
         self.arm = arm
+        self.settle_change = settle_change(noise_scale)
         self.log = log
         self.sensor = sensor
         self.limits = limits
@@ -197,7 +213,7 @@ class Collector:
 
     async def sample(self, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """Move to ``target`` and hold; then, still holding, average the wrench over windows of ``WRENCH_AVERAGE_S``
-        until two windows in a row agree within ``SETTLE_FORCE_N`` and ``SETTLE_TORQUE_NM`` (the membrane, or a
+        until two windows in a row agree within ``settle_change`` (the membrane, or a
         sim plant running late on a loaded host, has settled) or ``SETTLE_TIMEOUT_S`` passed (logged). Returns the
         TCP pose ``(7,)`` (base frame), the last window's mean wrench ``(6,)`` (sensor frame) and the stamp (ns)."""
         await self.move_to(target, self.hold_s)
@@ -207,7 +223,7 @@ class Collector:
         while True:
             wrench = await self._mean_wrench()
             change = np.abs(wrench - previous)
-            if change[:3].max() <= SETTLE_FORCE_N and change[3:].max() <= SETTLE_TORQUE_NM:
+            if np.all(change <= self.settle_change):
                 break
             if loop.time() > deadline_s:
                 self.log(f"the wrench did not settle within {SETTLE_TIMEOUT_S} s at "
@@ -331,7 +347,7 @@ async def collect_object(config: StackConfig, config_path: str, arm_name: str, n
     try:
         await arm.connect()
         await sensor.connect()
-        collector = Collector(arm, sensor, limits, hold_s, log)
+        collector = Collector(arm, sensor, limits, hold_s, log, config.sim.ft_noise if config.mode == "sim" else 1.0)
         with WrenchRecordingWriter(path, info) as writer:
             for index, (trajectory, plan) in enumerate(zip(params, plans)):
                 tic = time.monotonic()

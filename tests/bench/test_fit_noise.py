@@ -42,3 +42,14 @@ def test_pose_noise_changes_the_recorded_poses_only_and_the_option_takes_mm_and_
     for bad in ("0.2", "x,1", "-1,0"):
         with pytest.raises(SystemExit):
             parser.parse_args(["--pose-noise", bad])
+
+
+def test_the_plant_and_replay_substeps_are_options_and_bad_ones_are_refused(capsys):
+    parser = argparse.ArgumentParser()
+    fit_noise.add_arguments(parser)
+    args = parser.parse_args(["--plant-substeps", "1", "--substeps", "1", "--no-recovery"])
+    assert (args.plant_substeps, args.substeps, args.no_recovery) == (1, 1, True)
+    assert parser.parse_args([]).plant_substeps is None and parser.parse_args([]).substeps is None
+    for option in ("--plant-substeps", "--substeps"):
+        assert fit_noise.run(parser.parse_args([option, "0"])) == 2
+        assert f"{option} must be at least 1" in capsys.readouterr().err

@@ -139,3 +139,11 @@ def test_a_replay_too_coarse_for_the_data_is_detected_and_refined_until_it_no_lo
         material_fit.MAX_AUTO_SUBSTEPS
     coarse_error, chosen_error = ({n: abs(fit.values[n] / TRUTH[n] - 1) for n in TRUTH} for fit in (coarse, chosen))
     assert chosen_error["K"] < coarse_error["K"] / 5 and chosen_error["mu"] < coarse_error["mu"] / 1.5
+
+
+def test_a_mu_on_its_bound_maps_to_finite_coordinates_and_back():
+    start = material_fit.START
+    for mu in (0.0, material_fit.MU_MAX):  # where a fit that drives mu to a bound ends (the sigmoid saturates)
+        theta = material_fit.to_theta({"E": 3e5, "K": 1e5, "mu": mu}, start)
+        assert torch.isfinite(theta).all()
+        assert material_fit.to_values(theta, start)["mu"] == pytest.approx(mu, abs=1e-9)

@@ -187,3 +187,23 @@ def test_a_long_stack_recording_is_cut_into_one_trajectory_per_contact_each_with
     assert readers.stack[str(path)]["trajectories"] == 3 and readers.stack[str(path)]["skipped_in_contact"] == 1
     _, whole_again = RecordingReaders({"clamped": True, "contact_force_n": 0.0})(path)
     assert len(whole_again) == 1 and len(whole_again[0].wrenches) == len(rows)
+
+
+def test_a_recording_that_starts_pressed_in_is_fitted_with_start_pressed_and_skipped_without(tmp_path):
+    # as the sim scenes start: the bubble already pressed straight into the cube, the stream tared out of contact
+    params, bubbles, objects, measured = synthetic_trajectories("cube", TRUTH, KINDS[:3], steps=10, seed=1)
+    paths = []
+    for i, p in enumerate(params):
+        rows = slice(p.press_steps, None)  # from the end of the press on: no sample out of contact
+        paths.append(tmp_path / f"pressed-{i}.mcap")
+        record(paths[-1], bubbles[i, rows], objects[i, rows], measured[i, rows])
+    with pytest.raises(ValueError, match="1 contact.*from the start: --start-pressed"):
+        run_fit(paths[:1], "nh", ["E"], holdout=0.0, stack_options={"clamped": True})
+    readers = RecordingReaders({"clamped": True, "start_pressed": True})
+    _, [trajectory] = readers(paths[0])
+    assert trajectory.pretared and np.linalg.norm(trajectory.wrenches[0, :3]) > 1.0  # row 0 in contact, kept as is
+    assert readers.stack[str(paths[0])]["start_pressed"] == 1 and readers.stack[str(paths[0])]["skipped_in_contact"] == 0
+    document = run_fit(paths, "nh", ["E", "K", "mu"], holdout=0.0, spacing=PLANT_SPACING_M, substeps=2,
+                       stack_options={"clamped": True, "start_pressed": True})
+    for name, true in TRUTH.items():
+        assert document["parameters"][name]["value"] == pytest.approx(true, rel=0.03), name

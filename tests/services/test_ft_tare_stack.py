@@ -30,8 +30,8 @@ from hydrosoft.services.arm.ft_bias import bias_path, load_bias
 pytestmark = pytest.mark.slow
 
 READER = "ft_reader-bubble"
-#: The reader's force may differ from the truth by this much, N: the frames' 0.01 N per axis (the simulated sensor
-#: has no other noise) and the plant's settling between the two samples compared.
+#: The reader's force may differ from the truth by this much, N: the frames' 0.01 N per axis (the simulated sensor's
+#: noise is turned off here, ``noise_free``) and the plant's settling between the two samples compared.
 FORCE_ATOL_N = 0.05
 WINDOW_S = 1.0
 TIMEOUT_S = 30.0
@@ -75,6 +75,16 @@ def assert_reads_the_load(seen: dict[str, object]) -> None:
         assert abs(float(np.linalg.norm(message.wrench[:3])) - true_n) < FORCE_ATOL_N, (message.wrench, true_n)
 
 
+def noise_free(config_path):
+    """``config_path`` with the simulated FT 300's signal noise off (``sim.ft_noise = 0``): this module checks the
+    reader's tare arithmetic frame by frame, to the sensor's resolution (the tare's steadiness rule under the
+    datasheet's noise is ``tests/services/arm/test_tare_rules.py``'s)."""
+    text = config_path.read_text()
+    assert "ft_noise = 1.0" in text
+    config_path.write_text(text.replace("ft_noise = 1.0", "ft_noise = 0.0", 1))
+    return config_path
+
+
 class Services:
     """The services this module starts, each stopped by its pid (``stop_all``)."""
 
@@ -96,7 +106,7 @@ class Services:
 
 
 def test_the_reader_reads_the_true_load_from_the_start_refuses_a_tare_in_contact_and_after_a_kill(tmp_path, capsys):
-    config_path = stack_config(tmp_path)
+    config_path = noise_free(stack_config(tmp_path))
     config = load_config(config_path)
     (tmp_path / "run").mkdir()  # the launcher's job, here done by the test
     assert any(config.sim.ft_bias), "deploy/sim.toml's simulated sensor has an offset to tare away"
@@ -128,7 +138,7 @@ def test_the_reader_reads_the_true_load_from_the_start_refuses_a_tare_in_contact
 
 
 def test_out_of_contact_at_rest_a_tare_is_accepted_stored_and_reloaded_by_a_restarted_reader(tmp_path, capsys):
-    config_path = stack_config(tmp_path, object_offset_m=(0.2, 0.0))  # the cube far from the bubble
+    config_path = noise_free(stack_config(tmp_path, object_offset_m=(0.2, 0.0)))  # the cube far from the bubble
     config = load_config(config_path)
     (tmp_path / "run").mkdir()
     stored = bias_path(config.state_path(), "bubble")

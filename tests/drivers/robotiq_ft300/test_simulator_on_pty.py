@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import serial
 
+from hydrosoft.drivers.robotiq_ft300.noise import SIGNAL_NOISE
 from hydrosoft.drivers.robotiq_ft300.protocol import (
     FC_WRITE_MULTIPLE_REGISTERS,
     FRAME_SIZE,
@@ -21,6 +22,7 @@ from hydrosoft.drivers.robotiq_ft300.protocol import (
     FrameScanner,
     encode_frame,
     exception_reply,
+    quantize_wrench,
     start_stream_reply,
     start_stream_request,
     write_registers_request,
@@ -177,3 +179,24 @@ def test_its_frames_carry_the_sensors_offset_on_top_of_the_wrench(make_simulator
     np.testing.assert_allclose(simulator.sent_wrenches()[-1], wrench + bias, atol=1e-9)
     with pytest.raises(ValueError, match="finite"):
         SimulatedFT300(bias=np.array([0.0, 0.0, np.nan, 0.0, 0.0, 0.0]))
+
+
+def test_with_noise_each_frame_carries_the_datasheet_noise_drawn_from_its_seed(make_simulator):
+    wrench = np.array([0.5, 0.0, 1.9, 0.0, 0.01, 0.0])
+    noisy = [make_simulator(wrench_source=lambda: wrench, rate_hz=1000.0, noise_scale=1.0, seed=7) for _ in range(2)]
+    quiet = make_simulator(wrench_source=lambda: wrench, rate_hz=1000.0, noise_scale=0.0)
+    received = {}
+    for name, simulator in (("noisy", noisy[0]), ("twin", noisy[1]), ("quiet", quiet)):
+        with open_client(simulator.port_path) as port:
+            port.write(start_stream_request())
+            assert port.read(WRITE_REPLY_SIZE) == start_stream_reply()
+            received[name] = np.array(read_frames(port, 400, timeout_s=10.0)[:400])
+            port.write(STOP_BURST)
+    assert len(received["noisy"]) == 400 and len(received["quiet"]) == 400
+    assert np.all(np.abs(received["noisy"].mean(axis=0) - wrench) < 4 * SIGNAL_NOISE / np.sqrt(400))
+    np.testing.assert_allclose(received["noisy"].std(axis=0), SIGNAL_NOISE, rtol=0.15)
+    np.testing.assert_array_equal(received["noisy"][:100], received["twin"][:100])  # the same seed, the same noise
+    np.testing.assert_array_equal(received["quiet"], np.broadcast_to(quantize_wrench(wrench), (400, 6)))
+    for bad in (-0.1, np.nan):
+        with pytest.raises(ValueError, match="noise_scale"):
+            SimulatedFT300(noise_scale=bad)

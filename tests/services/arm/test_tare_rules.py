@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from hydrosoft.drivers.robotiq_ft300.noise import frame_noise, quantized
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.arm.tare_rules import (
     CONTACT_DEFORMATION_M,
@@ -101,6 +102,16 @@ def test_the_readings_of_a_tare_must_be_steady():
     twisted[10:, 5] += 0.2
     assert "something touched the sensor" in spread_refusal(twisted)
     assert spread_refusal(np.empty((0, 6))) == "no F/T reading to average"
+
+
+def test_the_ft300_noise_alone_never_refuses_a_tare_but_a_brief_touch_does():
+    rng = np.random.default_rng(1)
+    rest = np.array([1.2, -0.8, 2.5, 0.04, -0.03, 0.02])
+    tares = [quantized(rest + frame_noise(rng, (50, 6))) for _ in range(300)]  # 0.5 s at 100 Hz, datasheet noise
+    assert [spread_refusal(w) for w in tares] == [None] * len(tares)
+    touched = tares[0].copy()
+    touched[20:30, 0] += 0.8  # a touch of 0.8 N for 0.1 s
+    assert "something touched the sensor" in spread_refusal(touched)
 
 
 def test_the_tare_rule_needs_rest_and_no_contact():

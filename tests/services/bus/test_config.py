@@ -237,3 +237,14 @@ def test_deploy_sim_toml_runs_the_paper_planner_and_waits_for_its_compile():
     assert config.planner.preset == "paper" and config.planner.samples == 64 and config.planner.compile
     assert config.planner.target_lead_s <= config.limits.max_target_lead_s
     assert config.service("planner").ready_timeout_s >= 300.0  # a cold compile on 2 busy cores takes minutes
+
+
+def test_sim_ft_noise_is_off_unless_set_the_sim_configs_set_the_datasheets_and_bad_values_are_refused():
+    base = 'run_dir = "/run/hydrosoft"\n[[arms]]\nname = "bubble"\n'
+    assert parse_config(base).sim.ft_noise == 0.0
+    assert parse_config(base + "[sim]\nft_noise = 2.5\n").sim.ft_noise == 2.5
+    for deployed in ("sim.toml", "sim-bimanual.toml"):
+        assert load_config(Path(__file__).parents[3] / "deploy" / deployed).sim.ft_noise == 1.0
+    for bad in ("-0.5", "nan", "11"):
+        with pytest.raises(ConfigError, match="sim.ft_noise"):
+            parse_config(base + f"[sim]\nft_noise = {bad}\n")

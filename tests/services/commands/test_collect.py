@@ -23,7 +23,9 @@ from mcap.reader import make_reader
 from hydrosoft.bench import wrench
 from hydrosoft.bench.wrench_recording import TOPIC, read_wrench_recording
 from hydrosoft.bench.wrench_scenes import bench_object
+from hydrosoft.drivers.robotiq_ft300.noise import frame_noise, quantized
 from hydrosoft.services.commands import cli
+from hydrosoft.services.commands.collect import settle_change
 from hydrosoft.services.bus.config import load_config
 from loopback import free_ur_host
 from stack_process import quick_planner
@@ -75,7 +77,9 @@ def collect(config: Path, out: Path, *options: str,
 def tiny_collection(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("collect")
     out = tmp_path / "out"
-    done = collect(private_config(tmp_path), out, "--objects", "cube,plate", "--trajectories", "2", "--steps", "5")
+    # noise off: the checks below are on the plant's wrench to the FT 300's resolution (the settle test below has it)
+    config = private_config(tmp_path, **{"ft_noise = 1.0": "ft_noise = 0.0"})
+    done = collect(config, out, "--objects", "cube,plate", "--trajectories", "2", "--steps", "5")
     return done, out
 
 
@@ -118,6 +122,17 @@ def test_bench_wrench_on_the_sim_collection_finds_nh_exact_and_pff_missing_the_s
     for name in ("cube", "plate"):
         rows = {r["model"]: r for r in document["rows"] if r["object"] == name}
         assert rows["nh"]["force_n_mean"] < rows["pff"]["force_n_mean"]
+
+
+def test_a_wrench_at_rest_settles_through_the_ft300_noise_and_a_noise_free_one_within_two_counts():
+    rng = np.random.default_rng(3)
+    rest = np.array([1.2, -0.8, 2.5, 0.04, -0.03, 0.02])
+    windows = quantized(rest + frame_noise(rng, (2000, 2, 5, 6))).mean(axis=2)  # two 5-frame windows, 2000 times
+    settled = np.all(np.abs(windows[:, 1] - windows[:, 0]) <= settle_change(1.0), axis=1)
+    assert settled.mean() > 0.99, settled.mean()
+    np.testing.assert_allclose(settle_change(0.0), [0.02] * 3 + [0.002] * 3)
+    creeping = windows[:, 1] + [0.5, 0, 0, 0, 0, 0]  # the membrane still loading by 0.5 N
+    assert not np.all(np.abs(creeping - windows[:, 0]) <= settle_change(1.0), axis=1).any()
 
 
 def test_a_force_over_the_limit_stops_the_collection(tmp_path):
