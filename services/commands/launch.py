@@ -503,6 +503,7 @@ class Launcher:
                     return
                 process = await self._start(name)
                 if name in STARTS_ALONGSIDE:
+                    self.log(f"{name} started (pid {process.pid}); the next services start while it gets ready")
                     alongside.append(asyncio.create_task(self._ready(name, process), name=f"ready {name}"))
                 else:
                     await self._ready(name, process)

@@ -235,7 +235,7 @@ def test_services_start_in_order_with_prefixed_logs_and_stop_in_the_safe_order(r
     others = only[:-1]
     assert [run.index(f"[launcher] {name} ready (pid") for name in others] == sorted(
         run.index(f"[launcher] {name} ready (pid") for name in others)
-    planner_starts = run.index("[planner] ")
+    planner_starts = run.index("[launcher] planner started (pid")  # its own first line may come later
     assert planner_starts > max(run.index(f"[launcher] arm_commander-{arm} ready (pid") for arm in ("left", "right"))
     assert planner_starts < run.index("[launcher] tag_tracker ready (pid") < run.index("[launcher] planner ready (pid")
     assert run.index("[launcher] planner ready (pid") < run.index("[launcher] stack ready")
