@@ -553,6 +553,7 @@ class Rig:
 
     def __init__(self, tmp: Path) -> None:
         self.host = free_loopback_host()
+        self.wrenches_sent = 0  # the played F/T reader's wrenches so far, over every scenario (``PlayedPlanner``)
         run_dir = tmp / "run"
         run_dir.mkdir()
         self.config_path = tmp / "stack.toml"
@@ -647,14 +648,18 @@ class SimTcp:
 class PlayedPlanner:
     """Plays the planner (targets re-sent every ``REPLAN_PERIOD_S`` towards ``goal``, heartbeats while
     ``heartbeats``) and the F/T reader (a wrench of ``force_n`` along z, none while it is None), and listens to the
-    commander's ArmState and status."""
+    commander's ArmState and status. The F/T reader is one reader over the rig's scenarios: its wrenches are numbered
+    on from the last scenario's, as a reader that runs on numbers them (one numbered from 1 again is a restarted
+    reader, which ends the commander's goals)."""
 
     def __init__(self, rig: Rig) -> None:
         config = rig.config
+        self.rig = rig
         self.bus = Bus()
         self.targets = Publisher(self.bus, config.endpoint("planner"), source="planner")
         self.health = Publisher(self.bus, config.endpoint("planner", "status"), source="planner")
         self.wrenches = Publisher(self.bus, config.endpoint(f"ft_reader-{ARM}"), source=f"ft_reader-{ARM}")
+        self.wrenches.sent[f"wrench/{ARM}"] = rig.wrenches_sent
         self.listener = LatestSubscriber(self.bus, [config.endpoint(NAME), config.endpoint(NAME, "status")],
                                          topics=[f"arm_state/{ARM}", f"status/{NAME}"])
         self.goal: np.ndarray | None = None
@@ -675,6 +680,7 @@ class PlayedPlanner:
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        self.rig.wrenches_sent = self.wrenches.sent[f"wrench/{ARM}"]
         self.bus.close()
 
     async def _heartbeat(self) -> None:
