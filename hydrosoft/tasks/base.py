@@ -282,16 +282,16 @@ class Task:
         ``terms`` evaluates the costs' tensor arithmetic: eager, or compiled (``compiled_cost_terms``, kept by a
         planner for all its goals: the goal and the anchor are inputs of its graphs, not constants).
         """
-        goal = goal.to(model.dtype)
+        goal = goal.to(model.device, model.dtype)
         tracking = PointTracking.of(model.points, goal)
-        scale = self.bounds(model.body_names, model.dtype)[1].clamp_min(torch.finfo(model.dtype).eps)
+        scale = self.bounds(model.body_names, model.dtype)[1].to(model.device).clamp_min(torch.finfo(model.dtype).eps)
         actuated = tuple(i for i, moves in enumerate((scale > 10 * torch.finfo(model.dtype).eps).any(-1).tolist())
                          if moves)
         constants = (actuated, self.weights, 1.0 / self.travel_ratio - 1.0)
         fixed: tuple[Tensor, Tensor] | None = None
         if anchor is not None:
-            origin = anchor[0].to(model.dtype)[:3]
-            fixed = (origin, anchor[1].to(model.dtype)[list(actuated), :3] - origin)
+            origin = anchor[0].to(model.device, model.dtype)[:3]
+            fixed = (origin, anchor[1].to(model.device, model.dtype)[list(actuated), :3] - origin)
         first = threading.local()
 
         def stage_cost(states: list[State], u: Tensor) -> Tensor:
