@@ -77,7 +77,7 @@ EDGE_MAX_SHIFT_PX = 3.0  # a line-fit corner further than this from the detector
 # Each profile's edge point is the centroid of its steps above this fraction of its largest step. Below it, the
 # blurred edges one cell away (quiet zone to face outside, black border to a white data cell inside) overlap the
 # edge's own tails and cut them unevenly: with all steps, rendered tags at deploy/sim.toml's blur came out 0.3 % small
-# (their corners 0.05-0.2 px inwards), the cube 0.65 mm too far at 0.53 m; with this floor, 0.12 mm. The part above a
+# (their corners 0.05-0.2 px inwards), the cube 0.65 mm too far at 0.53 m; with this floor, 0.13 mm. The part above a
 # fraction of the peak is symmetric about a symmetric edge's centre wherever the profile starts. A higher floor
 # uses fewer samples: at 0.25 an isolated tag's noisy corners were up to 0.104 px off (0.094 at 0.23).
 EDGE_STEP_FLOOR = 0.23
