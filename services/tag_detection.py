@@ -351,8 +351,8 @@ def refine_corners(grey: np.ndarray, corners: np.ndarray, intrinsics: CameraIntr
 
     For each side, intensity profiles are sampled across the edge (bilinear) over its middle ``EDGE_SPAN``; each
     profile's edge point is the centroid of its intensity step (the mean position of the gradient of the dominant
-    sign above ``EDGE_STEP_FLOOR`` of its peak: unbiased by a symmetric blur, and by the tails of the neighbouring
-    edges one cell away, which the whole gradient is not); a least-squares line is fitted through
+    sign above ``EDGE_STEP_FLOOR`` of its peak: unbiased by a symmetric blur, and much less biased than the whole
+    gradient by the tails of the neighbouring edges one cell away); a least-squares line is fitted through
     them, in undistorted pixel coordinates when ``intrinsics`` has distortion. Two passes. Returns the input
     corners unchanged when they are not finite, the tag is too small for profiles of ``EDGE_PROFILE_MIN_PX``, or a
     corner would move further than ``EDGE_MAX_SHIFT_PX`` (a failed fit).
