@@ -180,6 +180,7 @@ class RecordingReaders:
                                      "kept": read.kept,
                                      "dropped": read.dropped, "trajectories": len(pieces),
                                      "skipped_in_contact": skipped, "tared": read.tared,
+                                     "at_exposure": read.at_exposure,
                                      "start_pressed": sum(p.pretared for p in pieces)}
             self._read[str(path)] = read.info, [replace(t, index=i) for t, i in zip(pieces, indices)]
         return self._read[str(path)]
@@ -314,7 +315,8 @@ def format_tables(document: dict) -> str:
              f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
     for path, stack in document["settings"]["stack_recordings"].items():
-        poses = " (clamped)" if stack["clamped"] else " (true pose)" if stack.get("true_object") else " (tracked)"
+        poses = (" (clamped)" if stack["clamped"] else " (true pose)" if stack.get("true_object")
+                 else " (tracked, at the images' exposures)" if stack.get("at_exposure") else " (tracked)")
         lines.append(f"  stack recording {path}: arm {stack['arm']}, object {stack['object']}{poses}, "
                      f"{stack['kept']} samples kept, "
                      f"{stack['dropped']} dropped (no pose within the max gap), {stack['trajectories']} "

@@ -5,7 +5,8 @@ The fit needs three raw topics (``services/recording/mcap_format.py``): ``wrench
 tared), ``arm_state/ARM`` (the TCP pose, base frame) and ``object_pose/object`` (the tracked object pose, base frame).
 The bubble frame is the stack's TCP frame (sim_world puts the arm's bubble body at the TCP pose), so the bubble pose is
 the TCP pose. Samples are taken on the wrench's stamps (``stamp_ns``), at most one per ``period_s``; each takes the
-arm's TCP pose and the object pose at that stamp (``pose_at``): interpolated between the poses recorded just before
+arm's TCP pose and the object pose at that stamp (``pose_at``; a tracked pose stands at its image's exposure when
+that is on the host's clock, ``MAX_EXPOSURE_AGE_NS``): interpolated between the poses recorded just before
 and just after it (linear in position, slerp in orientation) when those are at most ``2 max_gap_s`` apart, else the
 nearest pose when it is within ``max_gap_s``. A sample with no such arm pose (or, unless the object is clamped, no
 object pose) is dropped and counted. With ``clamped``, every sample takes the first tracked object pose (the object
@@ -39,12 +40,20 @@ DEFAULT_CONTACT_FORCE_N = 0.5
 #: Out-of-contact samples kept before each contact, the first of them its tare (0.5 s at the default period): the
 #: tare is taken before the approach rather than at the touch, where light contact may already load the sensor.
 APPROACH_SAMPLES = 10
+#: A tracked pose is placed at its image's exposure (``ObjectPose.hw_stamp_ns``) when every tracked pose's exposure
+#: is on the host's monotonic clock, as the sim camera's is: at most this long before the pose was published. The
+#: tracker publishes a pose 30-60 ms after its exposure (the image's render or grab, then the tracker): placed at
+#: its publishing, a pushed cube's replayed pose lagged the wrench by that (measured on a sim push: 0.49 mm behind
+#: along the push, 0.10 mm at the exposure). A lab camera's own clock (``CAP_PROP_POS_MSEC``) is not the host's:
+#: its poses keep their publishing stamps.
+MAX_EXPOSURE_AGE_NS = 1_000_000_000
 
 @dataclass(frozen=True)
 class StackTrajectory:
     """A stack recording read for the fit: ``info`` (as a ``collect wrench`` file's, ``mode`` "stack"), its one
     ``trajectory``, the ``arm`` read, ``kept`` samples and ``dropped`` ones (no fresh pose within the max gap);
-    ``tared``: every kept wrench was tared by the F/T reader (``Wrench.tared``)."""
+    ``tared``: every kept wrench was tared by the F/T reader (``Wrench.tared``); ``at_exposure``: the object poses
+    were placed at their images' exposures (``MAX_EXPOSURE_AGE_NS``), not at their publishing."""
 
     info: RecordingInfo
     trajectory: RecordedTrajectory
@@ -52,6 +61,7 @@ class StackTrajectory:
     kept: int
     dropped: int
     tared: bool = False
+    at_exposure: bool = False
 
 
 def is_stack_recording(path: str | Path) -> bool:
@@ -152,6 +162,7 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     values: dict[str, list[np.ndarray]] = {}
     names: dict[str, str] = {}
     tared: dict[str, list[bool]] = {}  # per wrench topic and message: tared by the F/T reader
+    exposures: dict[str, list[int | None]] = {}  # per object pose topic: the tracked poses' hw_stamp_ns
     object_topic = TRUE_OBJECT_TOPIC if true_object else OBJECT_TOPIC
     reader = RecordingReader(path, ["wrench", "arm_state", object_topic])
     try:
@@ -161,6 +172,8 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
             if isinstance(message, (msg.ObjectPose, msg.EvalObjectPose)):
                 values.setdefault(item.topic, []).append(np.array(message.pose))
                 names.setdefault(item.topic, message.object)
+                if isinstance(message, msg.ObjectPose):
+                    exposures.setdefault(item.topic, []).append(message.hw_stamp_ns)
             elif isinstance(message, msg.Wrench):
                 values.setdefault(item.topic, []).append(np.array(message.wrench))
                 tared.setdefault(item.topic, []).append(message.tared)
@@ -186,6 +199,9 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
         raise ValueError(f"{path}: object {object_name!r} is not a benchmark object the fit can replay "
                          f"({', '.join(BENCH_OBJECTS)}); name one with --object")
     wrench_t, state_t, object_t = needed
+    at_exposure = exposures_on_host_clock(stamps[object_t], exposures.get(object_t, []))
+    if at_exposure:
+        stamps[object_t] = exposures[object_t]
     order = {t: np.argsort(np.array(stamps[t], dtype=np.int64), kind="stable") for t in needed}
     sorted_stamps = {t: np.array(stamps[t], dtype=np.int64)[order[t]] for t in needed}
     sorted_poses = {t: np.stack(values[t])[order[t]] for t in (state_t, object_t)}
@@ -215,4 +231,13 @@ def read_stack_recording(path: str | Path, object_name: str | None = None, arm: 
     trajectory = RecordedTrajectory(object=object_name, index=0, bubble_poses=bubbles, target_poses=bubbles,
                                     object_poses=objects, wrenches=wrenches,
                                     phases=("start",) + ("stack",) * (len(rows) - 1))
-    return StackTrajectory(info, trajectory, arm, len(rows), dropped, all_tared)
+    return StackTrajectory(info, trajectory, arm, len(rows), dropped, all_tared, at_exposure)
+
+
+def exposures_on_host_clock(stamps: list[int], exposures: list[int | None]) -> bool:
+    """Whether the exposures ``hw_stamp_ns`` (ns) of poses published at ``stamps`` (ns, the host's
+    ``time.monotonic_ns``) are on the host's clock too: each one given and at most ``MAX_EXPOSURE_AGE_NS`` before its
+    pose's publishing."""
+    return len(exposures) == len(stamps) > 0 and all(
+        exposure is not None and 0 <= stamp - exposure <= MAX_EXPOSURE_AGE_NS
+        for stamp, exposure in zip(stamps, exposures))

@@ -10,7 +10,9 @@ renders the image (1280 x 720, fx = fy = 900 px, mild barrel distortion, Gaussia
 Each row (one setting): ``images``; ``detection_rate``, the fraction of images that gave a pose;
 ``tags_per_pose``, the mean number of tags fitted; position error (mm, Euclidean) and orientation error (deg, angle
 of the relative rotation) of the poses against the rendered truth as ``median``, ``p95`` and ``max`` (``null``
-when no image gave a pose); ``rejections``: reason counts for the images without a pose (reasons cut at the first
+when no image gave a pose); ``pos_err_mm_mean_base`` and ``pos_err_mm_mean_camera``: the mean signed position error
+``[x, y, z]`` (mm) in the base frame and in the camera's (z along the line of sight: a tag seen too small or too
+large shows there as a bias, which the random azimuths average out of the base frame's); ``rejections``: reason counts for the images without a pose (reasons cut at the first
 colon); ``render_ms`` and ``track_ms``: median wall times of rendering and of detection plus pose;
 ``track_cpu_ms_mean`` and ``track_cpu_ms_p95``: the tracker's CPU time per image (detection, corner refinement and
 pose: ``time.process_time``, all threads of the process, so OpenCV's worker threads count too).
@@ -180,6 +182,7 @@ def measure_setting(renderer: Renderer, distance_m: float, angle_deg: float, sam
     detector = make_detector()
     intrinsics = renderer.intrinsics
     position_mm, rotation_deg, tags, render_ms, track_ms, track_cpu_ms = [], [], [], [], [], []
+    signed_base_mm, signed_camera_mm = [], []
     rejections: Counter[str] = Counter()
     T_base_table = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
     for _ in range(samples):
@@ -198,6 +201,8 @@ def measure_setting(renderer: Renderer, distance_m: float, angle_deg: float, sam
         track_ms.append(1e3 * (time.perf_counter() - start))
         if isinstance(result, ObjectPose):
             position_mm.append(1e3 * float(np.linalg.norm(result.T_base_object[:3] - T_base_object[:3])))
+            signed_base_mm.append(1e3 * (result.T_base_object[:3] - T_base_object[:3]))
+            signed_camera_mm.append(1e3 * (result.T_camera_object[:3] - compose(T_camera_base, T_base_object)[:3]))
             rotation_deg.append(math.degrees(rotation_angle_rad(result.T_base_object[3:], T_base_object[3:])))
             tags.append(len(result.tag_ids))
         else:
@@ -207,6 +212,8 @@ def measure_setting(renderer: Renderer, distance_m: float, angle_deg: float, sam
            "tags_per_pose": float(np.mean(tags)) if tags else None}
     row.update(_summary("pos_err_mm", position_mm))
     row.update(_summary("rot_err_deg", rotation_deg))
+    row.update({f"pos_err_mm_mean_{frame}": np.mean(signed, axis=0).tolist() if signed else None
+                for frame, signed in (("base", signed_base_mm), ("camera", signed_camera_mm))})
     row.update({"rejections": dict(rejections), "render_ms": float(np.median(render_ms)),
                 "track_ms": float(np.median(track_ms)), "track_cpu_ms_mean": float(np.mean(track_cpu_ms)),
                 "track_cpu_ms_p95": float(np.percentile(track_cpu_ms, 95))})
@@ -343,15 +350,19 @@ def _print_table(rows: list[dict]) -> None:
     def cell(value: float | None, digits: int) -> str:
         return "-" if value is None else f"{value:.{digits}f}"
 
+    def signed(values: list[float] | None) -> str:
+        return "-" if values is None else ", ".join(f"{value:+.2f}" for value in values)
+
     print(f"{'dist m':>6} {'angle':>5} {'found':>6} {'tags':>4} | {'pos mm: med':>11} {'p95':>6} {'max':>6} | "
-          f"{'rot deg: med':>12} {'p95':>6} {'max':>6} | {'render ms':>9} {'track ms':>8} {'cpu ms':>6} "
+          f"{'rot deg: med':>12} {'p95':>6} {'max':>6} | {'mean mm: cam x, y, z':>20} | {'render ms':>9} {'track ms':>8} {'cpu ms':>6} "
           f"{'p95':>5}  rejections")
     for row in rows:
         print(f"{row['distance_m']:>6.2f} {row['view_angle_deg']:>5.0f} {row['detection_rate']:>6.0%} "
               f"{cell(row['tags_per_pose'], 1):>4} | {cell(row['pos_err_mm_median'], 2):>11} "
               f"{cell(row['pos_err_mm_p95'], 2):>6} {cell(row['pos_err_mm_max'], 2):>6} | "
               f"{cell(row['rot_err_deg_median'], 2):>12} {cell(row['rot_err_deg_p95'], 2):>6} "
-              f"{cell(row['rot_err_deg_max'], 2):>6} | {row['render_ms']:>9.1f} {row['track_ms']:>8.1f} "
+              f"{cell(row['rot_err_deg_max'], 2):>6} | {signed(row['pos_err_mm_mean_camera']):>20} | "
+              f"{row['render_ms']:>9.1f} {row['track_ms']:>8.1f} "
               f"{row['track_cpu_ms_mean']:>6.1f} {row['track_cpu_ms_p95']:>5.1f}  {row['rejections'] or ''}")
 
 

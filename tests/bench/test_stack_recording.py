@@ -189,6 +189,37 @@ def test_a_long_stack_recording_is_cut_into_one_trajectory_per_contact_each_with
     assert len(whole_again) == 1 and len(whole_again[0].wrenches) == len(rows)
 
 
+@pytest.mark.parametrize("camera_clock", ["host", "camera"])
+def test_tracked_poses_stand_at_their_images_exposure_when_it_is_on_the_hosts_clock(tmp_path, camera_clock):
+    """A cube sliding 1 mm per 50 ms, each pose published 45 ms after its image's exposure (the tracker's latency),
+    the exposure at a wrench's stamp: with exposures on the host's clock (the sim camera's) each wrench gets the
+    pose of its own instant; with a camera's own clock (ms since its stream began) the poses keep their publishing
+    stamps, and each wrench gets the pose exposed one step before it (published 5 ms before the wrench)."""
+    start, count = 1_000_000_000, 8
+    bubble = np.r_[0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]
+    objects = np.stack([np.r_[0.001 * k, 0.0, 0.025, 1.0, 0.0, 0.0, 0.0] for k in range(count)])
+    messages = []
+    for k in range(count):
+        at = start + k * STEP_NS
+        exposure = at if camera_clock == "host" else 33_000_000 + k * STEP_NS
+        messages.append(("object_pose/object", msg.ObjectPose(
+            seq=k + 1, stamp_ns=at + 45_000_000, source="tag_tracker", object="cube", pose=objects[k],
+            tags_used=(0,), quality=1.0, hw_stamp_ns=exposure)))
+        messages.append((f"wrench/{ARM}", msg.Wrench(seq=k + 1, stamp_ns=at, source=f"ft_reader-{ARM}", sensor=ARM,
+                                                     wrench=np.zeros(6), tared=True)))
+        messages.append((f"arm_state/{ARM}", arm_state(k, at + 3_000_000, bubble)))
+    path = tmp_path / "sliding.mcap"
+    messages.sort(key=lambda topic_message: topic_message[1].stamp_ns)
+    log_messages(path, messages)
+    read = read_stack_recording(path, period_s=0.0)
+    if camera_clock == "host":
+        assert read.at_exposure and read.kept == count and read.dropped == 0
+        np.testing.assert_array_equal(read.trajectory.object_poses, objects)
+    else:
+        assert not read.at_exposure and read.kept == count - 1 and read.dropped == 1  # the first has no pose yet
+        np.testing.assert_array_equal(read.trajectory.object_poses, objects[:-1])
+
+
 def test_a_recording_that_starts_pressed_in_is_fitted_with_start_pressed_and_skipped_without(tmp_path):
     # as the sim scenes start: the bubble already pressed straight into the cube, the stream tared out of contact
     params, bubbles, objects, measured = synthetic_trajectories("cube", TRUTH, KINDS[:3], steps=10, seed=1)

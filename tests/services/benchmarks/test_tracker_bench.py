@@ -4,6 +4,7 @@ import argparse
 import json
 
 import cv2
+import numpy as np
 import pytest
 
 from hydrosoft.services.benchmarks.tracker import add_arguments, run
@@ -30,12 +31,14 @@ def test_quick_json_rows(capsys):
         assert row["images"] == 3 and 0.0 <= row["detection_rate"] <= 1.0
         for key in ("pos_err_mm_median", "pos_err_mm_p95", "pos_err_mm_max", "rot_err_deg_median",
                     "rot_err_deg_p95", "rot_err_deg_max", "tags_per_pose", "rejections", "render_ms", "track_ms",
-                    "track_cpu_ms_mean", "track_cpu_ms_p95"):
+                    "track_cpu_ms_mean", "track_cpu_ms_p95", "pos_err_mm_mean_base", "pos_err_mm_mean_camera"):
             assert key in row
         assert 0.0 < row["track_cpu_ms_mean"] and 0.0 < row["track_cpu_ms_p95"]
     near_oblique = rows[1]  # 0.3 m, 60 deg: two or three faces in view
     assert near_oblique["detection_rate"] == 1.0 and near_oblique["tags_per_pose"] >= 2
     assert near_oblique["pos_err_mm_max"] < 1.0 and near_oblique["rot_err_deg_max"] < 0.5
+    signed = np.array(near_oblique["pos_err_mm_mean_camera"])  # mm, camera frame: within the largest error
+    assert signed.shape == (3,) and np.all(np.abs(signed) <= near_oblique["pos_err_mm_max"])
     far_head_on = rows[2]  # 1 m straight down: one small tag seen head-on is ambiguous, so it is rejected
     assert far_head_on["detection_rate"] < 1.0 and "ambiguous" in far_head_on["rejections"]
     assert document["config"]["tag_size_m"] == 0.032
