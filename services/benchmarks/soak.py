@@ -112,8 +112,9 @@ def tail_parts(plans: list[msg.Plan], fraction: float = TAIL_FRACTION) -> dict[s
     over the tail plans, divided by that of all parts; 0 to 1); ``above_p90``, in how many tail plans the part
     was above its own p90; ``together``, in how many tail plans two or more parts were above their p90 (late
     together, e.g. a slow solve on a late pose) rather than one part alone; and ``solver_ms``, the tail's mean of
-    the solver's own time (``msg.Plan.solve_ms``, the CEM and gradient steps; the solve part adds the targets'
-    making and sending). Empty when no plan has every stamp."""
+    the solver's own time (``msg.Plan.solve_ms``: the CEM steps and the slower worker share's compute; the solve
+    part adds the shares' transport, a worker's wait for a core, and the targets' making and sending), and
+    ``solver_p50_ms``, its p50 over all plans. Empty when no plan has every stamp."""
     whole = [p for p in plans if all(getattr(p, stamp) for stage in PARTS for stamp in STAGES[stage])]
     if not whole:
         return {}
@@ -131,7 +132,8 @@ def tail_parts(plans: list[msg.Plan], fraction: float = TAIL_FRACTION) -> dict[s
                              "excess_share": round(excess[part] / excess_sum, 3) if excess_sum > 0 else 0.0,
                              "above_p90": int(late[part].sum())} for part in PARTS},
             "together": int((np.sum([late[part] for part in PARTS], axis=0) >= 2).sum()),
-            "solver_ms": round(float(np.mean([whole[i].solve_ms for i in tail])), 2)}
+            "solver_ms": round(float(np.mean([whole[i].solve_ms for i in tail])), 2),
+            "solver_p50_ms": round(float(np.percentile([p.solve_ms for p in whole], 50)), 2)}
 
 
 @dataclass
@@ -353,7 +355,7 @@ def format_table(result: dict[str, object]) -> str:
                                  f"{round(100 * row['excess_share'])} %, {row['above_p90']}"
                                  for part, row in parts.items())
                      + f"; two or more parts above their p90 in {tail['together']} of {tail['plans']}; the solver's "
-                     f"own time there {tail['solver_ms']} ms")
+                     f"own time there {tail['solver_ms']} ms (p50 over all plans {tail['solver_p50_ms']} ms)")
     lines.append("errors counted: " + ("; ".join(f"{name} " + ", ".join(f"{kind} {n}" for kind, n in kinds.items())
                                                  for name, kinds in result["errors"].items()) or "none"))
     lines.append(f"{'':<24}{'first window':>24}{'last window':>24}{'growth':>10}")

@@ -58,7 +58,7 @@ def test_the_tail_names_the_parts_that_made_the_slowest_plans_slow():
     solve, queue, detection = tail["parts"]["solve"], tail["parts"]["queue"], tail["parts"]["detection"]
     assert solve["above_p90"] == 4 and queue["above_p90"] == 2 and detection["above_p90"] == 1
     assert tail["together"] == 2 and tail["parts"]["estimation"]["excess_share"] == 0.0
-    assert tail["solver_ms"] == 133.75  # the plans' own solve_ms
+    assert tail["solver_ms"] == 133.75 and tail["solver_p50_ms"] == 63.0  # the plans' own solve_ms
     assert solve["mean_ms"] == 133.75 and solve["excess_share"] > 0.5 > queue["excess_share"] > 0.0
     assert sum(row["excess_share"] for row in tail["parts"].values()) == pytest.approx(1.0, abs=0.002)
     assert tail_parts(typical[:10], fraction=0.02)["plans"] == 1
