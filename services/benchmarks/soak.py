@@ -20,6 +20,8 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
   neither memory nor the loop latency grows by more than 10 % over 10 minutes;
 - over the whole soak (``whole``): the latency split, and the replanning rate (``replanning_hz``: plans published
   per second of the goals' wall time);
+- the slowest plans (``tail``, ``tail_parts``): which parts made the p99 of the total, one part alone or several
+  late together;
 - the host's load average (``load_average``: ``os.getloadavg``'s 1-minute figure when the idle phase starts, when the
   goals start and when they end): other work on the machine slows the stack, so figures compare only at like loads.
 
@@ -79,6 +81,10 @@ STAGES = {
     "solve": ("solve_start_ns", "targets_ns"),
     "total": ("image_stamp_ns", "targets_ns"),
 }
+#: The parts that add up to a plan's total (``STAGES`` less the total).
+PARTS = ("detection", "queue", "estimation", "solve")
+#: ``tail_parts`` looks at this fraction of the plans, the slowest by their total (at least one plan).
+TAIL_FRACTION = 0.02
 
 
 def latency_split(plans: list[msg.Plan]) -> dict[str, dict[str, float]]:
@@ -90,6 +96,44 @@ def latency_split(plans: list[msg.Plan]) -> dict[str, dict[str, float]]:
             split[stage] = {"p50_ms": round(float(np.percentile(ms, 50)), 2),
                             "p99_ms": round(float(np.percentile(ms, 99)), 2), "plans": len(ms)}
     return split
+
+
+def _stage_ms(plan: msg.Plan, stage: str) -> float:
+    start, end = STAGES[stage]
+    return (getattr(plan, end) - getattr(plan, start)) * 1e-6
+
+
+def tail_parts(plans: list[msg.Plan], fraction: float = TAIL_FRACTION) -> dict[str, object]:
+    """What made the slowest ``fraction`` of the plans (by their total, camera image to arm targets) slow.
+
+    Over the plans that carry every stamp: ``plans`` (how many are in the tail) and ``total_from_ms`` (the fastest
+    of them); per part of ``PARTS`` its mean in the tail (``mean_ms``) and its p50 and p90 over all plans;
+    ``excess_share``, each part's share of the tail's time over the parts' p50s (sum of ``max(0, part - p50)``
+    over the tail plans, divided by that of all parts; 0 to 1); ``above_p90``, in how many tail plans the part
+    was above its own p90; ``together``, in how many tail plans two or more parts were above their p90 (late
+    together, e.g. a slow solve on a late pose) rather than one part alone; and ``solver_ms``, the tail's mean of
+    the solver's own time (``msg.Plan.solve_ms``: the CEM steps and the slower worker share's compute; the solve
+    part adds the shares' transport, a worker's wait for a core, and the targets' making and sending), and
+    ``solver_p50_ms``, its p50 over all plans. Empty when no plan has every stamp."""
+    whole = [p for p in plans if all(getattr(p, stamp) for stage in PARTS for stamp in STAGES[stage])]
+    if not whole:
+        return {}
+    ms = {stage: np.array([_stage_ms(p, stage) for p in whole]) for stage in (*PARTS, "total")}
+    count = max(1, math.ceil(fraction * len(whole)))
+    tail = np.argsort(ms["total"])[-count:]
+    p50 = {part: float(np.percentile(ms[part], 50)) for part in PARTS}
+    p90 = {part: float(np.percentile(ms[part], 90)) for part in PARTS}
+    excess = {part: float(np.clip(ms[part][tail] - p50[part], 0, None).sum()) for part in PARTS}
+    late = {part: ms[part][tail] > p90[part] for part in PARTS}
+    excess_sum = sum(excess.values())
+    return {"plans": int(count), "total_from_ms": round(float(ms["total"][tail].min()), 2),
+            "parts": {part: {"mean_ms": round(float(ms[part][tail].mean()), 2), "p50_ms": round(p50[part], 2),
+                             "p90_ms": round(p90[part], 2),
+                             "excess_share": round(excess[part] / excess_sum, 3) if excess_sum > 0 else 0.0,
+                             "above_p90": int(late[part].sum())} for part in PARTS},
+            "together": int((np.sum([late[part] for part in PARTS], axis=0) >= 2).sum()),
+            "solver_ms": round(float(np.mean([whole[i].solve_ms for i in tail])), 2),
+            "solver_p50_ms": round(float(np.percentile([p.solve_ms for p in whole], 50)), 2)}
 
 
 @dataclass
@@ -239,6 +283,7 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
                      "cpu_percent_total": round(sum(s["cpu_percent"] for s in idle_summary["services"].values()), 1)},
             "soak_seconds": round(end_s, 1), "goals": goals, "first": first, "last": last,
             "growth": growth(first, last), "whole": window_summary(samples, 0.0, end_s),
+            "tail": tail_parts([plan for _, plan in samples.plans]),
             "replanning_hz": round(len(samples.plans) / goal_s, 2) if goal_s > 0 else 0.0,
             "load_average": load_average}
 
@@ -301,6 +346,16 @@ def format_table(result: dict[str, object]) -> str:
     lines.append(f"replanning: {result['replanning_hz']} Hz over the goals' time; camera to arm targets over the "
                  "whole soak: " + (f"{whole['p50_ms']} / {whole['p99_ms']} ms (p50 / p99, {whole['plans']} plans)"
                                    if whole else "no plans"))
+    tail = result.get("tail")
+    if tail:
+        parts = tail["parts"]
+        lines.append(f"slowest {tail['plans']} plans (total >= {tail['total_from_ms']} ms), per part its mean there "
+                     "(its p50 / p90 over all plans), share of the time over the p50s, plans above its p90: "
+                     + "; ".join(f"{part} {row['mean_ms']} ({row['p50_ms']} / {row['p90_ms']}) ms, "
+                                 f"{round(100 * row['excess_share'])} %, {row['above_p90']}"
+                                 for part, row in parts.items())
+                     + f"; two or more parts above their p90 in {tail['together']} of {tail['plans']}; the solver's "
+                     f"own time there {tail['solver_ms']} ms (p50 over all plans {tail['solver_p50_ms']} ms)")
     lines.append("errors counted: " + ("; ".join(f"{name} " + ", ".join(f"{kind} {n}" for kind, n in kinds.items())
                                                  for name, kinds in result["errors"].items()) or "none"))
     lines.append(f"{'':<24}{'first window':>24}{'last window':>24}{'growth':>10}")

@@ -393,14 +393,16 @@ def test_a_solve_waits_for_a_pose_newer_than_the_last_solves_within_a_limit():
     assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1010 * ms, period_s) == 0.0  # due in 40 ms: solve now
     assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1030 * ms, period_s) == pytest.approx(
         0.02 + LATE_PERIODS * period_s)  # due in 20 ms, within NEXT_DUE_PERIODS: wait for it, a little past its time
-    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1060 * ms, period_s) == 0.0  # it came not: the newest then
+    # 10 ms late, as detection's tail makes it (p99 44 against p50 20 ms): still waited for, it is the newer image
+    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1060 * ms, period_s) == pytest.approx(0.015)
+    assert pose_wait_s(1000 * ms, 900 * ms, 1010 * ms, 1080 * ms, period_s) == 0.0  # it came not: the newest then
     assert pose_wait_s(5000 * ms, 0, 0, 5001 * ms, period_s) == 0.0  # the goal's first solve
     # the last solve (ended at 1080 ms) planned on the newest pose: wait for the next, at most a period after it
     assert pose_wait_s(1000 * ms, 1000 * ms, 1080 * ms, 1090 * ms, period_s) == pytest.approx(
         POSE_WAIT_PERIODS * period_s - 0.01)
     assert pose_wait_s(1000 * ms, 1000 * ms, 1080 * ms, 1200 * ms, period_s) == 0.0  # none came: solve on it again
     assert pose_wait_s(0, 1000 * ms, 1080 * ms, 1090 * ms, period_s) == 0.0  # no pose (the input check says stale)
-    assert NEXT_DUE_PERIODS <= 0.5 and POSE_WAIT_PERIODS <= 1.5  # the waits stay short against a solve
+    assert NEXT_DUE_PERIODS <= 0.5 and LATE_PERIODS <= 0.5 and POSE_WAIT_PERIODS <= 1.5  # short against a solve
 
 
 class PoseInputs:

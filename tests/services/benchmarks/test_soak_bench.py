@@ -22,6 +22,7 @@ from hydrosoft.services.benchmarks.soak import (
     growth,
     latency_split,
     run,
+    tail_parts,
     thread_split,
     window_summary,
 )
@@ -37,6 +38,33 @@ def plan(image_ms: float, solve_ms: float) -> msg.Plan:
                     (2, 1)), predicted_forces=np.zeros((1, 3, 3)), cost=1.0, solve_ms=solve_ms,
                     **dict(zip(("image_stamp_ns", "pose_stamp_ns", "inputs_ns", "solve_start_ns", "targets_ns"),
                                (int(v) for v in stamps))))
+
+
+def parts_plan(detection_ms: float, queue_ms: float, estimation_ms: float, solve_ms: float) -> msg.Plan:
+    """A plan whose parts took these times (ms), its image at 1 s."""
+    stamps = np.cumsum([1000.0, detection_ms, queue_ms, estimation_ms, solve_ms]) * MS
+    return msg.Plan(task="pushing", actions=np.zeros((2, 1, 6)), predicted_object_poses=np.tile([0, 0, 0, 1, 0, 0, 0.0],
+                    (2, 1)), predicted_forces=np.zeros((1, 3, 3)), cost=1.0, solve_ms=solve_ms,
+                    **dict(zip(("image_stamp_ns", "pose_stamp_ns", "inputs_ns", "solve_start_ns", "targets_ns"),
+                               (int(v) for v in stamps))))
+
+
+def test_the_tail_names_the_parts_that_made_the_slowest_plans_slow():
+    typical = [parts_plan(20, 5 + k % 10, 4, 60 + k % 7) for k in range(96)]
+    slow_solve = [parts_plan(20, 5, 4, 150), parts_plan(20, 5, 4, 140)]  # a solve's tail alone
+    late_both = [parts_plan(60, 61, 4, 120), parts_plan(20, 61, 4, 125)]  # a late pose and a slow solve together
+    tail = tail_parts(typical + slow_solve + late_both, fraction=0.04)
+    assert tail["plans"] == 4 and tail["total_from_ms"] == 169.0
+    solve, queue, detection = tail["parts"]["solve"], tail["parts"]["queue"], tail["parts"]["detection"]
+    assert solve["above_p90"] == 4 and queue["above_p90"] == 2 and detection["above_p90"] == 1
+    assert tail["together"] == 2 and tail["parts"]["estimation"]["excess_share"] == 0.0
+    assert tail["solver_ms"] == 133.75 and tail["solver_p50_ms"] == 63.0  # the plans' own solve_ms
+    assert solve["mean_ms"] == 133.75 and solve["excess_share"] > 0.5 > queue["excess_share"] > 0.0
+    assert sum(row["excess_share"] for row in tail["parts"].values()) == pytest.approx(1.0, abs=0.002)
+    assert tail_parts(typical[:10], fraction=0.02)["plans"] == 1
+    unstamped = parts_plan(20, 5, 4, 60)
+    assert tail_parts([msg.Plan(**{**{f: getattr(unstamped, f) for f in unstamped.__struct_fields__},
+                                   "image_stamp_ns": 0})]) == {}
 
 
 def test_the_latency_split_takes_each_stage_between_its_stamps():
