@@ -73,7 +73,8 @@ def test_a_bad_config_is_refused_by_key(tmp_path, capsys):
 def test_it_builds_each_parts_artefact_and_rebuilds_a_stale_one(tmp_path, capsys, monkeypatch, no_cache_env):
     """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes). The cache
     holds the planner's artefact of another torch version (stale) and none of the plant's (missing). The plant
-    builds in a process of its own, beside the planner's build here, and its lines come out here."""
+    builds in a process of its own, beside the planner's build here, and so do the planner's functions without
+    gradients; their lines come out here."""
     backends = []
     plant_pids = tmp_path / "plant-pids"
 
@@ -105,6 +106,7 @@ def test_it_builds_each_parts_artefact_and_rebuilds_a_stale_one(tmp_path, capsys
     assert artefacts.check(cache, plant) == artefacts.check(cache, planner) == "ready"
     assert len(backends) >= 2  # a solve's signatures: gradient-enabled and no-grad rollouts at least
     assert plant_pids.read_text().split() and str(os.getpid()) not in plant_pids.read_text().split()
+    assert "planner: its functions without gradients built in" in out  # beside the planner's build, which needs them
 
 
 @pytest.mark.parametrize("failing, named, unnamed", [
