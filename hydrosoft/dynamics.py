@@ -1150,6 +1150,7 @@ class CompiledStep(FallsBack):
         # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
         # next step starts from that state, so its start check is already known (one stability check per step)
         self._end_check = threading.local()
+        self._start = threading.local()  # per thread, (the last start state, its stepped form): ``_start_form``
 
     def __call__(self, state: State, u: Tensor) -> State:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
@@ -1157,9 +1158,24 @@ class CompiledStep(FallsBack):
         # stride would compile the step again (an open-loop plan of each episode's length passed the limit)
         u = u.contiguous()
         # every state in a step's own form (a start state too), so that a rollout compiles one graph per grad mode
-        grad = torch.is_grad_enabled() and (u.requires_grad or any(t is not None and t.requires_grad for t in state))
+        tracked = any(t is not None and t.requires_grad for t in state)
+        grad = torch.is_grad_enabled() and (u.requires_grad or tracked)
+        if state.phi is None and not tracked:
+            state = self._start_form(state)
         state = stepped_form(self.model, state, grad, self._distances)
         return self._copies.run((state, u), self._checked_step, self._eager_substep)
+
+    def _start_form(self, state: State) -> State:
+        """``stepped_form`` of a start state outside autograd's graph (its signed distances, its forces' layout), kept
+        for the next call on this thread with this very state: a solver rolls out from one start state several
+        times per solve (its gradient steps, then the final rollout). A caller that edits a state in place passes
+        it anew (as ``State.phi`` already asks)."""
+        known = getattr(self._start, "last", None)
+        if known is not None and known[0] is state:
+            return known[1]
+        formed = stepped_form(self.model, state, False, self._distances)
+        self._start.last = (state, formed)
+        return formed
 
     @property
     def fallback_reason(self) -> str | None:

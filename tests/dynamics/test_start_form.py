@@ -56,9 +56,11 @@ def test_a_rollout_from_a_start_state_compiles_one_sub_step_per_grad_mode(fresh_
     """A planner's rollouts, with and without gradients, from a start state: the step compiles for two input
     signatures (one per grad mode), as the precompiled build then builds two sub-step functions, not four (the start
     state's were the largest of the planner's cold build); the start state's signed distances are one small graph,
-    without gradients, whatever the grad mode."""
+    without gradients, whatever the grad mode, evaluated once for the rollouts from one start state."""
     model, x0, u = start("linearly_implicit", dtype=torch.float32, batch=8)
     fast = CompiledStep(model, backend="eager")
+    distances, calls = fast._distances, []
+    fast._distances = lambda *poses: calls.append(poses) or distances(*poses)
     leaf = u.unsqueeze(1).expand(-1, 3, -1, -1).clone().requires_grad_(True)
     state = x0
     for k in range(3):
@@ -70,7 +72,8 @@ def test_a_rollout_from_a_start_state_compiles_one_sub_step_per_grad_mode(fresh_
             state = fast(state, leaf[:, k])
     assert fast.compiled, fast.fallback_reason
     assert sorted(grad for grad, _ in fast._copies._examples) == [False, True]
-    assert [grad for grad, _ in fast._distances._copies._examples] == [False]
+    assert [grad for grad, _ in distances._copies._examples] == [False]
+    assert len(calls) == 1  # once per start state: both rollouts started from this one
 
 
 def test_the_stepped_form_keeps_a_gradient_through_the_start_state():
