@@ -70,6 +70,7 @@ def test_a_rollout_from_a_start_state_compiles_one_sub_step_per_grad_mode(fresh_
         state = x0
         for k in range(3):
             state = fast(state, leaf[:, k])
+    fast._distances = distances
     assert fast.compiled, fast.fallback_reason
     assert sorted(grad for grad, _ in fast._copies._examples) == [False, True]
     assert [grad for grad, _ in distances._copies._examples] == [False]
