@@ -194,7 +194,9 @@ class Precompiled:
                 if attempt == AOT_RESTARTS - 1:
                     raise
         path.parent.mkdir(parents=True, exist_ok=True)
-        built.save_compiled_function(str(path), external_data=self._closure)
+        partial = path.with_name(f"{path.name}.{os.getpid()}.partial")  # whole or absent to another process
+        built.save_compiled_function(str(partial), external_data=self._closure)
+        os.replace(partial, path)
         PRECOMPILED["built"] += 1
         return built
 

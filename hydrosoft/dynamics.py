@@ -40,8 +40,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from hydrosoft.compilation import (CompiledCopies, FallsBack, compiled_copy, precompiling, private_copy,
-                                  with_default_options)
+from hydrosoft.compilation import (CompiledCopies, CompiledFunction, FallsBack, compiled_copy, precompiling,
+                                  private_copy, with_default_options)
 from hydrosoft.contact import ContactModel, ContactStep, Material, PressureFieldFrictionless, wrench
 from hydrosoft.geometry import se3
 
@@ -470,6 +470,35 @@ def packed_distances(model: Model, object_pose: Tensor, body_poses: Tensor) -> T
     A, c, _, _ = _relative_frame(object_pose, body_poses)
     return torch.cat([_distances(model, A, c, _group_points(model, index)[0].mT, bodies).flatten(1)
                       for bodies, index in _body_groups(model)], dim=-1)
+
+
+def stepped_form(model: Model, state: State, grad: bool = False, distances: Callable | None = None) -> State:
+    """``state`` in the form a step returns, with the same values: its signed distances cached (``State.phi``, from
+    ``distances(object_pose, body_poses)``, ``packed_distances`` by default), its forces coordinate-major, and with
+    ``grad`` every tensor in autograd's graph (one that is not becomes a leaf that requires grad, whose gradient
+    nobody reads). ``state`` itself when it is in that form already.
+
+    A rollout's start state (measured, estimated or made, and expanded to a batch) has no cache, another force
+    layout and no gradient: a compiled step met it as an input signature of its own, compiled as a graph of its own
+    per grad mode; in this form it runs the graphs of the steps after it (``CompiledStep``)."""
+    if state.phi is None:
+        distances = distances or functools.partial(packed_distances, model)
+        with torch.set_grad_enabled(state.object_pose.requires_grad or state.body_poses.requires_grad):
+            state = state._replace(phi=distances(state.object_pose, state.body_poses))
+    bodies, points = state.forces.shape[1:3]
+    if state.forces.stride() != (bodies * 3 * points, 3 * points, 1, points):
+        state = state._replace(forces=state.forces.mT.clone(memory_format=torch.contiguous_format).mT)
+    if grad and not all(t.requires_grad for t in state):
+        state = State(*(t if t.requires_grad else t.detach().requires_grad_(True) for t in state))
+    return state
+
+
+def _bound_distances(model: Model) -> Callable[[Tensor, Tensor], Tensor]:
+    """``packed_distances`` of ``model`` as a plain function ``(object_pose, body_poses) -> phi`` to compile."""
+    def start_distances(object_pose: Tensor, body_poses: Tensor) -> Tensor:
+        return packed_distances(model, object_pose, body_poses)
+
+    return start_distances
 
 
 def contact_geometry(model: Model, prev: State, object_pose: Tensor, body_poses: Tensor) -> list[ContactStep]:
@@ -1058,8 +1087,9 @@ class CompiledStep(FallsBack):
 
     ``CompiledStep(model, **options)(state, u)`` returns what ``step(model, state, u)`` returns, within float
     rounding (the compiled kernels reassociate sums: about 1e-7 relative in float32, 1e-15 in float64). The
-    first call for each new input signature (dtype, device, shape, whether ``state.phi`` is cached, whether
-    gradients are needed) compiles: tens of seconds on a CPU, which pays off over long rollouts or many planner
+    first call for each new input signature (dtype, device, shape, whether gradients are needed) compiles; a start
+    state (no ``state.phi`` cached) is first put in the form a step returns (``stepped_form``), so that the first
+    step of a rollout runs the graphs of the steps after it: tens of seconds on a CPU, which pays off over long rollouts or many planner
     iterations. ``options`` go to ``torch.compile`` (e.g. ``dynamic=True`` to compile once for all batch sizes).
     With the default inductor backend and no ``mode``/``options`` given, the options are
     ``compilation.DEFAULT_OPTIONS``:
@@ -1114,17 +1144,48 @@ class CompiledStep(FallsBack):
 
         self._copies = CompiledCopies(build, warm, activation_memory_budget, passthrough=(UnstableStepError,),
                                       workers=workers)
+        # a start state's signed distances (``stepped_form``): a small forward graph, where eager took 2.5-5 ms
+        self._distances = CompiledFunction(_bound_distances(model), workers=workers, **options)
         self._eager_substep = functools.partial(_substep, model)
         # per thread, (signed distances of the last state returned, the sub-steps a step from it needs): a rollout's
         # next step starts from that state, so its start check is already known (one stability check per step)
         self._end_check = threading.local()
+        self._start = threading.local()  # per thread, (the last start state, its stepped form): ``_start_form``
 
     def __call__(self, state: State, u: Tensor) -> State:
         """One step, ``State (B, ...)``, ``u (B, M, 6)`` -> ``State``."""
         # one layout for every u: a planner's u[:, k] is a view whose strides depend on its horizon, and each new
         # stride would compile the step again (an open-loop plan of each episode's length passed the limit)
         u = u.contiguous()
+        # every state in a step's own form (a start state too), so that a rollout compiles one graph per grad mode
+        tracked = any(t is not None and t.requires_grad for t in state)
+        grad = torch.is_grad_enabled() and (u.requires_grad or tracked)
+        if state.phi is None and not tracked:
+            state = self._start_form(state)
+        state = stepped_form(self.model, state, grad, self._distances)
         return self._copies.run((state, u), self._checked_step, self._eager_substep)
+
+    def _start_form(self, state: State) -> State:
+        """``stepped_form`` of a start state outside autograd's graph (its signed distances, its forces' layout), kept
+        for the next call on this thread with this very state: a solver rolls out from one start state several
+        times per solve (its gradient steps, then the final rollout). A caller that edits a state in place passes
+        it anew (as ``State.phi`` already asks)."""
+        known = getattr(self._start, "last", None)
+        if known is not None and known[0] is state:
+            return known[1]
+        formed = stepped_form(self.model, state, False, self._distances)
+        self._start.last = (state, formed)
+        return formed
+
+    @property
+    def fallback_reason(self) -> str | None:
+        """Why the sub-step, or the start state's signed distances, fell back to eager (None while both compile)."""
+        return self._copies.fallback_reason or self._distances.fallback_reason
+
+    @property
+    def compiled(self) -> bool:
+        """True while the sub-step and the start state's signed distances run compiled."""
+        return self.fallback_reason is None
 
     @property
     def compiled_substep(self):

@@ -787,6 +787,14 @@ def build_precompiled(config: StackConfig, directory: Path) -> None:
         compile_step(core)
 
 
+def build_precompiled_rollouts(config: StackConfig, directory: Path) -> None:
+    """Build the planner's precompiled functions without gradients alone (``build_precompiled`` of a solve without
+    gradient steps: its final rollout), so that a process beside the one that builds them all (``hydrosoft-stack
+    compile``) can build them at the same time; that one then loads those it finds ready."""
+    build_precompiled(msgspec.structs.replace(config, planner=msgspec.structs.replace(config.planner, grad_steps=0)),
+                      directory)
+
+
 def compile_planner(core: PlannerCore, precompile: Path | None = None) -> str | None:
     """Compile the planner's step and costs (``compile_step``), after building their precompiled functions into
     ``precompile`` (``build_precompiled``) when given, so that this process and its solver worker processes load

@@ -7,8 +7,9 @@ and a faster `malloc` is preloaded"). Processes share nothing, so each runs its 
 its own speed; the price is a copy of the problem per process (its model, compiled step and costs, built there from
 a picklable description) and a few hundred microseconds of messages per solve.
 
-``WorkerProcesses(build, workers, ...)`` starts ``workers`` processes: fresh interpreters running this module (``python
--m hydrosoft.control.worker_processes FD``), each talking to its parent over a socket pair. (A fork of a process that
+``WorkerProcesses(build, workers, ...)`` starts ``workers`` processes: fresh interpreters that import this module and
+serve (``python -c "from hydrosoft.control.worker_processes import serve_fd; serve_fd(FD)"``; run as ``-m`` it was
+imported twice, and runpy warned of it), each talking to its parent over a socket pair. (A fork of a process that
 runs torch's threads is unsafe, and multiprocessing's ``spawn`` re-imports the parent's main script, which a script
 without a ``__main__`` guard cannot survive.) ``set_problem(problem)`` has each call ``build(problem) -> (dynamics,
 stage_cost, terminal_cost)`` and keep a ``CemGd`` of its own on it (one worker, the parent's bounds, dtype and
@@ -113,8 +114,8 @@ class WorkerProcesses:
             ours, theirs = socket.socketpair()
             with theirs:
                 self._processes.append(subprocess.Popen(
-                    [sys.executable, "-m", __name__, str(theirs.fileno())], pass_fds=[theirs.fileno()],
-                    stdout=STDERR_FD))
+                    [sys.executable, "-c", f"from {__name__} import serve_fd; serve_fd({theirs.fileno()})"],
+                    pass_fds=[theirs.fileno()], stdout=STDERR_FD))
             self._pipes.append(Connection(ours.detach()))
         self._broadcast("start", [solver] * workers)
 
@@ -250,8 +251,9 @@ def _serve(pipe: Connection) -> None:
             _reply(pipe, ("error", traceback.format_exc()))
 
 
-if __name__ == "__main__":
+def serve_fd(fd: int) -> None:
+    """A worker process's body: serve its parent over the socket ``fd`` until the parent stops (or interrupts it)."""
     try:
-        _serve(Connection(int(sys.argv[1])))
+        _serve(Connection(fd))
     except (KeyboardInterrupt, EOFError, OSError):  # the parent stopped, or was interrupted with us
         pass

@@ -208,3 +208,17 @@ def test_a_build_defined_in_the_main_module_is_refused_up_front():
     build.__module__ = "__main__"
     with pytest.raises(ValueError, match="importable"):
         WorkerProcesses(build, 2, LOW, -LOW, CemGdConfig(workers=2), torch.float64)
+
+
+def test_a_worker_process_starts_without_a_warning(capfd):
+    """A worker process imports this module and serves: started as ``python -m`` of a module its package had
+    imported already, each printed runpy's RuntimeWarning to the parent's standard error."""
+    workers = start(CemGdConfig(seed=0, workers=2))
+    pids = workers.pids
+    try:
+        workers.set_problem(GOAL)
+    finally:
+        workers.close()
+    assert_stopped(pids)
+    err = capfd.readouterr().err
+    assert "Warning" not in err, err

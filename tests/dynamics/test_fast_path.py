@@ -16,6 +16,7 @@ from hydrosoft.dynamics import (
     contact_geometry,
     signed_distances,
     step,
+    stepped_form,
     touchable_points,
     with_gathered_points,
     with_object_update,
@@ -199,7 +200,8 @@ def test_compiled_step_matches_eager():
 
 def test_many_compiled_steps_in_one_process_all_stay_compiled(fresh_dynamo):
     """Dynamo's recompile limit (8 per code object) must not silently turn later instances eager: four models
-    with two signatures each (16 graphs) all run compiled (backend="eager": dynamo's capture, no code generation)."""
+    with two graphs each (the sub-step, and the start state's signed distances: 8 graphs) all run compiled
+    (backend="eager": dynamo's capture, no code generation)."""
     model, state, u = pushing(batch=1)
     counters = torch._dynamo.utils.counters
     for k in range(4):
@@ -207,7 +209,7 @@ def test_many_compiled_steps_in_one_process_all_stay_compiled(fresh_dynamo):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             first = fast(state, u)
-            fast(first, u)  # cached phi: a second signature
+            fast(first, u)
         assert fast.compiled
     assert counters["stats"]["unique_graphs"] >= 8
 
@@ -300,6 +302,9 @@ def test_threads_stepping_at_once_each_compile_their_own_copy_once(fresh_dynamo)
     import threading
 
     model, state, u = pushing(batch=2)
+    # in a step's own form, as the step puts it (its signed distances are a graph of their own, which the threads
+    # would otherwise compile first, one after another, reaching the sub-step's copies no longer at once)
+    state = stepped_form(model, state)
     counters = torch._dynamo.utils.counters
     alone = CompiledStep(model, backend="eager")
     before = counters["stats"]["unique_graphs"]

@@ -46,3 +46,18 @@ def test_one_process_builds_one_core_per_share_size_as_a_lone_worker_then_stops_
     assert (alone.spacing, alone.horizon, alone.dtype) == (config.planner.spacing, config.planner.horizon, "float32")
     assert setting == compilation.Precompiling(tmp_path / "planner", build=True)
     assert after == compilation.Precompiling(tmp_path, build=False)
+
+
+def test_the_functions_without_gradients_build_from_a_solve_without_gradient_steps(tmp_path, monkeypatch):
+    """``build_precompiled_rollouts`` (a process of its own beside ``compile``'s planner build) makes the same lone
+    worker's core with no gradient steps: its solve runs only the final rollout, without gradients, into the same
+    directory, whose functions the full build then loads."""
+    config = load_config(SIM_TOML)
+    made = []
+    monkeypatch.setattr(planner.PlannerCore, "build", classmethod(
+        lambda cls, config: made.append((config.planner, compilation.precompiling())) or object()))
+    monkeypatch.setattr(planner, "compile_step", lambda core: None)
+    planner.build_precompiled_rollouts(config, tmp_path / "planner")
+    (alone, setting), = made
+    assert (alone.grad_steps, alone.samples, alone.workers, alone.horizon) == (0, 32, 1, config.planner.horizon)
+    assert config.planner.grad_steps == 2 and setting == compilation.Precompiling(tmp_path / "planner", build=True)

@@ -4,6 +4,7 @@ start-ups do, rebuilds a stale one, or says why it cannot."""
 from __future__ import annotations
 
 import functools
+import os
 import re
 from pathlib import Path
 
@@ -71,16 +72,24 @@ def test_a_bad_config_is_refused_by_key(tmp_path, capsys):
 
 def test_it_builds_each_parts_artefact_and_rebuilds_a_stale_one(tmp_path, capsys, monkeypatch, no_cache_env):
     """Wiring only: dynamo's ``eager`` backend stands in for inductor (whose C++ compile takes minutes). The cache
-    holds the planner's artefact of another torch version (stale) and none of the plant's (missing)."""
+    holds the planner's artefact of another torch version (stale) and none of the plant's (missing). The plant
+    builds in a process of its own, beside the planner's build here, and so do the planner's functions without
+    gradients; their lines come out here."""
     backends = []
+    plant_pids = tmp_path / "plant-pids"
 
     def recording_backend(graph, example_inputs):
         backends.append(len(example_inputs))
         return graph.forward
 
+    def plant_backend(graph, example_inputs):
+        with plant_pids.open("a") as file:  # from the plant's process, whose memory this test does not see
+            file.write(f"{os.getpid()}\n")
+        return graph.forward
+
     monkeypatch.setattr(evaluation, "CompiledStep", functools.partial(CompiledStep, backend=recording_backend))
     monkeypatch.setattr(evaluation, "compiled_cost_terms", functools.partial(compiled_cost_terms, backend="eager"))
-    monkeypatch.setattr(sim_world, "CompiledStep", functools.partial(CompiledStep, backend="eager"))
+    monkeypatch.setattr(sim_world, "CompiledStep", functools.partial(CompiledStep, backend=plant_backend))
     path, cache = compiled_config(tmp_path), tmp_path / "cache"
     config = load_config(path)
     plant, planner = artefacts.plant_key(config), artefacts.planner_key(config)
@@ -96,6 +105,8 @@ def test_it_builds_each_parts_artefact_and_rebuilds_a_stale_one(tmp_path, capsys
     assert f"artefacts in {cache}" in out
     assert artefacts.check(cache, plant) == artefacts.check(cache, planner) == "ready"
     assert len(backends) >= 2  # a solve's signatures: gradient-enabled and no-grad rollouts at least
+    assert plant_pids.read_text().split() and str(os.getpid()) not in plant_pids.read_text().split()
+    assert "planner: its functions without gradients built in" in out  # beside the planner's build, which needs them
 
 
 @pytest.mark.parametrize("failing, named, unnamed", [
