@@ -188,7 +188,10 @@ class Precompiled:
         compiled = torch.compile(private_copy(self.fn), fullgraph=True, **self.options)
         for attempt in range(AOT_RESTARTS):
             try:
-                built = compiled.aot_compile((args, {}))
+                with warnings.catch_warnings():  # dynamo's guards read .grad of the inputs' non-leaf tensors: noise
+                    warnings.filterwarnings("ignore", message="The .grad attribute of a Tensor that is not a leaf",
+                                            category=UserWarning)
+                    built = compiled.aot_compile((args, {}))
                 break
             except torch._dynamo.exc.TensorifyScalarRestartAnalysis:
                 if attempt == AOT_RESTARTS - 1:

@@ -9,6 +9,8 @@ from hydrosoft.dynamics import CompiledStep, State, step, stepped_form, with_obj
 from hydrosoft.scene import compile_scene
 from hydrosoft.tasks.scenes import task_scene
 
+pytestmark = pytest.mark.slow  # the first step traced through aot_eager: about 30 s on 2 cores
+
 
 def start(object_update: str, dtype=torch.float64, batch: int = 4):
     """The pushing scene's start state as a solver gets it (expanded to ``batch``, contiguous, no cache), with
