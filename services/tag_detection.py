@@ -237,7 +237,7 @@ def region_around(corners: np.ndarray, shape: tuple[int, int]) -> PixelBox:
 def make_detector() -> cv2.aruco.ArucoDetector:
     """OpenCV's 36h11 detector, its corners left on whole pixels (the corners of the contour's polygon):
     ``detect_tags`` refines them on the whole image (``subpixel_corners``, then ``refine_corners``). Its adaptive
-    threshold runs one pass, windows of ``THRESHOLD_WINDOWS_PX``."""
+    threshold runs two passes, windows of ``THRESHOLD_WINDOWS_PX`` (3 and 13 px, OpenCV's step of 10 apart)."""
     parameters = cv2.aruco.DetectorParameters()
     parameters.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
     low, high = THRESHOLD_WINDOWS_PX

@@ -91,7 +91,7 @@ def latency_split(plans: list[msg.Plan]) -> dict[str, dict[str, float]]:
     """Per stage of ``STAGES``: p50 and p99 (ms) over the plans that carry both of its stamps."""
     split = {}
     for stage, (start, end) in STAGES.items():
-        ms = [(getattr(p, end) - getattr(p, start)) * 1e-6 for p in plans if getattr(p, start) and getattr(p, end)]
+        ms = [_stage_ms(p, stage) for p in plans if getattr(p, start) and getattr(p, end)]
         if ms:
             split[stage] = {"p50_ms": round(float(np.percentile(ms, 50)), 2),
                             "p99_ms": round(float(np.percentile(ms, 99)), 2), "plans": len(ms)}
@@ -99,6 +99,7 @@ def latency_split(plans: list[msg.Plan]) -> dict[str, dict[str, float]]:
 
 
 def _stage_ms(plan: msg.Plan, stage: str) -> float:
+    """The time (ms) ``plan`` spent in ``stage`` of ``STAGES``, between its two stamps."""
     start, end = STAGES[stage]
     return (getattr(plan, end) - getattr(plan, start)) * 1e-6
 

@@ -279,8 +279,7 @@ class LimitsConfig(Strict):
     def __post_init__(self) -> None:
         _positive(self, "limits", "max_speed_m_s", "max_angular_speed_rad_s", "max_force_n", "servo_rate_hz",
                   "idle_rate_hz", "heartbeat_timeout_s", "planner_lost_s", "sensor_lost_s", "state_timeout_s",
-                  "max_target_lead_s",
-                  "max_plan_age_s", "max_tilt_deg")
+                  "max_target_lead_s", "max_plan_age_s", "max_tilt_deg")
         for name, bound in LIMIT_BOUNDS.items():
             if name != "max_yaw_deg":
                 _require(getattr(self, name) <= bound, f"limits.{name}",
