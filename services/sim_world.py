@@ -38,7 +38,6 @@ import argparse
 import asyncio
 import functools
 import math
-import sys
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -79,11 +78,6 @@ EVAL_PERIOD_S = 0.1  # ground truth on eval/ at 10 Hz
 RATE_LOG_PERIOD_S = 10.0  # how often the achieved rates and step and render times are logged
 MAX_LAG_TICKS = 5  # most plant steps one late tick catches up; further behind, the schedule restarts from now
 TORCH_THREADS = 1  # per torch op: physics and depth rendering run side by side on a small machine
-GIL_SWITCH_INTERVAL_S = 0.0005  # s: a thread that waits for the interpreter lock asks for it after this (Python's
-# default 5 ms). The plant step, the two renderers, the FT 300's thread and the event loop (the simulated controller's
-# 125 Hz ticks) share one interpreter: at 5 ms they waited for each other's Python, and during goals a plant step took
-# 5.3-5.8 ms mean against 2.4-2.5 ms at 0.5 ms, the tag image's exposure to image 11.8-14.4 against 7.5-9.5 ms
-# (docs/benchmarks.md, the paper planner in the stack)
 
 
 class PlantStepError(Exception):
@@ -464,7 +458,6 @@ async def serve(service: Service, config: StackConfig) -> None:
     if config.mode != "sim":
         raise ConfigError(f"sim_world runs only in mode = 'sim', the config says {config.mode!r}")
     torch.set_num_threads(TORCH_THREADS)
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     loop = asyncio.get_running_loop()
     if config.sim.compile:
         artefacts.use_precompiled(config, artefacts.plant_key(config))  # before the plant's compiled step is made
