@@ -31,6 +31,11 @@ object out of contact for ``reapproach.LOST_AFTER_S`` is lost, and the planner d
 (``services/arm/reapproach.py``: up, across, down to the scene's pressing pose) before it plans again, at most
 ``planner.max_reapproaches`` times per goal.
 
+Priority (``planner.nice``): the planner's computing runs at that niceness, in threads of its own (``compute_threads``:
+the build and compile, the penetration and the solve) and the worker processes they start, so that the commander and
+the sensors go first; its event loop, which takes the inputs, estimates the state and sends the targets (a few ms per
+cycle on the camera-to-target path), runs at the niceness it was started with.
+
 Device (``planner.device``): the model, the solver and its worker processes compute there; each solve's state moves
 there once (``PlannerCore.observation``), and its plan, targets and Plan message come back to the CPU. A device that is
 not available (``device_unavailable``) is no reason to plan on the CPU instead: the planner then reports it in its
@@ -56,6 +61,7 @@ import os
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -111,6 +117,8 @@ POSE_WAIT_PERIODS = 1.0
 NEXT_DUE_PERIODS = 0.5
 LATE_PERIODS = 0.5
 OBJECT_POSE_TOPIC = "object_pose/object"
+#: The planner's computing threads (``compute_threads``): one, as a cycle's build, penetration and solve run in turn.
+COMPUTE_THREADS = 1
 #: The status note while the planner compiles its step (``planner.compile``) before it reports ready.
 COMPILING_NOTE = ("compiling the planner step (planner.compile): ready in seconds once its artefact is built "
                   "(hydrosoft-stack compile), minutes without it: the planner then builds its precompiled functions "
@@ -393,8 +401,10 @@ class Episode:
 class Planner:
     """The service's state: the core, the goal, the current episode and the input subscribers."""
 
-    def __init__(self, service: Service, config: StackConfig, core: PlannerCore) -> None:
+    def __init__(self, service: Service, config: StackConfig, core: PlannerCore,
+                 compute: ThreadPoolExecutor | None = None) -> None:
         self.service, self.config, self.core = service, config, core
+        self.compute = compute  # runs the penetration and the solve (``compute_threads``); None: the loop's default
         self.goal: msg.Goal | None = None
         self.plan_seq = 0
         self.episode: Episode | None = None
@@ -598,7 +608,8 @@ class Planner:
             return
         loop = asyncio.get_running_loop()
         try:
-            penetration = await loop.run_in_executor(None, self.penetration, object_pose, arm_poses, deformations)
+            penetration = await loop.run_in_executor(self.compute, self.penetration, object_pose, arm_poses,
+                                                     deformations)
         except ValueError as err:  # a deformation image that does not fit its camera: no solve on it
             self.service.count_error("bad_input", str(err))
             await asyncio.sleep(IDLE_PERIOD_S)
@@ -615,7 +626,7 @@ class Planner:
         state = estimate_state(self.core.model, observation, self.core.sensors, episode.prediction)
         tic = time.perf_counter()
         stamps["solve_start_ns"] = time.monotonic_ns()
-        result = await loop.run_in_executor(None, episode.solver.solve, state)
+        result = await loop.run_in_executor(self.compute, episode.solver.solve, state)
         solve_s = time.perf_counter() - tic
         episode.solved_pose_ns, episode.solved_at_ns = stamps["pose_stamp_ns"], time.monotonic_ns()
         if self.episode is not episode or episode.outcome != "running":
@@ -834,6 +845,14 @@ async def serve_without_device(service: Service, config: StackConfig, reason: st
         serving.cancel()
 
 
+def compute_threads(nice: int) -> ThreadPoolExecutor:
+    """``COMPUTE_THREADS`` threads that each add ``nice`` to their niceness as they start (on Linux a thread's own;
+    ``os.nice``): what runs on them, and the threads and processes they start, runs at that niceness, the calling
+    thread at its own."""
+    return ThreadPoolExecutor(COMPUTE_THREADS, thread_name_prefix="planner-compute", initializer=os.nice,
+                              initargs=(nice,))
+
+
 def worker_fallback(index: int, why: str) -> str:
     """A solver worker process's parts that run eager (``WorkerProcesses.fallbacks``), in words."""
     return f"solver worker process {index}: {why}"
@@ -851,34 +870,34 @@ def watch_worker_fallbacks(service: Service, core: PlannerCore) -> None:
 
 
 async def run(service: Service, config: StackConfig) -> None:
-    """The planner's loop: lower its priority (``planner.nice``), build (and compile) the model, serve the client
-    API, plan while a goal runs; without its device, ``serve_without_device``."""
+    """The planner's loop: build (and compile) the model, serve the client API, plan while a goal runs, its computing
+    at a lower priority (``planner.nice``, ``compute_threads``); without its device, ``serve_without_device``."""
     unavailable = device_unavailable(config.planner.device)
     if unavailable is not None:
         await serve_without_device(service, config, unavailable)
         return
     loop = asyncio.get_running_loop()
+    compute = compute_threads(config.planner.nice)  # the worker processes start there: they inherit its niceness
     if config.planner.nice:
-        os.nice(config.planner.nice)  # before the worker processes start: they inherit it
-        service.log.info("running at niceness %d (planner.nice): the other services go first", os.nice(0))
+        service.log.info("computing at niceness +%d (planner.nice): the other services go first", config.planner.nice)
     torch.set_num_threads(config.planner.threads)
     if config.planner.compile:  # before the model and the worker processes: they load its precompiled functions
         precompiled = artefacts.use_precompiled(config, artefacts.planner_key(config))
-    core = await loop.run_in_executor(None, PlannerCore.build, config)
+    core = await loop.run_in_executor(compute, PlannerCore.build, config)
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
         service.compilation = build.status
         service.note = COMPILING_NOTE
         compile = functools.partial(compile_planner, core, None if build.ready else precompiled)
         elsewhere = None if core.processes is None else core.processes.precompiled
-        if not await loop.run_in_executor(None, build.run, compile, service.log.info, PROGRESS_PERIOD_S, elsewhere):
+        if not await loop.run_in_executor(compute, build.run, compile, service.log.info, PROGRESS_PERIOD_S, elsewhere):
             service.log.warning("the planner runs eager: %s", build.fallback)
         service.note = ""
         service.compilation = build.status
         watch_worker_fallbacks(service, core)
     else:
         service.compilation = "eager (planner.compile = false)"
-    planner = Planner(service, config, core)
+    planner = Planner(service, config, core, compute)
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
     serving = service.supervise(asyncio.create_task(server.serve(), name="planner.serve"))
     await service.ready()
@@ -888,6 +907,7 @@ async def run(service: Service, config: StackConfig) -> None:
     finally:
         serving.cancel()
         core.close()
+        compute.shutdown(wait=False)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -363,9 +363,10 @@ class PlannerConfig(Strict):
     object fails the goal at once. preset: the named settings (``PLANNER_PRESETS``) the config file's table
     started from (``with_planner_preset``, applied on load), or None. target_lead_s is the shortest lead: the
     planner lengthens it to twice its recent p90 cycle plus a margin, within ``limits.max_target_lead_s``. nice:
-    the planner process's (and its worker processes') scheduling niceness, 0-19 (``os.nice``): on cores it shares
-    with the arm commander and the sensor services, a positive one lets them run first whenever they are ready,
-    so a solve or a compile never starves the commander's servo loop or the controller link. device: where the
+    the scheduling niceness, 0-19 (``os.nice``), of the planner's computing (its build, compile and solve threads and
+    its worker processes; its event loop keeps its own): on cores it shares with the arm commander and the sensor
+    services, a positive one lets them run first whenever they are ready, so a solve or a compile never starves the
+    commander's servo loop or the controller link. device: where the
     planner's model, solver and worker processes compute, ``cpu`` (the default), ``cuda`` or ``cuda:N`` (a torch
     device); a planner whose GPU is not available says so in its status and plans nothing (no fallback to the CPU)."""
 

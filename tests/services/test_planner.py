@@ -7,6 +7,8 @@ import asyncio
 import collections
 import math
 import os
+import subprocess
+import sys
 import time
 import typing
 from pathlib import Path
@@ -34,6 +36,7 @@ from hydrosoft.services.planner import (
     Planner,
     PlannerCore,
     arm_end_positions,
+    compute_threads,
     device_unavailable,
     ended_by_commander,
     planner_scene,
@@ -444,3 +447,20 @@ def test_the_planner_starts_a_solve_when_a_new_pose_arrives_or_the_wait_limit_pa
         assert 0.5 <= await new_pose_after(5.0) < 0.8  # none comes: it goes on after the limit
 
     asyncio.run(scenario())
+
+
+def test_compute_threads_run_at_the_planner_niceness_and_leave_the_caller_at_its_own():
+    """The planner's computing (its threads, and the worker processes they start) runs at ``planner.nice``; the
+    thread that made them, the planner's event loop (inputs, state estimate, targets), keeps its niceness."""
+    before = os.nice(0)
+    expected = min(before + 3, 19)
+    compute = compute_threads(3)
+    try:
+        in_thread = compute.submit(os.nice, 0).result(timeout=30)
+        child = compute.submit(subprocess.run, [sys.executable, "-c", "import os; print(os.nice(0))"],
+                               capture_output=True, text=True, timeout=60).result(timeout=90)
+    finally:
+        compute.shutdown()
+    assert in_thread == expected
+    assert int(child.stdout) == expected
+    assert os.nice(0) == before
