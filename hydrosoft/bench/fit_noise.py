@@ -90,7 +90,8 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
     ``(mm, deg)`` of tracker noise on its object poses, the plant at ``plant_substeps`` (None: its default) and the fit's replay at
     ``substeps`` (None: chosen by the fit); its row of the benchmark's document: per parameter the fit's value,
     error, Gauss-Newton sigma, interval, ``z`` (the error in Gauss-Newton standard deviations, in the fit's
-    log and logit coordinates) and ``z_linear`` (``linear_error`` in the same standard deviations), and, with draws,
+    log and logit coordinates) and ``z_linear`` (``linear_error`` in the same standard deviations; None without
+    noise, where the standard deviations are the resolution's), and, with draws,
     ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth."""
     import numpy as np
 
@@ -109,16 +110,17 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
     batches = material_fit.replay_batches(groups, labels)
     result = material_fit.fit_material(batches, "nh", list(TRUTH), substeps=substeps)
     row = {"seed": seed, "noise_scale": noise_scale, "reduced_chi2": result.reduced_chi2, "substeps": result.substeps,
-           "replay_shift_sigma": result.replay_shift_sigma, "seconds": time.perf_counter() - tic}
+           "replay_shift_sigma": result.replay_shift_sigma}
     truth = material_fit.to_theta(TRUTH, material_fit.START)
     errors = result.theta - truth.numpy()
-    steps = linear_error(batches, truth, result.substeps)
     sigmas = np.sqrt(np.diag(result.covariance))
-    for e, error, step, sigma in zip(result.estimates, errors, steps, sigmas):
+    z_linears = linear_error(batches, truth, result.substeps) / sigmas if noise_scale > 0 else [None] * len(sigmas)
+    for e, error, sigma, z_linear in zip(result.estimates, errors, sigmas, z_linears):
         row[e.name] = {"value": e.value, "relative_error": e.value / TRUTH[e.name] - 1, "sigma": e.sigma,
                        "interval95": list(e.interval95), "identified": e.identified,
                        "covered": _covered(e.interval95, TRUTH[e.name]), "z": float(error / sigma),
-                       "z_linear": float(step / sigma)}
+                       "z_linear": None if z_linear is None else float(z_linear)}
+    row["seconds"] = time.perf_counter() - tic
     if draws:
         boot = bootstrap(result, batches, "nh", list(TRUTH), draws, seed)
         row["bootstrap"] = {"draws": len(boot.draws), "failed": boot.failed, "noise_scale": boot.noise_scale,
