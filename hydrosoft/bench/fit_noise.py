@@ -14,12 +14,17 @@ seeds shows the bias it causes. ``--plant-substeps N --substeps N`` makes the fi
 plant otherwise takes ``synthetic_wrench.PLANT_SUBSTEPS`` and the replay is chosen by the fit's resolution rule), to
 tell their mismatch from the noise; ``--no-recovery`` skips the noise-free run (for many seeds in chunks).
 
+Each row also gives per parameter ``z_linear``: the error the seed's noise alone gives through the fit's
+linearisation at the truth (``linear_error``). Its mean square over many seeds tells a wrong noise model or
+weighting (away from 1) from chance in a few seeds, and the fitted ``z`` less it is the non-linearity's share.
+
 Prints one row per run (the recovered values, their relative error, 1 sigma and whether covered) and per
 parameter and method the count of seeds that cover it; ``--json`` prints one JSON document instead.
 
 Run time: about 9 s of CPU per seed on one core (recording, fit, the replay-resolution check and the Gauss-Newton
 Jacobian): 101 s for the default 10 seeds and the noise-free run, 11 min 45 s of wall time on the loaded 2-core dev
-VM (2026-11-27). ``--draws 100`` adds 1 to 15 min of CPU per seed (6 to 21 cost evaluations per refit; more
+VM (2026-11-27). ``z_linear`` adds one Jacobian at the truth per noisy seed: 0.8 s of CPU at 1 sub-step, 4.2 s at 8
+(about 17 s for seeds 0-9). ``--draws 100`` adds 1 to 15 min of CPU per seed (6 to 21 cost evaluations per refit; more
 sub-steps cost more).
 """
 
@@ -85,8 +90,9 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
     """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0) and ``pose_noise``
     ``(mm, deg)`` of tracker noise on its object poses, the plant at ``plant_substeps`` (None: its default) and the fit's replay at
     ``substeps`` (None: chosen by the fit); its row of the benchmark's document: per parameter the fit's value,
-    error, Gauss-Newton sigma, interval and ``z`` (the error in Gauss-Newton standard deviations, in the fit's
-    log and logit coordinates), and, with draws,
+    error, Gauss-Newton sigma, interval, ``z`` (the error in Gauss-Newton standard deviations, in the fit's
+    log and logit coordinates) and ``z_linear`` (``linear_error`` in the same standard deviations; None without
+    noise, where the standard deviations are the resolution's), and, with draws,
     ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth."""
     import numpy as np
 
@@ -105,13 +111,17 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
     batches = material_fit.replay_batches(groups, labels)
     result = material_fit.fit_material(batches, "nh", list(TRUTH), substeps=substeps)
     row = {"seed": seed, "noise_scale": noise_scale, "reduced_chi2": result.reduced_chi2, "substeps": result.substeps,
-           "replay_shift_sigma": result.replay_shift_sigma, "seconds": time.perf_counter() - tic}
-    errors = result.theta - material_fit.to_theta(TRUTH, material_fit.START).numpy()
+           "replay_shift_sigma": result.replay_shift_sigma}
+    truth = material_fit.to_theta(TRUTH, material_fit.START)
+    errors = result.theta - truth.numpy()
     sigmas = np.sqrt(np.diag(result.covariance))
-    for e, error, sigma in zip(result.estimates, errors, sigmas):
+    z_linears = linear_error(batches, truth, result.substeps) / sigmas if noise_scale > 0 else [None] * len(sigmas)
+    for e, error, sigma, z_linear in zip(result.estimates, errors, sigmas, z_linears):
         row[e.name] = {"value": e.value, "relative_error": e.value / TRUTH[e.name] - 1, "sigma": e.sigma,
                        "interval95": list(e.interval95), "identified": e.identified,
-                       "covered": _covered(e.interval95, TRUTH[e.name]), "z": float(error / sigma)}
+                       "covered": _covered(e.interval95, TRUTH[e.name]), "z": float(error / sigma),
+                       "z_linear": None if z_linear is None else float(z_linear)}
+    row["seconds"] = time.perf_counter() - tic
     if draws:
         boot = bootstrap(result, batches, "nh", list(TRUTH), draws, seed)
         row["bootstrap"] = {"draws": len(boot.draws), "failed": boot.failed, "noise_scale": boot.noise_scale,
@@ -122,6 +132,23 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
                        "covered": _covered(boot.intervals[kind][e.name], TRUTH[e.name])} for kind in BOOTSTRAP_INTERVALS}}
         row["seconds"] = time.perf_counter() - tic
     return row
+
+
+def linear_error(batches, truth, substeps: int):
+    """The fit's error ``(3,)`` in the unconstrained coordinates if the residuals were linear in them: the
+    Gauss-Newton step ``-(J^T J)^-1 J^T r`` from the ``truth``'s coordinates ``(3,)`` (``material_fit.to_theta``), with
+    the whitened residuals ``r`` of ``batches`` and their Jacobian ``J`` there, at the fit's ``substeps``. With the
+    replay the plant exactly, ``r`` is the whitened noise, so under a right noise model this error over the fit's
+    standard deviations is exactly normal with variance 1: the fitted ``z`` less this ``z_linear`` is the
+    non-linearity's share."""
+    import numpy as np
+    import torch
+
+    from hydrosoft.bench import material_fit
+
+    r, J = material_fit.residuals_and_jacobian(truth, torch.ones(3, dtype=torch.bool), batches, "nh",
+                                               material_fit.START, substeps)
+    return -np.linalg.lstsq(J, r, rcond=None)[0]
 
 
 def covered_of(row: dict, name: str, method: str) -> bool:
@@ -138,10 +165,14 @@ def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
     method (``hessian``, and with ``draws`` the bootstrap's ``percentile`` and ``basic``); ``mean_relative_error``
     per parameter over the noisy seeds (the bias, with its standard error); ``pose_noise`` ``(mm, deg)``;
     ``coverage_interval95``: per method and parameter the exact (Clopper-Pearson) 95 % confidence interval of the
-    coverage fraction; ``mean_square_z``: per parameter the mean squared ``z`` (1 for right intervals).
+    coverage fraction; ``mean_square_z``: per parameter the mean squared ``z`` (1 for right intervals);
+    ``mean_square_z_linear`` and ``covered_linear``: the same of ``z_linear`` (``linear_error``), the noise's share
+    alone, and how many of its ``|z_linear|`` are within the 95 % interval's ``Z95``.
     ``plant_substeps`` and ``substeps``: as ``fit_one``'s; ``recovery``: whether to run the noise-free row (else
     None)."""
     from scipy.stats import binomtest
+
+    from hydrosoft.bench.material_fit import Z95
 
     with tempfile.TemporaryDirectory(prefix="hydrosoft-fit-bench-") as folder:
         recovery_row = None
@@ -163,6 +194,8 @@ def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
     return {"truth": TRUTH, "object": OBJECT, "trajectories": len(KINDS), "steps": STEPS, "recovery": recovery_row,
             "plant_substeps": plant_substeps, "substeps": substeps, "coverage_interval95": coverage_interval95,
             "mean_square_z": {name: sum(r[name]["z"] ** 2 for r in noisy) / seeds for name in TRUTH},
+            "mean_square_z_linear": {name: sum(r[name]["z_linear"] ** 2 for r in noisy) / seeds for name in TRUTH},
+            "covered_linear": {name: sum(abs(r[name]["z_linear"]) <= Z95 for r in noisy) for name in TRUTH},
             "noisy": noisy, "covered": covered_by["hessian"], "all_covered": all_covered_by["hessian"],
             "covered_by": covered_by, "all_covered_by": all_covered_by, "seeds": seeds,
             "first_seed": first_seed, "draws": draws, "pose_noise": list(pose_noise),
@@ -219,6 +252,9 @@ def format_table(document: dict) -> str:
             + f"; all three {document['all_covered_by'][method]}/{document['seeds']}")
     lines.append("Mean squared z (1 for right intervals): " + ", ".join(
         f"{n} {z:.2f}" for n, z in document["mean_square_z"].items()))
+    lines.append("Linearised at the truth (the noise alone): mean squared z " + ", ".join(
+        f"{n} {z:.2f}" for n, z in document["mean_square_z_linear"].items()) + "; inside 95 %: " + ", ".join(
+        f"{n} {c}/{document['seeds']}" for n, c in document["covered_linear"].items()))
     return "\n".join(lines)
 
 

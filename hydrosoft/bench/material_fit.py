@@ -249,7 +249,7 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
     evaluations: list[float] = []
     steps = substeps or 1
     theta = minimise(to_theta(start, start), mask, batches, contact, start, steps, max_iterations, evaluations, progress)
-    r, J = _residuals_and_jacobian(theta, mask, batches, contact, start, steps)
+    r, J = residuals_and_jacobian(theta, mask, batches, contact, start, steps)
     while True:
         n, p = r.shape[0], int(mask.sum())
         s2 = float(np.square(r).sum()) / max(n - p, 1)
@@ -259,7 +259,7 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
             break
         steps *= 2  # the optimum moves by the Gauss-Newton step to the finer replay's residuals
         theta = theta.masked_scatter(mask, theta[mask] + torch.as_tensor(step))
-        r, J = _residuals_and_jacobian(theta, mask, batches, contact, start, steps)
+        r, J = residuals_and_jacobian(theta, mask, batches, contact, start, steps)
     estimates = _estimates(theta, start, mask, covariance)
     return MaterialFit(estimates=estimates, cost_start=evaluations[0], cost=float(np.square(r).mean()),
                        reduced_chi2=s2, residual_count=n, iterations=len(evaluations), covariance=covariance,
@@ -318,7 +318,7 @@ def replay_shift(theta: torch.Tensor, J: np.ndarray, r: np.ndarray, covariance: 
     return float(ratio.max()), step
 
 
-def _residuals_and_jacobian(theta: torch.Tensor, mask: torch.Tensor, batches, contact, start, substeps
+def residuals_and_jacobian(theta: torch.Tensor, mask: torch.Tensor, batches, contact, start, substeps
                             ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals ``(n,)`` and their Jacobian ``(n, p)`` in the fitted coordinates, by forward-mode autograd."""
     import torch.autograd.forward_ad as forward_ad

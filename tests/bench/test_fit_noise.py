@@ -1,5 +1,6 @@
 """The noise benchmark's synthetic tracker noise: the recorded object poses carry the asked noise, the plant's
-wrenches do not change with it (the same seed gives the same wrench noise), and ``--pose-noise`` takes MM,DEG."""
+wrenches do not change with it (the same seed gives the same wrench noise), and ``--pose-noise`` takes MM,DEG; each
+seed's ``z_linear``, the noise's share of the fit's error, and its summaries."""
 
 from __future__ import annotations
 
@@ -53,3 +54,16 @@ def test_the_plant_and_replay_substeps_are_options_and_bad_ones_are_refused(caps
     for option in ("--plant-substeps", "--substeps"):
         assert fit_noise.run(parser.parse_args([option, "0"])) == 2
         assert f"{option} must be at least 1" in capsys.readouterr().err
+
+
+def test_each_seed_gives_the_error_its_noise_alone_makes_through_the_linearised_fit(monkeypatch):
+    monkeypatch.setattr(fit_noise, "KINDS", ("shear", "twist", "shear_twist"))
+    monkeypatch.setattr(fit_noise, "STEPS", 6)
+    document = fit_noise.evaluate(1, first_seed=1, plant_substeps=1, substeps=1, recovery=False)
+    for row in document["noisy"]:  # E is linear in its interval: the fit's error is the noise's linear share
+        z, z_linear = row["E"]["z"], row["E"]["z_linear"]
+        assert z_linear != 0 and abs(z - z_linear) < 0.05 * max(1, abs(z))
+    for name in fit_noise.TRUTH:
+        z = [row[name]["z_linear"] for row in document["noisy"]]
+        assert document["mean_square_z_linear"][name] == pytest.approx(z[0] ** 2)
+        assert document["covered_linear"][name] == sum(abs(x) <= 1.959964 for x in z)
