@@ -22,7 +22,7 @@ GROUPS = {
         "plant": ("hydrosoft.services.benchmarks.plant", "one sim_world physics tick, eager against compiled (sim.compile), on a config's plant"),
         "soak": ("hydrosoft.services.benchmarks.soak", "the sim stack idle (CPU per service), then goals back to back for minutes: memory, CPU and the camera-to-target latency split, first against last window. Runs the stack's start (minutes: the paper planner compiles; run `compile CONFIG` first) plus --idle-seconds plus --minutes"),
         "recording": ("hydrosoft.services.benchmarks.recording", "the sim stack's plan rate and bus latency without, with and again without a recorder attached, in one run"),
-        "fit": ("hydrosoft.bench.fit_noise", "the material fit on synthetic recordings of a known material: recovery, and coverage of its 95-percent intervals under FT 300 noise over 10 seeds (about 70 s of CPU; 3 min on a shared 2-core VM)"),
+        "fit": ("hydrosoft.bench.fit_noise", "the material fit on synthetic recordings of a known material: recovery, and coverage of its 95-percent intervals under FT 300 noise over 10 seeds (about 2 min of CPU; 2-12 min of wall time on a 2-core machine, longer when it is loaded)"),
         "wrench": ("hydrosoft.bench.wrench", "wrench RMSE per object and contact model on collected recordings (paper Table II)"),
     }),
     "collect": ("record benchmark data with the arm (see `collect DATASET --help`)", {"wrench": ("hydrosoft.services.commands.collect", "press-and-shear trajectories on the benchmark objects: bubble pose, object pose and F/T wrench to MCAP (paper Table II)")}),
