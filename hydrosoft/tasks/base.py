@@ -195,10 +195,10 @@ class Task:
     success_mm: an episode succeeds when its final ADD is at most this. weights: MPC cost weights.
     travel_ratio: the most the object translates per metre of body translation (1 when it can be dragged
     along; 1/2 for rolling without slip, where the contact on top moves twice as fast as the centre).
-    drift_from_scene: the drift hinge measures each actuated body's offset from the object against the scene's
-    resting offset (``scene_offsets``: the bubble centred on the cube) instead of the offset the goal started at
-    (``Task.costs``). For dragging, where the offset a push leaves is membrane shear that the next push in the
-    other direction must first undo.
+    drift_from_scene: the drift hinge measures each actuated body's offset from the object in the table's plane
+    (x, y) against the scene's resting offset (``scene_offsets``: the bubble centred on the cube) instead of the
+    offset the goal started at (``Task.costs``); its height stays the goal start's. For dragging, where the offset
+    a push leaves is membrane shear that the next push in the other direction must first undo.
     """
 
     name: str
@@ -287,10 +287,11 @@ class Task:
         rolling, where the contact on top moves twice as fast as the centre). ``anchor`` is ``(object_pose (7,),
         body_poses (M, 7))``: the state a goal started from, so that slip stays bounded over a whole episode of
         replans (each plan of a closed loop would otherwise allow ``drift_limit`` more, and the bubble walked off
-        the cube). With ``drift_from_scene`` the offsets are the scene's resting ones (``scene_offsets``) and only
-        the anchor's object position is used: a push leaves the bubble up to 9 mm ahead of the cube (the
-        membrane's shear), and a push back, which must shear it as far the other way, measured from there reached
-        the 15 mm limit and stalled 3 mm short of its goal (docs/benchmarks.md, "A goal near its tolerance").
+        the cube). With ``drift_from_scene`` the offsets' x and y are the scene's resting ones (``scene_offsets``),
+        their height the anchor's (the arm holds it; a TCP calibrated a few mm off would otherwise count): a push
+        leaves the bubble up to 9 mm ahead of the cube (the membrane's shear), and a push back, which must shear it
+        as far the other way, measured from there reached the 15 mm limit and stalled 3 mm short of its goal
+        (docs/benchmarks.md, "A goal near its tolerance").
         Without an anchor, the anchor is each plan's first state ``x_0``, which ``stage_cost`` sees; it is kept per
         thread for the ``terminal_cost`` call that follows (solver workers roll out their shares of the rows on
         threads of their own).
@@ -308,9 +309,9 @@ class Task:
         if anchor is not None:
             origin = anchor[0].to(model.device, model.dtype)[:3]
             offsets = anchor[1].to(model.device, model.dtype)[list(actuated), :3] - origin
-            if self.drift_from_scene:
-                names = tuple(model.body_names[i] for i in actuated)
-                offsets = self.scene_offsets(names).to(model.device, model.dtype)
+            if self.drift_from_scene:  # the resting offset in the table's plane, the height the goal started at
+                resting = self.scene_offsets(tuple(model.body_names[i] for i in actuated))
+                offsets = torch.cat([resting[:, :2].to(model.device, model.dtype), offsets[:, 2:]], -1)
             fixed = (origin, offsets)
         first = threading.local()
 

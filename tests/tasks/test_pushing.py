@@ -79,3 +79,17 @@ def test_an_episode_that_keeps_the_plant_starts_where_the_last_one_ended():
     fresh = run_episode(setup, goal, steps=1)
     assert kept.initial_error_mm == pytest.approx(first.errors_mm[-1])
     assert fresh.initial_error_mm == pytest.approx(first.errors_mm[0])
+
+
+def test_the_drift_keeps_the_height_the_goal_started_at():
+    # A TCP that presses from 5 mm higher than the scene's pose is no slip: only x and y come from the scene.
+    task = make_task("pushing")
+    model, state, _ = compile_scene(task.scene)
+    start = state.object_pose[0].clone()
+    goal = start.clone()
+    goal[0] -= 0.03
+    raised = state._replace(body_poses=state.body_poses.clone())
+    raised.body_poses[:, 0, 2] += 0.005
+    as_scene = holding_cost(task, model, state, goal, (start, state.body_poses[0]), 0.0, -0.014)
+    assert holding_cost(task, model, raised, goal, (start, raised.body_poses[0]), 0.0, -0.014) == pytest.approx(
+        as_scene)
