@@ -281,20 +281,19 @@ class Task:
         ``x_0 .. x_{K-1}`` (a list of ``State``, batch ``B``) under ``u (B, K, M, 6)``, all steps in one batch of
         operations.
 
-        The drift hinge bounds how far each actuated body slips over the object from the anchor state: the change
-        of its offset from the object's centre (m), less the ``(1 / travel_ratio - 1)`` times the object's
-        displacement that rolling without slip adds (zero for dragging; the object's displacement itself for
-        rolling, where the contact on top moves twice as fast as the centre). ``anchor`` is ``(object_pose (7,),
-        body_poses (M, 7))``: the state a goal started from, so that slip stays bounded over a whole episode of
-        replans (each plan of a closed loop would otherwise allow ``drift_limit`` more, and the bubble walked off
-        the cube). With ``drift_from_scene`` the offsets' x and y are the scene's resting ones (``scene_offsets``),
-        their height the anchor's (the arm holds it; a TCP calibrated a few mm off would otherwise count): a push
-        leaves the bubble up to 9 mm ahead of the cube (the membrane's shear), and a push back, which must shear it
-        as far the other way, measured from there reached the 15 mm limit and stalled 3 mm short of its goal
-        (docs/benchmarks.md, "A goal near its tolerance").
-        Without an anchor, the anchor is each plan's first state ``x_0``, which ``stage_cost`` sees; it is kept per
-        thread for the ``terminal_cost`` call that follows (solver workers roll out their shares of the rows on
-        threads of their own).
+        The drift hinge bounds how far each actuated body slips over the object from the anchor state: the change of
+        its offset from the object's centre (m), less the ``(1 / travel_ratio - 1)`` times the object's displacement
+        that rolling without slip adds (zero for dragging; the object's displacement itself for rolling, where the
+        contact on top moves twice as fast as the centre). ``anchor`` is ``(object_pose (7,), body_poses (M, 7))``:
+        the state a goal started from, so that slip stays bounded over a whole episode of replans (each plan of a
+        closed loop would otherwise allow ``drift_limit`` more, and the bubble walked off the cube). With
+        ``drift_from_scene`` an anchor's offsets' x and y are the scene's resting ones (``scene_offsets``), their
+        height the anchor's (the arm holds it; a TCP calibrated a few mm off would otherwise count): a push leaves
+        the bubble up to 9 mm ahead of the cube (the membrane's shear), and a push back, which must shear it as far
+        the other way, measured from there reached the 15 mm limit and stalled 3 mm short of its goal
+        (docs/benchmarks.md, "A goal near its tolerance"). Without an anchor, the anchor is each plan's first state
+        ``x_0`` with its own offsets, which ``stage_cost`` sees; it is kept per thread for the ``terminal_cost``
+        call that follows (solver workers roll out their shares of the rows on threads of their own).
 
         ``terms`` evaluates the costs' tensor arithmetic: eager, or compiled (``compiled_cost_terms``, kept by a
         planner for all its goals: the goal and the anchor are inputs of its graphs, not constants).
@@ -309,7 +308,7 @@ class Task:
         if anchor is not None:
             origin = anchor[0].to(model.device, model.dtype)[:3]
             offsets = anchor[1].to(model.device, model.dtype)[list(actuated), :3] - origin
-            if self.drift_from_scene:  # the resting offset in the table's plane, the height the goal started at
+            if self.drift_from_scene:  # x and y from the scene's resting offset, the height the goal started at
                 resting = self.scene_offsets(tuple(model.body_names[i] for i in actuated))
                 offsets = torch.cat([resting[:, :2].to(model.device, model.dtype), offsets[:, 2:]], -1)
             fixed = (origin, offsets)
