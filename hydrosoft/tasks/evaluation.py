@@ -402,9 +402,11 @@ def run_episode(
     loop: Loop = "closed",
     steps: int | None = None,
     on_step: Callable[[int, float], None] | None = None,
+    keep_plant: bool = False,
 ) -> EpisodeResult:
     """Run one episode of ``steps`` control steps (``task.episode_steps(goal)`` by default) towards ``goal (7,)``
-    (float64).
+    (float64), from the scene's initial state, or with ``keep_plant`` from where the last episode left the plant
+    (goals back to back, as the stack runs them: the drift cost anchored there, a fresh solver).
 
     ``on_step(k, error_mm)`` is called after every control step (progress reports). Never raises for an
     unreachable goal, a contact-free start or a plan without a finite sample: the status says what happened. A
@@ -416,8 +418,9 @@ def run_episode(
     sized = steps is None
     steps = task.episode_steps(goal) if sized else steps
     model = setup.planner_model
-    plant.reset()
-    start = plant.initial.object_pose[0]
+    if not keep_plant:
+        plant.reset()
+    start = plant.state.object_pose[0].clone()
     reachable = task.reachable(start, goal, steps)
     if sized and not reachable:
         add, pos, ang = _errors(setup, plant.state.object_pose, goal)
@@ -428,7 +431,7 @@ def run_episode(
             final_pose=plant.state.object_pose[0].clone(),
         )
     low, high = task.bounds(model.body_names, model.dtype)
-    anchor = (plant.initial.object_pose[0], plant.initial.body_poses[0, setup.body_index])
+    anchor = (start, plant.state.body_poses[0, setup.body_index].clone())
     stage, terminal = task.costs(model, goal, anchor=anchor, terms=setup.cost_terms)
     horizon, iterations = (steps, planner.open_loop_iterations) if loop == "open" else (
         planner.horizon, planner.cem_iterations)

@@ -1,7 +1,9 @@
 """Planar pushing (paper V-D, Fig. 4 top row): drag a cube across the table through the bubble's shear.
 
 Goal: the initial pose translated by 3-8 cm (uniform) in a uniformly random direction of the table plane,
-yaw unchanged. Actions: the bubble translates in x and y only, at most ``STEP_M`` per step per axis.
+yaw unchanged. Actions: the bubble translates in x and y only, at most ``STEP_M`` per step per axis. The drift
+hinge holds the bubble within ``CostWeights.drift_limit`` of its resting place centred on the cube
+(``Task.drift_from_scene``), whatever shear the last push left.
 """
 
 from __future__ import annotations
@@ -37,4 +39,5 @@ def make_task(steps: int = 40) -> Task:
         step_limits={"bubble": (STEP_M, STEP_M, 0.0, 0.0, 0.0, 0.0)},
         goal_sampler=sample_goal,
         steps=steps,
+        drift_from_scene=True,
     )
