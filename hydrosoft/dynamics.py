@@ -977,6 +977,8 @@ def _normal_wrench(model: Model, state: State) -> Tensor:
 
 
 def _substep(model: Model, state: State, u: Tensor, dt_sub: Tensor) -> State:
+    """One sub-step of length ``dt_sub`` (s; a 0-d or ``(1,)`` tensor, ``_substep_length``)."""
+    dt_sub = dt_sub.reshape(())
     body_poses = _moved_bodies(model, state, u)
     if getattr(model.contact, "implicit_friction", False):
         motion = _implicit_friction_motion(model, state, body_poses, _normal_wrench(model, state), dt_sub,
@@ -1000,11 +1002,15 @@ def _moved_bodies(model: Model, state: State, u: Tensor) -> Tensor:
 
 @functools.lru_cache(maxsize=256)
 def _substep_length(dt_sub: float, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """The sub-step length ``dt_sub`` (s) as a 0-d tensor, made once per value, dtype and device (a new tensor per call
-    took 3-15 us of a 0.6 ms compiled step). Callers only read it. Made outside inference mode, so that it is an
-    ordinary tensor whatever mode the first step ran in (a compiled graph with gradients may save its inputs)."""
+    """The sub-step length ``dt_sub`` (s) as a tensor of shape ``(1,)``, made once per value, dtype and device (a new
+    tensor per call took 3-15 us of a 0.6 ms compiled step). Callers only read it. Made outside inference mode, so that
+    it is an ordinary tensor whatever mode the first step ran in (a compiled graph with gradients may save its inputs).
+
+    Not 0-d: dynamo takes a 0-d float64 CPU input for a Python float as well, specialises it, and restarts its analysis
+    of the whole sub-step, which a cold compile of the plant's float64 step paid once (the sub-step makes it 0-d in
+    its graph)."""
     with torch.inference_mode(False):
-        return torch.tensor(dt_sub, dtype=dtype, device=device)
+        return torch.full((1,), dt_sub, dtype=dtype, device=device)
 
 
 def _integrate(model: Model, state: State, u: Tensor, substep, n: int) -> State:
@@ -1066,6 +1072,7 @@ def _bound_substep(model: Model, friction_move=None):
         return compiled_substep
 
     def compiled_friction_substep(state: State, u: Tensor, dt_sub: Tensor) -> State:
+        dt_sub = dt_sub.reshape(())
         body_poses = _moved_bodies(model, state, u)
         system = _friction_system(model, state, body_poses, _normal_wrench(model, state), dt_sub,
                                   model.contact.slip_tolerance)

@@ -55,7 +55,7 @@ from hydrosoft.drivers.poses import check_pose
 from hydrosoft.drivers.robotiq_ft300.simulator import SimulatedFT300
 from hydrosoft.drivers.ur.config import URSimulatorConfig
 from hydrosoft.drivers.ur.simulator import SimulatedURController
-from hydrosoft.dynamics import CompiledStep, Model, State, UnstableStepError, body_wrenches, step
+from hydrosoft.dynamics import CompiledStep, Model, State, UnstableStepError, body_wrenches, step, stepped_form
 from hydrosoft.geometry import se3
 from hydrosoft.scene import Scene, compile_scene
 from hydrosoft.services.bus import artefacts
@@ -158,7 +158,9 @@ class SimPlant:
         if missing:
             raise ValueError(f"arms {missing} are not bodies of the plant (its bodies: {list(model.body_names)})")
         self.model = model
-        self.state = State(*state[:3])
+        # in a step's own form (its signed distances cached, eager: one evaluation), so that a compiled step meets
+        # one input signature from the first tick on and compiles no graph of its own for a start state's distances
+        self.state = stepped_form(model, State(*state[:3]))
         self.frame = TaskFrame.from_pose(se3.identity()) if frame is None else frame
         self.compiled_step = CompiledStep(model, dynamic=False) if compiled else None
         self.arm_index = {arm: model.body_names.index(arm) for arm in arms}
@@ -252,12 +254,13 @@ class SimPlant:
         return nxt
 
     def warm_up(self) -> None:
-        """Run the step twice at rest, from the state without cached signed distances and then with them, and keep
-        neither result: a compiled step compiles its graph for each kind of state here, not in the physics loop
-        (an unpruned plant, ``sim.object_offset_m``, compiled a second graph at its second tick: 11 s)."""
+        """Run the step twice at rest, from the plant's state and from the state that step returns, and keep neither
+        result: a compiled step compiles its graph here, not in the physics loop. Both states are in a step's own form
+        (``stepped_form``), so it is one graph; a state of another form would compile a graph of its own here (an
+        unpruned plant, ``sim.object_offset_m``, compiled a second graph at its second tick: 11 s)."""
         u = torch.zeros(1, self.model.n_bodies, 6, dtype=self.model.dtype)
         with torch.no_grad():
-            self._step(self._step(State(*self.state[:3]), u), u)
+            self._step(self._step(self.state, u), u)
 
     def compile(self) -> str | None:
         """Compile the step (``warm_up``): None when it runs compiled, else why it fell back to eager."""

@@ -9,6 +9,7 @@ The process is started with a private run_dir and a 127.0.0.N of its own, and st
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import math
 import socket
@@ -21,11 +22,12 @@ import pytest
 import torch
 
 from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT
-from hydrosoft.dynamics import body_wrenches, packed_distances
+from hydrosoft.dynamics import CompiledStep, body_wrenches, packed_distances
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Bus, LatestSubscriber
+from hydrosoft.services import sim_world
 from hydrosoft.services.bus.config import load_config, parse_config
 from hydrosoft.services.sim.render import BubbleDepthCamera
 from hydrosoft.services.sim_world import (
@@ -149,6 +151,39 @@ def test_the_plant_keeps_each_ticks_signed_distances_and_they_are_the_states_own
         truth = packed_distances(cached.model, state.object_pose, state.body_poses)
         np.testing.assert_allclose(state.phi.numpy(), truth.numpy(), atol=1e-12)
     np.testing.assert_allclose(cached.snapshot.object_pose, recomputed.snapshot.object_pose, atol=1e-12)
+
+def test_a_compiled_plant_compiles_one_graph_and_ticks_as_the_eager_step_from_the_scenes_state(monkeypatch):
+    """The plant's state is in a step's own form from the start (its signed distances cached, ``stepped_form``), so
+    a compiled plant's warm-up compiles the step's one graph and none for a start state's signed distances; and
+    its ticks, the first among them, are those of an eager plant that steps from the scene's state without cached
+    distances (``step`` then evaluates them itself). Dynamo's ``eager`` backend stands in for inductor: the same
+    traced graphs, without inductor's C++ compile."""
+    graphs = []
+
+    def counting_backend(graph, example_inputs):
+        graphs.append(graph)
+        return graph.forward
+
+    monkeypatch.setattr(sim_world, "CompiledStep", functools.partial(CompiledStep, backend=counting_backend))
+    compiled = SimPlant.from_config(pushing_config(sim="[sim]\ncompile = true\n"))
+    try:
+        assert compiled.compile() is None
+        assert len(graphs) == 1, [g.code for g in graphs]  # the sub-step's
+        eager = SimPlant.from_config(pushing_config())
+        eager.state = eager.state._replace(phi=None)  # the scene's state, as the plant held it before
+        tcp = BUBBLE_POSE.copy()
+        for _ in range(12):
+            tcp[0] += 0.0005
+            tcp[2] -= 0.0001
+            compiled.step_to({"bubble": tcp})
+            eager.step_to({"bubble": tcp})
+            for ours, theirs in zip(compiled.state[:3], eager.state[:3]):
+                torch.testing.assert_close(ours, theirs, atol=1e-12, rtol=0)
+        assert len(graphs) == 1
+        assert abs(compiled.snapshot.object_pose[0]) > 1e-4  # the cube moved: the contact forces were at work
+    finally:
+        torch._dynamo.reset()
+
 
 def test_a_plant_placed_in_a_task_frame_takes_and_gives_base_frame_poses_and_forces():
     """The same push with the scene at ``scene.task_frame`` (turned 90 deg, moved) and at the base origin: every
