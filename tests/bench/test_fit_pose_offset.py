@@ -8,10 +8,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from hydrosoft.bench import material_fit
+from hydrosoft.bench import fit, material_fit
 from hydrosoft.bench.fit import format_tables, run_fit
 from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
 from hydrosoft.bench.wrench_replay import load_recordings
+from hydrosoft.services.commands.cli import build_parser
 
 TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
 LOW_M = -1e-4  # every recorded object pose this far below the true one (base z, the press normal)
@@ -50,12 +51,22 @@ def test_with_no_offset_in_a_pure_press_the_option_leaves_e_unbiased_and_finds_o
     write_synthetic_recording(path, "plate", TRUTH, ["press"] * 3, steps=8, seed=2, noise_scale=1.0)
     groups = load_recordings([path])
     batches = material_fit.replay_batches(groups, {(g.object, t.index) for g in groups for t in g.trajectories})
-    fit = material_fit.fit_material(batches, "nh", ["E"], substeps=1, pose_offset=True)
-    E = fit.estimates[0]
+    result = material_fit.fit_material(batches, "nh", ["E"], substeps=1, pose_offset=True)
+    E = result.estimates[0]
     assert E.identified and _holds(E.interval95, TRUTH["E"])
-    x, y, z = fit.pose_offset
+    x, y, z = result.pose_offset
     assert z.identified and _holds(z.interval95, 0.0) and z.sigma < 1e-4
     # along a flat face that is only pressed nothing moves tangentially: the prior, not the data, sets x and y
     for axis in (x, y):
         assert not axis.identified and axis.sigma > 0.25 * material_fit.POSE_OFFSET_PRIOR_M
-    assert fit.theta.shape == (6,) and fit.offset_m == [x.value, y.value, z.value]
+    assert result.theta.shape == (6,) and result.offset_m == [x.value, y.value, z.value]
+
+
+def test_the_fit_command_takes_pose_offset_and_refuses_it_with_the_bootstrap_with_exit_code_2(tmp_path, capsys):
+    path = tmp_path / "wrench-cube.mcap"
+    write_synthetic_recording(path, "cube", TRUTH, ["press"], steps=4, seed=3)
+    parser = build_parser()
+    assert not parser.parse_args(["fit", str(path)]).pose_offset
+    args = parser.parse_args(["fit", str(path), "--pose-offset", "--uncertainty", "bootstrap", "--holdout", "0"])
+    assert args.pose_offset and fit.run(args) == 2
+    assert "--pose-offset works with --uncertainty hessian only" in capsys.readouterr().err
