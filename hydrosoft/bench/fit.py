@@ -49,6 +49,12 @@ def _csv(text: str) -> list[str]:
     return [part.strip() for part in text.split(",") if part.strip()]
 
 
+def _axes(text: str) -> str:
+    if not text or not set(text) <= set("xyz"):
+        raise argparse.ArgumentTypeError(f"expected base axes, some of xyz (e.g. z), got {text!r}")
+    return text
+
+
 def _floats(text: str) -> tuple[float, ...]:
     values = tuple(float(part) for part in _csv(text))
     if len(values) != 7 or not all(math.isfinite(v) for v in values):
@@ -75,11 +81,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", type=_csv, default=list(PARAMETERS), metavar="E,K,mu",
                         help="parameters to fit, the others held at the scenes' Soft Bubble values "
                              "(default E,K,mu)")
-    parser.add_argument("--pose-offset", action="store_true",
-                        help="fit a constant offset (x, y, z in m, base frame; prior 2 mm per axis) added to every "
-                             "recorded object pose, jointly with the material: a tracker's constant error then widens "
-                             "the material's intervals instead of biasing it (one offset for all recordings given; "
-                             "with --uncertainty hessian only)")
+    parser.add_argument("--pose-offset", nargs="?", type=_axes, const="xyz", default=None, metavar="AXES",
+                        help="fit a constant offset (m, base frame; prior 2 mm per axis) added to every recorded "
+                             "object pose, jointly with the material, along AXES (some of xyz; default all three; z: "
+                             "the press normal of a horizontal face): a tracker's constant error then widens the "
+                             "material's intervals instead of biasing it (one offset for all recordings given; with "
+                             "--uncertainty hessian only)")
     parser.add_argument("--holdout", type=float, default=0.2,
                         help="fraction of the trajectories held out of the fit and scored after it (default 0.2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the fit/held-out split (default 0)")
@@ -196,7 +203,7 @@ class RecordingReaders:
 def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdout: float = 0.2, seed: int = 0,
             spacing: float | None = None, substeps: int | None = None, progress=None,
             stack_options: dict | None = None, uncertainty: str = "hessian", draws: int = DEFAULT_DRAWS,
-            pose_offset: bool = False) -> dict:
+            pose_offset: str = "") -> dict:
     """The fit's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``, or stack recordings:
     ``stack_options`` are ``stack_recording.read_stack_recording``'s keyword arguments for them).
 
@@ -204,9 +211,10 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
     "uncertainty", "bootstrap", "rows": [...], "trajectories": [...], "split", "fit": {...}, "settings"}``:
     ``uncertainty`` says how ``sigma`` and ``interval95`` were found (``uncertainty``: ``hessian``, or ``bootstrap``
     with ``draws`` refits seeded by ``seed``: then ``bootstrap`` holds its draws, noise scale and both interval
-    kinds per parameter; else None); ``pose_offset``: with ``pose_offset`` the fitted object position offset per
-    axis (``offset_x``, ``offset_y``, ``offset_z``: value, sigma, interval95 in m, identified), added to the recorded
-    poses of both sets for the ``after`` rows; else None; ``rows`` per set
+    kinds per parameter; else None); ``pose_offset``: with ``pose_offset`` (axes, some of ``"xyz"``) the fitted
+    object position offset per axis (``offset_x``, ``offset_y``, ``offset_z``: value, sigma, interval95 in m, fitted,
+    identified; an axis not fitted is 0), added to the recorded poses of both sets for the ``after`` rows; else
+    None; ``rows`` per set
     (``fit``, ``held_out``) and material (``before``, ``after``) the mean and sample standard deviation over
     trajectories of the force, torque and shear RMSEs, as ``bench wrench``'s rows. ValueError for a bad option or
     a recording the fit cannot use (naming it).
@@ -217,6 +225,8 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
 
     if uncertainty not in UNCERTAINTY_METHODS:
         raise ValueError(f"unknown uncertainty {uncertainty!r}; known: {', '.join(UNCERTAINTY_METHODS)}")
+    if not set(pose_offset) <= set("xyz"):
+        raise ValueError(f"--pose-offset takes axes, some of xyz, got {pose_offset!r}")
     if pose_offset and uncertainty != "hessian":
         raise ValueError("--pose-offset works with --uncertainty hessian only (the bootstrap refits the material "
                          "alone)")
@@ -277,7 +287,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
                                 "fitted": e.fitted, "identified": e.identified} for e in estimates},
         "pose_offset": {e.name: {"value": e.value, "sigma": _finite_or_none(e.sigma),
                                  "interval95": [_finite_or_none(v) for v in e.interval95], "unit": "m",
-                                 "identified": e.identified} for e in result.pose_offset} or None,
+                                 "fitted": e.fitted, "identified": e.identified} for e in result.pose_offset} or None,
         "uncertainty": UNCERTAINTY_TEXT[uncertainty].format(interval=(boot_document or {}).get("interval")),
         "uncertainty_method": uncertainty,
         "bootstrap": boot_document,
@@ -289,7 +299,8 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
                 "substeps": result.substeps, "replay_shift_sigma": result.replay_shift_sigma,
                 "seconds": time.perf_counter() - tic},
         "settings": {"recordings": [str(p) for p in files], "objects": [g.object for g in groups],
-                     "params": list(params), "pose_offset": pose_offset, "holdout": holdout, "seed": seed, "substeps": substeps,
+                     "params": list(params), "pose_offset": pose_offset, "holdout": holdout, "seed": seed,
+                     "substeps": substeps,
                      "spacing_m": {g.object: g.spacing_m for g in groups},
                      "modes": sorted({m for g in groups for m in g.modes}), "stack_recordings": read.stack},
     }
@@ -332,6 +343,9 @@ def format_tables(document: dict) -> str:
              f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
     for name, p in (document.get("pose_offset") or {}).items():
+        if not p["fitted"]:
+            lines.append(f"  {name} 0 mm (held, not fitted)")
+            continue
         low, high = p["interval95"]
         verdict = "" if p["identified"] else "  NOT identified: its 2 mm prior, not the data, sets it"
         lines.append(f"  {name} {p['value'] * 1e3:+.4f} mm +- {p['sigma'] * 1e3:.3g} mm (1 sigma), 95 % "
@@ -426,7 +440,7 @@ def run(args: argparse.Namespace) -> int:
         document = run_fit(args.recordings, args.model, args.params, args.holdout, args.seed, args.spacing,
                            args.substeps, progress=lambda text: print(f"[fit] {text}", file=sys.stderr, flush=True),
                            stack_options=stack_options(args), uncertainty=args.uncertainty, draws=args.draws,
-                           pose_offset=args.pose_offset)
+                           pose_offset=args.pose_offset or "")
     except ValueError as error:
         print(f"fit: {error}", file=sys.stderr)
         return 2

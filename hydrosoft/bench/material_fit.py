@@ -22,9 +22,10 @@ stays inside its bounds). A parameter whose relative standard deviation exceeds 
 reported as unidentified: the recordings do not determine it (K from pure pressing on a flat face, for example,
 where no point moves tangentially).
 
-Pose offset (``fit_material`` with ``pose_offset=True``, ``hydrosoft-stack fit --pose-offset``): a constant
+Pose offset (``fit_material`` with ``pose_offset="xyz"``, ``hydrosoft-stack fit --pose-offset``): a constant
 position offset ``d`` (3 numbers, m, in the base frame) added to every recorded object pose, fitted jointly with the
-material as a nuisance parameter. A tracker that reports a still object a fraction of a millimetre too low biases E
+material as a nuisance parameter; ``pose_offset="z"`` fits it along base z alone (the press normal of a horizontal
+face), the other axes held at 0. A tracker that reports a still object a fraction of a millimetre too low biases E
 by about 1 % per 0.07 mm (docs/fit.md); no noise term removes a constant offset, but fitting it does, and its
 uncertainty then widens E's interval (E's marginal of the joint covariance). Its coordinates are ``d /
 OFFSET_UNIT_M`` (mm, so the optimiser's steps are of E's scale), appended to theta, which is then ``(6,)``; a Gaussian
@@ -261,7 +262,7 @@ class MaterialFit:
     substeps: int
     replay_shift_sigma: float
     theta: np.ndarray
-    pose_offset: tuple[ParameterEstimate, ...] = ()
+    pose_offset: tuple[ParameterEstimate, ...] = ()  # OFFSET_AXES order; an axis not fitted is held at 0
 
     @property
     def values(self) -> dict[str, float]:
@@ -277,15 +278,15 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
                  start: dict[str, float] | None = None, substeps: int | None = None,
                  max_iterations: int = DEFAULT_MAX_ITERATIONS,
                  progress: Callable[[int, float, dict[str, float]], None] | None = None,
-                 pose_offset: bool = False) -> MaterialFit:
+                 pose_offset: str = "") -> MaterialFit:
     """Fit ``params`` (a subset of ``PARAMETERS``) of the bubble's material to ``batches`` by L-BFGS.
 
     ``start``: the material to start from and to hold the other parameters at (default ``START``); ``substeps``:
     the replay's steps per recorded step, or None to choose them: from 1, doubled while a replay twice as fine would
     move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``), up to
     ``MAX_AUTO_SUBSTEPS``; each doubling moves the optimum by that Gauss-Newton step. ``progress(evaluation, cost,
-    values)`` is called after each cost evaluation. ``pose_offset``: fit a constant object position offset too (module
-    docstring), starting from 0.
+    values)`` is called after each cost evaluation. ``pose_offset``: the base axes (some of ``"xyz"``) along which to
+    fit a constant object position offset too (module docstring), from 0; empty: none.
     ValueError for an unknown parameter or model, or no batch.
     """
     start = dict(START if start is None else start)
@@ -294,6 +295,8 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
         raise ValueError(f"unknown parameter(s) {unknown}; fit some of {', '.join(PARAMETERS)}")
     if contact not in FIT_MODELS:
         raise ValueError(f"unknown contact model {contact!r} for the fit; known: {', '.join(FIT_MODELS)}")
+    if not set(pose_offset) <= set("xyz"):
+        raise ValueError(f"pose offset axes must be some of x, y, z, got {pose_offset!r}")
     if not batches:
         raise ValueError("no trajectory to fit")
     mask = torch.tensor([name in params for name in PARAMETERS])
@@ -302,8 +305,8 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
     theta = minimise(to_theta(start, start), mask, batches, contact, start, steps, max_iterations, evaluations,
                      progress)
     if pose_offset:
-        theta, mask = _refit_with_offset(theta, mask, batches, contact, start, steps, max_iterations, evaluations,
-                                         progress)
+        theta, mask = _refit_with_offset(theta, mask, pose_offset, batches, contact, start, steps, max_iterations,
+                                         evaluations, progress)
     r, J = residuals_and_jacobian(theta, mask, batches, contact, start, steps)
     while True:
         n, p = r.shape[0], int(mask.sum())
@@ -319,17 +322,18 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
     return MaterialFit(estimates=estimates, cost_start=evaluations[0], cost=float(np.square(r).mean()),
                        reduced_chi2=s2, residual_count=n, iterations=len(evaluations), covariance=covariance,
                        substeps=steps, replay_shift_sigma=shift, theta=theta.numpy().copy(),
-                       pose_offset=_offset_estimates(theta, covariance) if pose_offset else ())
+                       pose_offset=_offset_estimates(theta, mask, covariance) if pose_offset else ())
 
 
-def _refit_with_offset(theta: torch.Tensor, mask: torch.Tensor, batches, contact, start, substeps: int,
+def _refit_with_offset(theta: torch.Tensor, mask: torch.Tensor, axes: str, batches, contact, start, substeps: int,
                        max_iterations: int, evaluations: list[float], progress) -> tuple[torch.Tensor, torch.Tensor]:
-    """The joint optimum ``(6,)`` of the material and the pose offset, and its mask, from the material's optimum
+    """The joint optimum ``(6,)`` of the material and the pose offset along ``axes`` (some of ``"xyz"``), and its
+    mask ``(6,)``, from the material's optimum
     ``theta (3,)`` at offset 0: L-BFGS preconditioned by the Gauss-Newton covariance there (as the bootstrap's
     refits), so the offset (mm) and the material's log and logit coordinates, of very different curvature, take
     Newton-sized steps. From a cold start L-BFGS stalled short of the material-only fit's cost."""
     theta = with_offset(theta, (0.0, 0.0, 0.0))
-    mask = torch.cat([mask, torch.ones(3, dtype=torch.bool)])
+    mask = torch.cat([mask, torch.tensor([axis in axes for axis in "xyz"])])
     r, J = residuals_and_jacobian(theta, mask, batches, contact, start, substeps)
     n, p = r.shape[0], int(mask.sum())
     s2 = max(float(np.square(r).sum()) / max(n - p, 1), 1e-12)
@@ -346,8 +350,8 @@ def minimise(theta: torch.Tensor, mask: torch.Tensor, batches: Sequence[ReplayBa
              evaluations: list[float] | None = None, progress=None, preconditioner: np.ndarray | None = None,
              cost_scale: float = 1.0, tolerance_change: float = 1e-12) -> torch.Tensor:
     """L-BFGS over the fitted coordinates (``mask``, theta's shape) of ``theta`` (``(3,)``, or ``(6,)`` with a pose
-    offset) from there, the others held; the optimum, theta's shape. Appends each cost evaluation (the mean squared residual) to ``evaluations``; ``progress`` as
-    ``fit_material``'s.
+    offset) from there, the others held; the optimum, theta's shape. Appends each cost evaluation (the mean squared
+    residual) to ``evaluations``; ``progress`` as ``fit_material``'s.
 
     ``preconditioner``: a ``(p, p)`` matrix ``C``; L-BFGS then runs over ``u`` with the fitted coordinates
     ``theta_0 + C u`` from ``u = 0``, on the cost times ``cost_scale``. With ``C^T H C`` about the identity for
@@ -425,12 +429,18 @@ def _pseudo_inverse_with_infinity(information: np.ndarray) -> np.ndarray:
     return covariance
 
 
-def _offset_estimates(theta: torch.Tensor, covariance: np.ndarray) -> tuple[ParameterEstimate, ...]:
-    """The pose offset's estimates (m) from the last three fitted coordinates of ``theta (6,)`` and ``covariance``."""
+def _offset_estimates(theta: torch.Tensor, mask: torch.Tensor, covariance: np.ndarray
+                      ) -> tuple[ParameterEstimate, ...]:
+    """The pose offset's estimates (m) per axis from coordinates 3..5 of ``theta (6,)``, ``mask (6,)`` and the
+    fitted coordinates' ``covariance``; an axis not fitted is 0, held."""
+    fitted_index = {i: j for j, i in enumerate(mask.nonzero().flatten().tolist())}
     out = []
     for axis, name in enumerate(OFFSET_AXES):
+        if 3 + axis not in fitted_index:
+            out.append(ParameterEstimate(name, 0.0, 0.0, 0.0, (0.0, 0.0), False, False))
+            continue
         value = float(theta[3 + axis]) * OFFSET_UNIT_M
-        variance = covariance[covariance.shape[0] - 3 + axis, covariance.shape[0] - 3 + axis]
+        variance = covariance[fitted_index[3 + axis], fitted_index[3 + axis]]
         sigma = math.sqrt(variance) * OFFSET_UNIT_M if math.isfinite(variance) else math.inf
         out.append(ParameterEstimate(name, 0.0, value, sigma, (value - Z95 * sigma, value + Z95 * sigma), True,
                                      sigma <= UNIDENTIFIED_RELATIVE_SIGMA * POSE_OFFSET_PRIOR_M))

@@ -35,7 +35,7 @@ def test_a_constant_pose_offset_biases_e_out_of_its_interval_unless_it_is_fitted
     plain = run_fit([path], "nh", ["E", "K", "mu"], holdout=0.0, substeps=1)
     assert plain["pose_offset"] is None
     assert not _holds(plain["parameters"]["E"]["interval95"], TRUTH["E"])  # the problem: a confident, wrong E
-    joint = run_fit([path], "nh", ["E", "K", "mu"], holdout=0.0, substeps=1, pose_offset=True)
+    joint = run_fit([path], "nh", ["E", "K", "mu"], holdout=0.0, substeps=1, pose_offset="xyz")
     for name, true in TRUTH.items():
         assert _holds(joint["parameters"][name]["interval95"], true), name
     z = joint["pose_offset"]["offset_z"]  # the offset that moves the recorded poses back onto the true ones
@@ -43,7 +43,7 @@ def test_a_constant_pose_offset_biases_e_out_of_its_interval_unless_it_is_fitted
     assert joint["fit"]["cost"] < plain["fit"]["cost"]
     assert "offset_z +0.0" in format_tables(joint) and joint["settings"]["pose_offset"]
     with pytest.raises(ValueError, match="--pose-offset"):
-        run_fit([path], "nh", ["E"], holdout=0.0, uncertainty="bootstrap", pose_offset=True)
+        run_fit([path], "nh", ["E"], holdout=0.0, uncertainty="bootstrap", pose_offset="xyz")
 
 
 def test_with_no_offset_in_a_pure_press_the_option_leaves_e_unbiased_and_finds_only_the_normal_offset(tmp_path):
@@ -51,7 +51,7 @@ def test_with_no_offset_in_a_pure_press_the_option_leaves_e_unbiased_and_finds_o
     write_synthetic_recording(path, "plate", TRUTH, ["press"] * 3, steps=8, seed=2, noise_scale=1.0)
     groups = load_recordings([path])
     batches = material_fit.replay_batches(groups, {(g.object, t.index) for g in groups for t in g.trajectories})
-    result = material_fit.fit_material(batches, "nh", ["E"], substeps=1, pose_offset=True)
+    result = material_fit.fit_material(batches, "nh", ["E"], substeps=1, pose_offset="xyz")
     E = result.estimates[0]
     assert E.identified and _holds(E.interval95, TRUTH["E"])
     x, y, z = result.pose_offset
@@ -60,6 +60,10 @@ def test_with_no_offset_in_a_pure_press_the_option_leaves_e_unbiased_and_finds_o
     for axis in (x, y):
         assert not axis.identified and axis.sigma > 0.25 * material_fit.POSE_OFFSET_PRIOR_M
     assert result.theta.shape == (6,) and result.offset_m == [x.value, y.value, z.value]
+    normal = material_fit.fit_material(batches, "nh", ["E"], substeps=1, pose_offset="z")  # the press normal alone
+    assert [e.fitted for e in normal.pose_offset] == [False, False, True] and normal.offset_m[:2] == [0.0, 0.0]
+    assert normal.estimates[0].identified and _holds(normal.estimates[0].interval95, TRUTH["E"])
+    assert _holds(normal.pose_offset[2].interval95, 0.0)
 
 
 def test_the_fit_command_takes_pose_offset_and_refuses_it_with_the_bootstrap_with_exit_code_2(tmp_path, capsys):
@@ -67,6 +71,10 @@ def test_the_fit_command_takes_pose_offset_and_refuses_it_with_the_bootstrap_wit
     write_synthetic_recording(path, "cube", TRUTH, ["press"], steps=4, seed=3)
     parser = build_parser()
     assert not parser.parse_args(["fit", str(path)]).pose_offset
+    assert parser.parse_args(["fit", str(path), "--pose-offset", "z"]).pose_offset == "z"
     args = parser.parse_args(["fit", str(path), "--pose-offset", "--uncertainty", "bootstrap", "--holdout", "0"])
-    assert args.pose_offset and fit.run(args) == 2
+    assert args.pose_offset == "xyz" and fit.run(args) == 2
     assert "--pose-offset works with --uncertainty hessian only" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # an argparse error, exit code 2, naming the axes it takes
+        parser.parse_args(["fit", "--pose-offset", str(path)])
+    assert "some of xyz" in capsys.readouterr().err
