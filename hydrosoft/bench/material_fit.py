@@ -316,13 +316,34 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
         if substeps is not None or shift <= REPLAY_SHIFT_SIGMA or steps >= MAX_AUTO_SUBSTEPS:
             break
         steps *= 2  # the optimum moves by the Gauss-Newton step to the finer replay's residuals
-        theta = theta.masked_scatter(mask, theta[mask] + torch.as_tensor(step))
+        theta = _move_to_finer_replay(theta, mask, step, covariance, n / (2 * s2), batches, contact, start, steps,
+                                      max_iterations, evaluations, progress)
         r, J = residuals_and_jacobian(theta, mask, batches, contact, start, steps)
     estimates = _estimates(theta, start, mask, covariance)
     return MaterialFit(estimates=estimates, cost_start=evaluations[0], cost=float(np.square(r).mean()),
                        reduced_chi2=s2, residual_count=n, iterations=len(evaluations), covariance=covariance,
                        substeps=steps, replay_shift_sigma=shift, theta=theta.numpy().copy(),
                        pose_offset=_offset_estimates(theta, mask, covariance) if pose_offset else ())
+
+
+def _move_to_finer_replay(theta: torch.Tensor, mask: torch.Tensor, step: np.ndarray, covariance: np.ndarray,
+                          cost_scale: float, batches, contact, start, substeps: int, max_iterations: int,
+                          evaluations: list[float], progress) -> torch.Tensor:
+    """The optimum at the finer replay (``substeps``) from ``theta``, the coarser one's: ``theta`` moved by the
+    Gauss-Newton ``step (p,)``, or, when that raises the finer replay's cost (a direction the data barely determine,
+    such as E against a depth offset on a push at one depth, where the linear step overshoots), L-BFGS from
+    ``theta`` at the finer replay, preconditioned by ``covariance`` where it is finite."""
+    moved = theta.masked_scatter(mask, theta[mask] + torch.as_tensor(step))
+    with torch.no_grad():
+        costs = [float(residuals(t, batches, contact, start, substeps).square().mean()) for t in (theta, moved)]
+    if costs[1] <= costs[0]:
+        return moved
+    try:
+        preconditioner = np.linalg.cholesky(covariance) if np.isfinite(covariance).all() else None
+    except np.linalg.LinAlgError:  # not positive definite: plain L-BFGS
+        preconditioner = None
+    return minimise(theta, mask, batches, contact, start, substeps, max_iterations, evaluations, progress,
+                    preconditioner=preconditioner, cost_scale=1.0 if preconditioner is None else cost_scale)
 
 
 def _refit_with_offset(theta: torch.Tensor, mask: torch.Tensor, axes: str, batches, contact, start, substeps: int,

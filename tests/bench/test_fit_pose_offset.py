@@ -5,6 +5,7 @@ the option does not bias E, and a pure press determines the offset along the pre
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -78,3 +79,23 @@ def test_the_fit_command_takes_pose_offset_and_refuses_it_with_the_bootstrap_wit
     with pytest.raises(SystemExit):  # an argparse error, exit code 2, naming the axes it takes
         parser.parse_args(["fit", "--pose-offset", str(path)])
     assert "some of xyz" in capsys.readouterr().err
+
+
+def test_a_gauss_newton_step_to_a_finer_replay_that_raises_the_cost_is_replaced_by_a_refit(tmp_path):
+    # on a push at one depth E and a depth offset are nearly one direction: the linear step overshoots
+    path = tmp_path / "wrench-plate.mcap"
+    write_synthetic_recording(path, "plate", TRUTH, ["press"] * 2, steps=6, seed=5, noise_scale=1.0)
+    groups = load_recordings([path])
+    batches = material_fit.replay_batches(groups, {(g.object, t.index) for g in groups for t in g.trajectories})
+    theta = material_fit.to_theta(TRUTH, material_fit.START)
+    mask = torch.tensor([True, False, False])
+
+    def cost(t):
+        return float(material_fit.residuals(t, batches, "nh", material_fit.START, 2).square().mean())
+
+    moved = material_fit._move_to_finer_replay(theta, mask, np.array([2.0]), np.array([[1e-4]]), 1.0, batches, "nh",
+                                               material_fit.START, 2, 30, [], None)
+    assert cost(moved) <= cost(theta) and abs(float(moved[0] - theta[0])) < 0.05  # refitted, not E x e^2
+    good = material_fit._move_to_finer_replay(theta, mask, np.array([0.0]), np.array([[1e-4]]), 1.0, batches, "nh",
+                                              material_fit.START, 2, 30, [], None)
+    assert torch.equal(good, theta)  # a step that does not raise the cost is taken as it is
