@@ -37,7 +37,8 @@ the material-only optimum (``_refit_with_offset``).
 
 Replay resolution (``fit_material`` with ``substeps=None``): a replay too coarse for the recorded motion cuts
 twists and slips short, a bias the covariance does not cover; the sub-steps double while a replay twice as fine
-would move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``).
+would move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``). Each doubling
+takes that Gauss-Newton step, or refits by L-BFGS where the step would raise the cost (``_move_to_finer_replay``).
 
 Not covered by the covariance: correlated model error (on lab data the residuals are not independent noise; a
 bootstrap over trajectories would show it, at one fit per draw), the recorded poses' own errors, and mu's
