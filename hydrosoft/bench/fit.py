@@ -8,11 +8,13 @@ the Gauss-Newton covariance at the optimum, or with ``--uncertainty bootstrap`` 
 before (start material) and after, in ``bench wrench``'s layout, with the fitted values, their uncertainty and
 which are not identified. ``--out PARAMS.toml`` writes the fitted material as an ``[arms.material]`` table for an
 arm of a stack config (``deploy/*.toml``); its E, K and mu lines also fit a scene's bubble ``[[bodies]]`` table. The
-recordings are only read.
+recordings are only read. ``--pose-offset`` fits a constant object position offset (m, base frame) jointly with the
+material, a nuisance parameter for a tracker's constant error (``material_fit`` module docstring): one offset for
+all the recordings given, so fit one recording at a time when each has its own.
 
 Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
 forward and backward; L-BFGS needs 20 to 70 of them); the bootstrap adds one refit per draw (7 to 30 evaluations
-each). Progress goes to stderr.
+each); ``--pose-offset`` takes 3 to 5 times the evaluations of the material alone. Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -47,6 +49,12 @@ def _csv(text: str) -> list[str]:
     return [part.strip() for part in text.split(",") if part.strip()]
 
 
+def _axes(text: str) -> str:
+    if not text or not set(text) <= set("xyz"):
+        raise argparse.ArgumentTypeError(f"expected base axes, some of xyz (e.g. z), got {text!r}")
+    return text
+
+
 def _floats(text: str) -> tuple[float, ...]:
     values = tuple(float(part) for part in _csv(text))
     if len(values) != 7 or not all(math.isfinite(v) for v in values):
@@ -73,6 +81,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", type=_csv, default=list(PARAMETERS), metavar="E,K,mu",
                         help="parameters to fit, the others held at the scenes' Soft Bubble values "
                              "(default E,K,mu)")
+    parser.add_argument("--pose-offset", nargs="?", type=_axes, const="xyz", default=None, metavar="AXES",
+                        help="fit a constant offset (m, base frame; prior 2 mm per axis) added to every recorded "
+                             "object pose, jointly with the material, along AXES (some of xyz; default all three; z: "
+                             "the press normal of a horizontal face): a tracker's constant error then widens the "
+                             "material's intervals instead of biasing it (one offset for all recordings given; with "
+                             "--uncertainty hessian only)")
     parser.add_argument("--holdout", type=float, default=0.2,
                         help="fraction of the trajectories held out of the fit and scored after it (default 0.2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the fit/held-out split (default 0)")
@@ -188,7 +202,8 @@ class RecordingReaders:
 
 def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdout: float = 0.2, seed: int = 0,
             spacing: float | None = None, substeps: int | None = None, progress=None,
-            stack_options: dict | None = None, uncertainty: str = "hessian", draws: int = DEFAULT_DRAWS) -> dict:
+            stack_options: dict | None = None, uncertainty: str = "hessian", draws: int = DEFAULT_DRAWS,
+            pose_offset: str = "") -> dict:
     """The fit's JSON document for ``recordings`` (files or folders of ``wrench-*.mcap``, or stack recordings:
     ``stack_options`` are ``stack_recording.read_stack_recording``'s keyword arguments for them).
 
@@ -196,7 +211,10 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
     "uncertainty", "bootstrap", "rows": [...], "trajectories": [...], "split", "fit": {...}, "settings"}``:
     ``uncertainty`` says how ``sigma`` and ``interval95`` were found (``uncertainty``: ``hessian``, or ``bootstrap``
     with ``draws`` refits seeded by ``seed``: then ``bootstrap`` holds its draws, noise scale and both interval
-    kinds per parameter; else None); ``rows`` per set
+    kinds per parameter; else None); ``pose_offset``: with ``pose_offset`` (axes, some of ``"xyz"``) the fitted
+    object position offset per axis (``offset_x``, ``offset_y``, ``offset_z``: value, sigma, interval95 in m, fitted,
+    identified; an axis not fitted is 0), added to the recorded poses of both sets for the ``after`` rows; else
+    None; ``rows`` per set
     (``fit``, ``held_out``) and material (``before``, ``after``) the mean and sample standard deviation over
     trajectories of the force, torque and shear RMSEs, as ``bench wrench``'s rows. ValueError for a bad option or
     a recording the fit cannot use (naming it).
@@ -207,6 +225,11 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
 
     if uncertainty not in UNCERTAINTY_METHODS:
         raise ValueError(f"unknown uncertainty {uncertainty!r}; known: {', '.join(UNCERTAINTY_METHODS)}")
+    if not set(pose_offset) <= set("xyz"):
+        raise ValueError(f"--pose-offset takes axes, some of xyz, got {pose_offset!r}")
+    if pose_offset and uncertainty != "hessian":
+        raise ValueError("--pose-offset works with --uncertainty hessian only (the bootstrap refits the material "
+                         "alone)")
     if uncertainty == "bootstrap" and draws < 2:
         raise ValueError(f"--draws must be at least 2, got {draws}")
     if model not in FIT_MODELS:
@@ -230,7 +253,8 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
             shown = ", ".join(f"{n} {values[n]:.4g}" for n in params)
             progress(f"evaluation {evaluation}: cost {cost:.5g} ({shown}) at {time.perf_counter() - tic:.1f} s")
 
-    result = material_fit.fit_material(batches["fit"], model, params, START, substeps, progress=report)
+    result = material_fit.fit_material(batches["fit"], model, params, START, substeps, progress=report,
+                                       pose_offset=pose_offset)
     substeps = result.substeps
     estimates, boot_document = result.estimates, None
     if uncertainty == "bootstrap":
@@ -248,8 +272,8 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
                                          for kind, kinds in boot.intervals.items()}}
     rows, per_trajectory = [], []
     for name in SETS:
-        for when, values in (("before", START), ("after", result.values)):
-            errors = material_fit.trajectory_rmses(values, batches[name], model, START, substeps)
+        for when, values, offset in (("before", START, None), ("after", result.values, result.offset_m)):
+            errors = material_fit.trajectory_rmses(values, batches[name], model, START, substeps, offset)
             per_trajectory += [{"set": name, "when": when, **e} for e in errors]
             row = {"set": name, "when": when, "trajectories": len(errors)}
             for key in ("force_n", "torque_nm", "shear_n"):
@@ -261,6 +285,9 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
         "parameters": {e.name: {"start": e.start, "value": e.value, "sigma": _finite_or_none(e.sigma),
                                 "interval95": [_finite_or_none(v) for v in e.interval95], "unit": UNITS[e.name],
                                 "fitted": e.fitted, "identified": e.identified} for e in estimates},
+        "pose_offset": {e.name: {"value": e.value, "sigma": _finite_or_none(e.sigma),
+                                 "interval95": [_finite_or_none(v) for v in e.interval95], "unit": "m",
+                                 "fitted": e.fitted, "identified": e.identified} for e in result.pose_offset} or None,
         "uncertainty": UNCERTAINTY_TEXT[uncertainty].format(interval=(boot_document or {}).get("interval")),
         "uncertainty_method": uncertainty,
         "bootstrap": boot_document,
@@ -272,7 +299,8 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
                 "substeps": result.substeps, "replay_shift_sigma": result.replay_shift_sigma,
                 "seconds": time.perf_counter() - tic},
         "settings": {"recordings": [str(p) for p in files], "objects": [g.object for g in groups],
-                     "params": list(params), "holdout": holdout, "seed": seed, "substeps": substeps,
+                     "params": list(params), "pose_offset": pose_offset, "holdout": holdout, "seed": seed,
+                     "substeps": substeps,
                      "spacing_m": {g.object: g.spacing_m for g in groups},
                      "modes": sorted({m for g in groups for m in g.modes}), "stack_recordings": read.stack},
     }
@@ -314,6 +342,14 @@ def format_tables(document: dict) -> str:
              f"reduced chi-square {document['fit']['reduced_chi2']:.3g}, replay {document['fit']['substeps']} "
              f"sub-steps per recorded step):"]
     lines += [f"  {p['name']:<3} {_value_text(p)}" for p in estimates_of(document)]
+    for name, p in (document.get("pose_offset") or {}).items():
+        if not p["fitted"]:
+            lines.append(f"  {name} 0 mm (held, not fitted)")
+            continue
+        low, high = p["interval95"]
+        verdict = "" if p["identified"] else "  NOT identified: its 2 mm prior, not the data, sets it"
+        lines.append(f"  {name} {p['value'] * 1e3:+.4f} mm +- {p['sigma'] * 1e3:.3g} mm (1 sigma), 95 % "
+                     f"[{low * 1e3:+.4f}, {high * 1e3:+.4f}] mm (added to the recorded object poses){verdict}")
     for path, stack in document["settings"]["stack_recordings"].items():
         poses = (" (clamped)" if stack["clamped"] else " (true pose)" if stack.get("true_object")
                  else " (tracked, at the images' exposures)" if stack.get("at_exposure") else " (tracked)")
@@ -357,6 +393,9 @@ def params_toml(document: dict, today: datetime.date | None = None) -> str:
              "# for that arm's bubble. For a scene file, its E, K and mu lines go in the bubble's [[bodies]] table.",
              f"# The comments give 1 sigma and the 95 % interval ({UNCERTAINTY_TITLE[document['uncertainty_method']]}"
              f"{_draws_text(document)}).",
+             *([f"# Fitted jointly with a constant object pose offset (m, base frame): " + ", ".join(
+                 f"{name} {p['value']:.3g}" for name, p in document["pose_offset"].items())]
+               if document.get("pose_offset") else []),
              "[arms.material]"]
     for p in estimates_of(document):
         if not p["fitted"]:
@@ -400,7 +439,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         document = run_fit(args.recordings, args.model, args.params, args.holdout, args.seed, args.spacing,
                            args.substeps, progress=lambda text: print(f"[fit] {text}", file=sys.stderr, flush=True),
-                           stack_options=stack_options(args), uncertainty=args.uncertainty, draws=args.draws)
+                           stack_options=stack_options(args), uncertainty=args.uncertainty, draws=args.draws,
+                           pose_offset=args.pose_offset or "")
     except ValueError as error:
         print(f"fit: {error}", file=sys.stderr)
         return 2

@@ -22,9 +22,23 @@ stays inside its bounds). A parameter whose relative standard deviation exceeds 
 reported as unidentified: the recordings do not determine it (K from pure pressing on a flat face, for example,
 where no point moves tangentially).
 
+Pose offset (``fit_material`` with ``pose_offset="xyz"``, ``hydrosoft-stack fit --pose-offset``): a constant
+position offset ``d`` (3 numbers, m, in the base frame) added to every recorded object pose, fitted jointly with the
+material as a nuisance parameter; ``pose_offset="z"`` fits it along base z alone (the press normal of a horizontal
+face), the other axes held at 0. A tracker that reports a still object a fraction of a millimetre too low biases E
+by about 1 % per 0.07 mm (docs/fit.md); no noise term removes a constant offset, but fitting it does, and its
+uncertainty then widens E's interval (E's marginal of the joint covariance). Its coordinates are ``d /
+OFFSET_UNIT_M`` (mm, so the optimiser's steps are of E's scale), appended to theta, which is then ``(6,)``; a Gaussian
+prior of ``POSE_OFFSET_PRIOR_M`` per axis (three more residuals, ``d / POSE_OFFSET_PRIOR_M``) keeps it within a few
+mm and makes an offset the data do not determine (along a flat face that is only pressed) come out near 0 with
+about the prior's spread instead of an infinite one. An axis counts as identified when its standard deviation is at
+most ``UNIDENTIFIED_RELATIVE_SIGMA`` of the prior's (the data, not the prior, set it). The offset is fitted from
+the material-only optimum (``_refit_with_offset``).
+
 Replay resolution (``fit_material`` with ``substeps=None``): a replay too coarse for the recorded motion cuts
 twists and slips short, a bias the covariance does not cover; the sub-steps double while a replay twice as fine
-would move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``).
+would move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``). Each doubling
+takes that Gauss-Newton step, or refits by L-BFGS where the step would raise the cost (``_move_to_finer_replay``).
 
 Not covered by the covariance: correlated model error (on lab data the residuals are not independent noise; a
 bootstrap over trajectories would show it, at one fit per draw), the recorded poses' own errors, and mu's
@@ -61,6 +75,9 @@ DEFAULT_MAX_ITERATIONS = 60
 REPLAY_SHIFT_SIGMA = 0.1
 MAX_AUTO_SUBSTEPS = 8
 MU_BOUND_LOGIT = 36.0  # |logit(mu / MU_MAX)| at most this: beyond it float64's sigmoid is 0 or 1
+OFFSET_AXES = ("offset_x", "offset_y", "offset_z")  # the pose offset's names, base-frame axes (m)
+OFFSET_UNIT_M = 1e-3  # the offset's theta coordinates are in mm
+POSE_OFFSET_PRIOR_M = 2e-3  # 1 sigma of the offset's Gaussian prior per axis: it stays within a few mm
 
 
 @dataclass(frozen=True)
@@ -138,6 +155,24 @@ def to_values(theta: torch.Tensor, start: dict[str, float]) -> dict[str, float]:
     return {name: float(getattr(material, name)) for name in PARAMETERS}
 
 
+def with_offset(theta: torch.Tensor, offset_m: Sequence[float]) -> torch.Tensor:
+    """The material coordinates ``theta (3,)`` with the pose offset ``offset_m`` (3 numbers, m) appended: ``(6,)``."""
+    return torch.cat([theta[:3], torch.as_tensor(offset_m, dtype=torch.float64) / OFFSET_UNIT_M])
+
+
+def offset_of(theta: torch.Tensor) -> torch.Tensor | None:
+    """The pose offset ``(3,)`` (m) of coordinates ``theta`` (``(6,)``), or None for material-only ``(3,)``."""
+    return theta[3:6] * OFFSET_UNIT_M if theta.shape[0] == 6 else None
+
+
+def _offset_poses(poses: np.ndarray, offset_m: torch.Tensor | None) -> torch.Tensor | np.ndarray:
+    """Poses ``(..., 7)`` with ``offset_m (3,)`` added to each position (differentiably), or as they are."""
+    if offset_m is None:
+        return poses
+    poses = torch.as_tensor(poses, dtype=torch.float64)
+    return torch.cat([poses[..., :3] + offset_m, poses[..., 3:]], dim=-1)
+
+
 # --- residuals ----------------------------------------------------------------------------------------------------
 
 
@@ -151,32 +186,40 @@ def _whiten(errors: torch.Tensor) -> torch.Tensor:
 
 def residuals(theta: torch.Tensor, batches: Sequence[ReplayBatch], contact: str, start: dict[str, float],
               substeps: int = DEFAULT_SUBSTEPS) -> torch.Tensor:
-    """Whitened, noise-weighted residuals ``(n,)`` of every batch at ``theta (3,)`` (differentiable in theta): rows
-    1..K less the tare row's share, or, for a ``pretared`` batch, rows 0..K as they are."""
+    """Whitened, noise-weighted residuals ``(n,)`` of every batch at ``theta (3,)``, or ``(6,)`` with a pose offset
+    (``with_offset``; differentiable in theta): rows 1..K less the tare row's share, or, for a ``pretared`` batch,
+    rows 0..K as they are; with an offset, its prior's three residuals ``d / POSE_OFFSET_PRIOR_M`` last."""
     material = to_material(theta, start)
+    offset = offset_of(theta)
     weight = torch.as_tensor(1 / FT300_NOISE, dtype=torch.float64)
     out = []
     for batch in batches:
-        predicted = replay_tcp_wrenches(batch.object, batch.object_poses, batch.bubble_poses, contact,
-                                        batch.spacing_m, substeps, material)
+        predicted = replay_tcp_wrenches(batch.object, _offset_poses(batch.object_poses, offset), batch.bubble_poses,
+                                        contact, batch.spacing_m, substeps, material)
         if batch.pretared:  # tared before the trajectory: every row on its own
             out.append(((predicted - torch.as_tensor(batch.measured)) * weight).flatten())
             continue
         error = (predicted[:, 1:] - torch.as_tensor(batch.measured[:, 1:])) * weight
         out.append(_whiten(error).flatten())
+    if offset is not None:
+        out.append(offset / POSE_OFFSET_PRIOR_M)
     return torch.cat(out)
 
 
 def trajectory_rmses(values: dict[str, float], batches: Sequence[ReplayBatch], contact: str,
-                     start: dict[str, float], substeps: int = DEFAULT_SUBSTEPS) -> list[dict]:
+                     start: dict[str, float], substeps: int = DEFAULT_SUBSTEPS,
+                     offset_m: Sequence[float] | None = None) -> list[dict]:
     """Per trajectory of ``batches`` its ``object``, ``trajectory`` and its force, torque and shear RMSEs
-    (``wrench_replay.trajectory_errors``) with the material ``values``."""
+    (``wrench_replay.trajectory_errors``) with the material ``values`` and the object poses moved by ``offset_m``
+    (3 numbers, m; None: as recorded)."""
     theta = to_theta(values, start)
+    offset = None if offset_m is None else torch.as_tensor(offset_m, dtype=torch.float64)
     rows = []
     with torch.no_grad():
         for batch in batches:
-            predicted = replay_tcp_wrenches(batch.object, batch.object_poses, batch.bubble_poses, contact,
-                                            batch.spacing_m, substeps, to_material(theta, start)).numpy()
+            predicted = replay_tcp_wrenches(batch.object, _offset_poses(batch.object_poses, offset),
+                                            batch.bubble_poses, contact, batch.spacing_m, substeps,
+                                            to_material(theta, start)).numpy()
             for (name, index), p, m in zip(batch.labels, predicted, batch.measured):
                 rows.append({"object": name, "trajectory": index, **trajectory_errors(p, m)})
     return rows
@@ -205,8 +248,10 @@ class MaterialFit:
     """The fit's outcome: ``estimates`` per parameter (``PARAMETERS`` order), the cost (mean squared whitened
     residual) at the start and at the optimum, ``reduced_chi2`` (``s2``), ``residual_count``, ``iterations`` (L-BFGS
     cost evaluations), ``covariance`` ``(p, p)`` of the fitted theta coordinates (inf where undetermined),
-    ``substeps`` (the replay's, per recorded step), ``replay_shift_sigma`` (``replay_shift`` at the optimum) and
-    ``theta`` ``(3,)``, the optimum's unconstrained coordinates (``to_theta``)."""
+    ``substeps`` (the replay's, per recorded step), ``replay_shift_sigma`` (``replay_shift`` at the optimum),
+    ``theta`` ``(3,)``, the optimum's unconstrained coordinates (``to_theta``; ``(6,)`` with the pose offset's,
+    ``with_offset``) and ``pose_offset``: the offset's estimates per axis (``OFFSET_AXES``, m; start 0; interval
+    ``value +- Z95 sigma``), empty when it was not fitted."""
 
     estimates: tuple[ParameterEstimate, ...]
     cost_start: float
@@ -218,23 +263,31 @@ class MaterialFit:
     substeps: int
     replay_shift_sigma: float
     theta: np.ndarray
+    pose_offset: tuple[ParameterEstimate, ...] = ()  # OFFSET_AXES order; an axis not fitted is held at 0
 
     @property
     def values(self) -> dict[str, float]:
         return {e.name: e.value for e in self.estimates}
 
+    @property
+    def offset_m(self) -> list[float] | None:
+        """The fitted pose offset (3 numbers, m), or None when it was not fitted."""
+        return [e.value for e in self.pose_offset] or None
+
 
 def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[str],
                  start: dict[str, float] | None = None, substeps: int | None = None,
                  max_iterations: int = DEFAULT_MAX_ITERATIONS,
-                 progress: Callable[[int, float, dict[str, float]], None] | None = None) -> MaterialFit:
+                 progress: Callable[[int, float, dict[str, float]], None] | None = None,
+                 pose_offset: str = "") -> MaterialFit:
     """Fit ``params`` (a subset of ``PARAMETERS``) of the bubble's material to ``batches`` by L-BFGS.
 
     ``start``: the material to start from and to hold the other parameters at (default ``START``); ``substeps``:
     the replay's steps per recorded step, or None to choose them: from 1, doubled while a replay twice as fine would
     move a fitted value by more than ``REPLAY_SHIFT_SIGMA`` standard deviations (``replay_shift``), up to
     ``MAX_AUTO_SUBSTEPS``; each doubling moves the optimum by that Gauss-Newton step. ``progress(evaluation, cost,
-    values)`` is called after each cost evaluation.
+    values)`` is called after each cost evaluation. ``pose_offset``: the base axes (some of ``"xyz"``) along which to
+    fit a constant object position offset too (module docstring), from 0; empty: none.
     ValueError for an unknown parameter or model, or no batch.
     """
     start = dict(START if start is None else start)
@@ -243,12 +296,18 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
         raise ValueError(f"unknown parameter(s) {unknown}; fit some of {', '.join(PARAMETERS)}")
     if contact not in FIT_MODELS:
         raise ValueError(f"unknown contact model {contact!r} for the fit; known: {', '.join(FIT_MODELS)}")
+    if not set(pose_offset) <= set("xyz"):
+        raise ValueError(f"pose offset axes must be some of x, y, z, got {pose_offset!r}")
     if not batches:
         raise ValueError("no trajectory to fit")
     mask = torch.tensor([name in params for name in PARAMETERS])
     evaluations: list[float] = []
     steps = substeps or 1
-    theta = minimise(to_theta(start, start), mask, batches, contact, start, steps, max_iterations, evaluations, progress)
+    theta = minimise(to_theta(start, start), mask, batches, contact, start, steps, max_iterations, evaluations,
+                     progress)
+    if pose_offset:
+        theta, mask = _refit_with_offset(theta, mask, pose_offset, batches, contact, start, steps, max_iterations,
+                                         evaluations, progress)
     r, J = residuals_and_jacobian(theta, mask, batches, contact, start, steps)
     while True:
         n, p = r.shape[0], int(mask.sum())
@@ -258,21 +317,63 @@ def fit_material(batches: Sequence[ReplayBatch], contact: str, params: Sequence[
         if substeps is not None or shift <= REPLAY_SHIFT_SIGMA or steps >= MAX_AUTO_SUBSTEPS:
             break
         steps *= 2  # the optimum moves by the Gauss-Newton step to the finer replay's residuals
-        theta = theta.masked_scatter(mask, theta[mask] + torch.as_tensor(step))
+        theta = _move_to_finer_replay(theta, mask, step, covariance, n / (2 * s2), batches, contact, start, steps,
+                                      max_iterations, evaluations, progress)
         r, J = residuals_and_jacobian(theta, mask, batches, contact, start, steps)
     estimates = _estimates(theta, start, mask, covariance)
     return MaterialFit(estimates=estimates, cost_start=evaluations[0], cost=float(np.square(r).mean()),
                        reduced_chi2=s2, residual_count=n, iterations=len(evaluations), covariance=covariance,
-                       substeps=steps, replay_shift_sigma=shift, theta=theta.numpy().copy())
+                       substeps=steps, replay_shift_sigma=shift, theta=theta.numpy().copy(),
+                       pose_offset=_offset_estimates(theta, mask, covariance) if pose_offset else ())
+
+
+def _move_to_finer_replay(theta: torch.Tensor, mask: torch.Tensor, step: np.ndarray, covariance: np.ndarray,
+                          cost_scale: float, batches, contact, start, substeps: int, max_iterations: int,
+                          evaluations: list[float], progress) -> torch.Tensor:
+    """The optimum at the finer replay (``substeps``) from ``theta``, the coarser one's: ``theta`` moved by the
+    Gauss-Newton ``step (p,)``, or, when that raises the finer replay's cost (a direction the data barely determine,
+    such as E against a depth offset on a push at one depth, where the linear step overshoots), L-BFGS from
+    ``theta`` at the finer replay, preconditioned by ``covariance`` where it is finite."""
+    moved = theta.masked_scatter(mask, theta[mask] + torch.as_tensor(step))
+    with torch.no_grad():
+        costs = [float(residuals(t, batches, contact, start, substeps).square().mean()) for t in (theta, moved)]
+    if costs[1] <= costs[0]:
+        return moved
+    try:
+        preconditioner = np.linalg.cholesky(covariance) if np.isfinite(covariance).all() else None
+    except np.linalg.LinAlgError:  # not positive definite: plain L-BFGS
+        preconditioner = None
+    return minimise(theta, mask, batches, contact, start, substeps, max_iterations, evaluations, progress,
+                    preconditioner=preconditioner, cost_scale=1.0 if preconditioner is None else cost_scale)
+
+
+def _refit_with_offset(theta: torch.Tensor, mask: torch.Tensor, axes: str, batches, contact, start, substeps: int,
+                       max_iterations: int, evaluations: list[float], progress) -> tuple[torch.Tensor, torch.Tensor]:
+    """The joint optimum ``(6,)`` of the material and the pose offset along ``axes`` (some of ``"xyz"``), and its
+    mask ``(6,)``, from the material's optimum
+    ``theta (3,)`` at offset 0: L-BFGS preconditioned by the Gauss-Newton covariance there (as the bootstrap's
+    refits), so the offset (mm) and the material's log and logit coordinates, of very different curvature, take
+    Newton-sized steps. From a cold start L-BFGS stalled short of the material-only fit's cost."""
+    theta = with_offset(theta, (0.0, 0.0, 0.0))
+    mask = torch.cat([mask, torch.tensor([axis in axes for axis in "xyz"])])
+    r, J = residuals_and_jacobian(theta, mask, batches, contact, start, substeps)
+    n, p = r.shape[0], int(mask.sum())
+    s2 = max(float(np.square(r).sum()) / max(n - p, 1), 1e-12)
+    information = J.T @ J
+    information += SINGULAR_RCOND * max(float(np.trace(information)), 1e-12) * np.eye(p)  # stays invertible
+    preconditioner = np.linalg.cholesky(s2 * np.linalg.inv(information))
+    theta = minimise(theta, mask, batches, contact, start, substeps, max_iterations, evaluations, progress,
+                     preconditioner=preconditioner, cost_scale=n / (2 * s2))
+    return theta, mask
 
 
 def minimise(theta: torch.Tensor, mask: torch.Tensor, batches: Sequence[ReplayBatch], contact: str,
              start: dict[str, float], substeps: int, max_iterations: int = DEFAULT_MAX_ITERATIONS,
              evaluations: list[float] | None = None, progress=None, preconditioner: np.ndarray | None = None,
              cost_scale: float = 1.0, tolerance_change: float = 1e-12) -> torch.Tensor:
-    """L-BFGS over the fitted coordinates (``mask (3,)``) of ``theta (3,)`` from there, the others held; the optimum
-    ``(3,)``. Appends each cost evaluation (the mean squared residual) to ``evaluations``; ``progress`` as
-    ``fit_material``'s.
+    """L-BFGS over the fitted coordinates (``mask``, theta's shape) of ``theta`` (``(3,)``, or ``(6,)`` with a pose
+    offset) from there, the others held; the optimum, theta's shape. Appends each cost evaluation (the mean squared
+    residual) to ``evaluations``; ``progress`` as ``fit_material``'s.
 
     ``preconditioner``: a ``(p, p)`` matrix ``C``; L-BFGS then runs over ``u`` with the fitted coordinates
     ``theta_0 + C u`` from ``u = 0``, on the cost times ``cost_scale``. With ``C^T H C`` about the identity for
@@ -348,6 +449,24 @@ def _pseudo_inverse_with_infinity(information: np.ndarray) -> np.ndarray:
     covariance[np.ix_(touched, touched)] = np.nan
     covariance[touched, touched] = np.inf
     return covariance
+
+
+def _offset_estimates(theta: torch.Tensor, mask: torch.Tensor, covariance: np.ndarray
+                      ) -> tuple[ParameterEstimate, ...]:
+    """The pose offset's estimates (m) per axis from coordinates 3..5 of ``theta (6,)``, ``mask (6,)`` and the
+    fitted coordinates' ``covariance``; an axis not fitted is 0, held."""
+    fitted_index = {i: j for j, i in enumerate(mask.nonzero().flatten().tolist())}
+    out = []
+    for axis, name in enumerate(OFFSET_AXES):
+        if 3 + axis not in fitted_index:
+            out.append(ParameterEstimate(name, 0.0, 0.0, 0.0, (0.0, 0.0), False, False))
+            continue
+        value = float(theta[3 + axis]) * OFFSET_UNIT_M
+        variance = covariance[fitted_index[3 + axis], fitted_index[3 + axis]]
+        sigma = math.sqrt(variance) * OFFSET_UNIT_M if math.isfinite(variance) else math.inf
+        out.append(ParameterEstimate(name, 0.0, value, sigma, (value - Z95 * sigma, value + Z95 * sigma), True,
+                                     sigma <= UNIDENTIFIED_RELATIVE_SIGMA * POSE_OFFSET_PRIOR_M))
+    return tuple(out)
 
 
 def _estimates(theta: torch.Tensor, start: dict[str, float], mask: torch.Tensor, covariance: np.ndarray

@@ -9,7 +9,8 @@ noise model the FT 300 simulator uses (``hydrosoft.drivers.robotiq_ft300.noise``
 writer (``wrench_recording.WrenchRecordingWriter``) with the TCP frame at the sensor's origin. With ``pose_noise``
 the recorded object poses are what a tracker reports (``tracked_poses``): the plant pressed the true, clamped
 object, but every sample's recorded pose carries Gaussian position and rotation noise, drawn from a generator of its
-own so the wrench noise of a seed stays the same.
+own so the wrench noise of a seed stays the same. With ``pose_offset_m`` every recorded object pose is moved by
+the same constant offset, as a tracker with a constant error reports a still object.
 """
 
 from __future__ import annotations
@@ -82,15 +83,18 @@ def synthetic_trajectories(object_name: str, material: dict[str, float], kinds: 
 def write_synthetic_recording(path: str | Path, object_name: str, material: dict[str, float],
                               kinds: Sequence[str], steps: int, seed: int, noise_scale: float = 0.0,
                               contact: str = "nh", pose_noise: tuple[float, float] = (0.0, 0.0),
-                              plant_substeps: int = PLANT_SUBSTEPS) -> None:
+                              plant_substeps: int = PLANT_SUBSTEPS,
+                              pose_offset_m: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
     """Record ``synthetic_trajectories(object_name, material, kinds, steps, seed, noise_scale, contact,
     plant_substeps)`` to
     ``path`` in the ``collect wrench`` format. ``pose_noise``: ``(position m, rotation rad)`` per axis of the
-    tracker noise on the recorded object poses (``tracked_poses``; none by default)."""
+    tracker noise on the recorded object poses (``tracked_poses``; none by default); ``pose_offset_m``: a constant
+    offset (3 numbers, m, base frame) added to every recorded object position (none by default)."""
     params, bubbles, objects, measured = synthetic_trajectories(object_name, material, kinds, steps, seed,
                                                                 noise_scale, contact, plant_substeps)
     if any(pose_noise):
         objects = tracked_poses(objects, np.random.default_rng((POSE_NOISE_STREAM, seed)), *pose_noise)
+    objects[..., :3] += np.asarray(pose_offset_m, dtype=np.float64)
     info = RecordingInfo(object=object_name, config="synthetic", mode="sim", tcp_in_sensor=IDENTITY,
                          plant_spacing_m=PLANT_SPACING_M, seed=seed, epoch_offset_ns=0,
                          trajectories=[{"kind": kind, "material": dict(material)} for kind in kinds])

@@ -142,8 +142,8 @@ def replay_tcp_wrenches(object_name: str, object_poses, bubble_poses, contact: s
 
     Args:
         object_name: a ``wrench_scenes.BENCH_OBJECTS`` key.
-        object_poses, bubble_poses: ``(B, K + 1, 7)`` world poses per trajectory and step (m, wxyz); row 0 must be
-            out of contact (the replay starts there without force).
+        object_poses, bubble_poses: ``(B, K + 1, 7)`` world poses per trajectory and step (m, wxyz), arrays or
+            tensors (gradients flow to them); row 0 must be out of contact (the replay starts there without force).
         contact: a ``hydrosoft.contact.MODELS`` name.
         spacing: the object's surface spacing (m).
         substeps: ``dynamics.advance_forces`` calls per recorded step, at equally spaced poses between the two
@@ -164,8 +164,8 @@ def replay_tcp_wrenches(object_name: str, object_poses, bubble_poses, contact: s
 
     if substeps < 1:
         raise ValueError(f"substeps must be at least 1, got {substeps}")
-    objects = torch.as_tensor(np.asarray(object_poses), dtype=torch.float64)
-    bubbles = torch.as_tensor(np.asarray(bubble_poses), dtype=torch.float64)
+    objects = torch.as_tensor(object_poses, dtype=torch.float64)  # a tensor keeps its gradient (the fit's offset)
+    bubbles = torch.as_tensor(bubble_poses, dtype=torch.float64)
     scene = wrench_scene(object_name, contact, spacing, object_pose=objects[0, 0].tolist(),
                          bubble_pose=bubbles[0, 0].tolist())
     model, _, _ = compile_scene(scene)
