@@ -393,7 +393,7 @@ def params_toml(document: dict, today: datetime.date | None = None) -> str:
              "# for that arm's bubble. For a scene file, its E, K and mu lines go in the bubble's [[bodies]] table.",
              f"# The comments give 1 sigma and the 95 % interval ({UNCERTAINTY_TITLE[document['uncertainty_method']]}"
              f"{_draws_text(document)}).",
-             *([f"# Fitted jointly with a constant object pose offset (m, base frame): " + ", ".join(
+             *(["# Fitted jointly with a constant object pose offset (m, base frame): " + ", ".join(
                  f"{name} {p['value']:.3g}" for name, p in document["pose_offset"].items())]
                if document.get("pose_offset") else []),
              "[arms.material]"]
