@@ -12,8 +12,8 @@ Each row (one setting): ``images``; ``detection_rate``, the fraction of images t
 of the relative rotation) of the poses against the rendered truth as ``median``, ``p95`` and ``max`` (``null``
 when no image gave a pose); ``pos_err_mm_mean_base`` and ``pos_err_mm_mean_camera``: the mean signed position error
 ``[x, y, z]`` (mm) in the base frame and in the camera's (z along the line of sight: a tag seen too small or too
-large shows there as a bias, which the random azimuths average out of the base frame's); ``rejections``: reason counts for the images without a pose (reasons cut at the first
-colon); ``render_ms`` and ``track_ms``: median wall times of rendering and of detection plus pose;
+large shows there as a bias, which the random azimuths average out of the base frame's); ``rejections``: reason
+counts for the images without a pose (reasons cut at the first colon); ``render_ms`` and ``track_ms``: median wall times of rendering and of detection plus pose;
 ``track_cpu_ms_mean`` and ``track_cpu_ms_p95``: the tracker's CPU time per image (detection, corner refinement and
 pose: ``time.process_time``, all threads of the process, so OpenCV's worker threads count too).
 ``track_cpu_ms`` sums up the CPU time per image over all rows (``mean``, ``p95``, ``images``).
@@ -354,8 +354,8 @@ def _print_table(rows: list[dict]) -> None:
         return "-" if values is None else ", ".join(f"{value:+.2f}" for value in values)
 
     print(f"{'dist m':>6} {'angle':>5} {'found':>6} {'tags':>4} | {'pos mm: med':>11} {'p95':>6} {'max':>6} | "
-          f"{'rot deg: med':>12} {'p95':>6} {'max':>6} | {'mean mm: cam x, y, z':>20} | {'render ms':>9} {'track ms':>8} {'cpu ms':>6} "
-          f"{'p95':>5}  rejections")
+          f"{'rot deg: med':>12} {'p95':>6} {'max':>6} | {'mean mm: cam x, y, z':>20} | {'render ms':>9} "
+          f"{'track ms':>8} {'cpu ms':>6} {'p95':>5}  rejections")
     for row in rows:
         print(f"{row['distance_m']:>6.2f} {row['view_angle_deg']:>5.0f} {row['detection_rate']:>6.0%} "
               f"{cell(row['tags_per_pose'], 1):>4} | {cell(row['pos_err_mm_median'], 2):>11} "
