@@ -525,7 +525,8 @@ def test_a_goal_that_makes_no_progress_ends_failed_naming_why_and_halts_the_arm(
     ``planner.stall_s`` (and ``MIN_CYCLES`` cycles) without the error falling, its next cycle ends the goal
     ``failed``, the reason naming the error, the best, the tolerance and the key; the error is counted
     (``goal_stalled``) and logged, and each commander gets the halt naming the outcome (the arm's stop cause "goal
-    failed"), not another plan, long before the goal's 120 s timeout."""
+    failed"), not another plan, long before the goal's 120 s timeout. Time with the bubble off the cube does not
+    count."""
     stall_s = 0.4
     config = parse_config(SIM_TEXT.replace("[planner]", f"[planner]\nstall_s = {stall_s}\n", 1))
     assert config.planner.stall_s == stall_s and parse_config(SIM_TEXT).planner.stall_s == 10.0
@@ -540,6 +541,11 @@ def test_a_goal_that_makes_no_progress_ends_failed_naming_why_and_halts_the_arm(
     assert episode.outcome == "running" and episode.error_mm == pytest.approx(3.05)
     for _ in range(MIN_CYCLES):  # cycles that planned on the cube where it started
         assert not episode.note_progress(time.monotonic())
+    episode.contact.out_of_contact_since = time.monotonic()  # the bubble off the cube: no planning, no clock
+    assert not episode.note_progress(time.monotonic())
+    time.sleep(stall_s)
+    episode.contact.out_of_contact_since = None  # back in contact: that time did not count
+    assert not episode.note_progress(time.monotonic()) and episode.outcome == "running"
 
     async def cycle_after_stall_s() -> None:
         await asyncio.sleep(stall_s)
