@@ -22,7 +22,8 @@ The client API (``planner.cmd``): ``SetGoal``, ``Start``, ``Stop``, ``GetStatus`
 launch (``Goal.instance``, not this service's ``instance``) is refused. ``Start`` is refused without
 fresh inputs to start from (the drift cost is anchored at the object and TCP poses the goal starts at). A goal ends
 ``reached`` (the tracked object's ADD error within the goal's tolerance for ``SETTLE_S``), ``timeout``, ``failed``
-(with a reason: an unknown task, an unreachable goal, an object lost), ``stopped``, or ``interrupted`` when an arm's
+(with a reason: an unknown task, an unreachable goal, an object lost, no progress for ``planner.stall_s`` of planning:
+``services/arm/progress.py``), ``stopped``, or ``interrupted`` when an arm's
 commander acts on none of its targets any more (``ended_by_commander``: its goal floor passed the goal's start after
 its restart, a reconnect, an ``arm enable``, a refused target or the loss of this planner's heartbeat).
 
@@ -91,6 +92,7 @@ from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Stale, quote
 from hydrosoft.services.bus import service_cli
 from hydrosoft.services.bus.config import StackConfig
+from hydrosoft.services.arm.progress import ProgressWatch
 from hydrosoft.services.arm.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
 from hydrosoft.services.arm.safety import check_target, outside_workspace
 from hydrosoft.services.bus.runtime import Service
@@ -365,6 +367,7 @@ class Episode:
     outcome: msg.Outcome = "running"
     reason: str = ""
     contact: ContactWatch | None = None
+    progress: ProgressWatch | None = None
     stale_since_s: float | None = None  # when the inputs went stale (time.monotonic()), None while fresh
     input_seqs: dict[str, int] = field(default_factory=dict)  # per input topic, the seq of its newest message used
 
@@ -378,6 +381,8 @@ class Episode:
         that comes back does not move it again on this goal."""
         if self.stale_since_s is None:
             self.stale_since_s = now_s
+        if self.progress is not None:
+            self.progress.pause()  # no plan on stale inputs: that time is no stall
         if now_s - self.stale_since_s <= lost_after_s:
             return False
         self.finish("interrupted", f"input lost: {why}, for over {lost_after_s:g} s (the arm was stopped); "
@@ -395,6 +400,22 @@ class Episode:
             return False
         self.finish("interrupted", f"input lost: the publisher of {', '.join(restarted)} restarted during the goal "
                                    "(its messages are numbered from 1 again); start a new goal")
+        return True
+
+    def note_progress(self, now_s: float) -> bool:
+        """Note the goal's current ``error_mm`` at ``now_s`` (s, monotonic) in its ``progress`` watch; once the
+        error has stalled (``ProgressWatch.update``) the goal ends ``failed`` with the watch's reason (returns True).
+        While the bubble is off the object (``contact``: waiting, or re-approaching) the planner does not plan, and
+        the watch's clock stops."""
+        if self.progress is None:
+            return False
+        if self.contact is not None and self.contact.out_of_contact_since is not None:
+            self.progress.pause()
+            return False
+        stalled = self.progress.update(now_s, self.error_mm)
+        if stalled is None:
+            return False
+        self.finish("failed", stalled)
         return True
 
 
@@ -463,7 +484,8 @@ class Planner:
             return msg.CommandReply(ok=False, error=f"{msg.NO_FRESH_INPUT} ({err})")
         frame = self.core.frame
         target = frame.to_task(resolve_target(self.goal, frame.to_base(start_pose)))
-        episode = Episode(self.goal, target, self.core.solver(target, start_pose, arm_poses), time.monotonic())
+        episode = Episode(self.goal, target, self.core.solver(target, start_pose, arm_poses), time.monotonic(),
+                          progress=ProgressWatch(self.config.planner.stall_s, self.goal.tolerance_mm))
         if self.core.grasp_offset is not None:
             episode.contact = ContactWatch(self.core.grasp_offset, self.config.planner.max_reapproaches)
         task = self.core.task
@@ -477,6 +499,7 @@ class Planner:
                     episode.finish("failed", f"unreachable: arm {name} would leave the workspace box to get there "
                                              f"({refusal})")
         episode.error_mm = self.core.error_mm(start_pose, target)
+        episode.progress.update(episode.started_s, episode.error_mm)  # progress counts from the start's error
         if episode.outcome == "running":
             self.episode = episode
         else:
@@ -606,6 +629,11 @@ class Planner:
             episode.finish("reached")
             self._end_episode()
             return
+        if episode.note_progress(now):
+            self.service.count_error("goal_stalled", episode.reason)
+            self.service.log.warning("goal failed: %s", episode.reason)
+            self._end_episode()
+            return
         loop = asyncio.get_running_loop()
         try:
             penetration = await loop.run_in_executor(self.compute, self.penetration, object_pose, arm_poses,
@@ -686,6 +714,7 @@ class Planner:
         if target is None:
             self.service.log.info("re-approach %d done: planning from the new contact", watch.count)
             episode.prediction = None
+            episode.progress.restart()
             episode.solver = self.core.solver(episode.target, object_pose, arm_poses)
             return
         base = self.core.frame.to_base(target).numpy()

@@ -1,1 +1,2 @@
-"""The per-arm pure rules: motion safety, re-approach, task frame, the stored F/T tare and its checks."""
+"""The per-arm pure rules: motion safety, re-approach, a goal's progress, task frame, the stored F/T tare and its
+checks."""

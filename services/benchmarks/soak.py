@@ -7,8 +7,8 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
   its split over threads (``thread_split``): the asyncio loop's main thread, ZeroMQ's I/O threads and the others
   (worker threads, and native ones such as ur_rtde's receive threads in the arm commander);
 - **soak** (``--minutes``): goals back to back, there and back again (pushing and rolling: +-3 cm along x;
-  rotation: +-20 deg), each waited for (``GOAL_TIMEOUT_S``) and its outcome, true error and re-approaches of a
-  lost object kept. Meanwhile every
+  rotation: +-20 deg), each waited for (``GOAL_TIMEOUT_S``) and its outcome (with the reason of one not reached),
+  true error and re-approaches of a lost object kept. Meanwhile every
   ``SAMPLE_PERIOD_S`` each service's resident memory and CPU time are sampled, and every plan the planner publishes
   is read for its way from the camera to the arm targets (``msg.Plan``'s stamps), split into detection (image to
   the tracker's pose), queue (pose to the planner taking it), estimation (to the solve's start), solve (to the
@@ -242,12 +242,14 @@ async def _goals(config_path: Path, task: str, until_s: float) -> list[dict[str,
             true = await true_error_mm(client, reply.goal.target_pose, task)
         finally:
             client.close()
-        results.append({"goal": goal, "outcome": reply.outcome, "error_mm": round(reply.error_mm, 2),
+        results.append({"goal": goal, "outcome": reply.outcome, "reason": reply.outcome_reason,
+                        "error_mm": round(reply.error_mm, 2),
                         "true_error_mm": None if true is None else round(true, 2), "solves": reply.solves,
                         "reapproaches": reply.reapproaches, "seconds": round(time.monotonic() - tic_s, 1)})
         lost = f", {reply.reapproaches} re-approaches" if reply.reapproaches else ""
-        print(f"[soak] goal {len(results)} {goal}: {reply.outcome}, {reply.error_mm:.2f} mm, {reply.solves} solves"
-              f"{lost}", file=sys.stderr, flush=True)
+        why = f" ({reply.outcome_reason})" if reply.outcome_reason else ""
+        print(f"[soak] goal {len(results)} {goal}: {reply.outcome}{why}, {reply.error_mm:.2f} mm, {reply.solves} "
+              f"solves{lost}", file=sys.stderr, flush=True)
     return results
 
 

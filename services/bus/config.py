@@ -360,7 +360,9 @@ class PlannerConfig(Strict):
     ``linearly_implicit``, one sub-step per control step (NH and SNH planners; ``hydrosoft-stack bench control
     --rate-object-updates`` measures the rate of each). max_reapproaches: how often one goal may bring
     the bubble back onto an object it lost (``services/arm/reapproach.py``; one-arm scenes) before it fails; 0: a lost
-    object fails the goal at once. preset: the named settings (``PLANNER_PRESETS``) the config file's table
+    object fails the goal at once. stall_s: a goal whose ADD error has made no progress (fallen 0.5 mm) for this long
+    while the planner plans ends ``failed`` with the reason (``services/arm/progress.py``), instead of pressing on
+    until its timeout. preset: the named settings (``PLANNER_PRESETS``) the config file's table
     started from (``with_planner_preset``, applied on load), or None. target_lead_s is the shortest lead: the
     planner lengthens it to twice its recent p90 cycle plus a margin, within ``limits.max_target_lead_s``. nice:
     the scheduling niceness, 0-19 (``os.nice``), of the planner's computing (its build, compile and solve threads and
@@ -390,6 +392,7 @@ class PlannerConfig(Strict):
     workers: int = 1
     object_update: Literal["explicit", "linearly_implicit"] = "explicit"
     max_reapproaches: int = 3
+    stall_s: float = 10.0
     worker_processes: bool = False
     nice: int = 0
     device: str = "cpu"
@@ -404,7 +407,7 @@ class PlannerConfig(Strict):
                  f"convergence), got {self.sdf_solver_steps}")
         _require(0 <= self.nice <= 19, "planner.nice", f"must be 0..19, got {self.nice}")
         _positive(self, "planner", "spacing", "samples", "elites", "horizon", "heartbeat_period_s", "target_lead_s",
-                  "threads", "workers")
+                  "threads", "workers", "stall_s")
         _require(self.workers <= self.samples, "planner.workers",
                  f"must be at most planner.samples ({self.samples}): each worker rolls out a share of them, got "
                  f"{self.workers}")

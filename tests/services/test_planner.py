@@ -24,6 +24,7 @@ from hydrosoft.services.arm_commander import PLANNER_LOST
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import load_config, parse_config
 from hydrosoft.services.bus.sockets import ErrorCounter
+from hydrosoft.services.arm.progress import MIN_CYCLES
 from hydrosoft.services.planner import (
     LEAD_CYCLES,
     LEAD_MARGIN_S,
@@ -464,3 +465,101 @@ def test_compute_threads_run_at_the_planner_niceness_and_leave_the_caller_at_its
     assert in_thread == expected
     assert int(child.stdout) == expected
     assert os.nice(0) == before
+
+
+class StackInputs:
+    """The planner's subscriber for one still scene: the object at ``object_pose`` (published a second ago, so no
+    solve waits for a newer one), the arm's state at ``tcp_pose`` (base frame) and a membrane image (only its
+    ``seq`` is read before a solve)."""
+
+    def __init__(self, object_pose: np.ndarray, tcp_pose: np.ndarray) -> None:
+        self.object_pose, self.tcp_pose, self.seq = object_pose, tcp_pose, 0
+        self.event = asyncio.Event()
+
+    def arrival(self, topic: str) -> asyncio.Event:
+        return self.event
+
+    def latest(self, topic: str, max_age_s: float, kind=None):
+        self.seq += 1
+        now_ns = time.monotonic_ns()
+        if topic == OBJECT_POSE_TOPIC:
+            value = msg.ObjectPose(object="object", pose=self.object_pose, tags_used=(0,), quality=1.0, seq=self.seq,
+                                   stamp_ns=now_ns - 1_000_000_000)
+        elif topic.startswith("arm_state/"):
+            value = msgspec.structs.replace(commander_state("bubble", 0, ""), tcp_pose=self.tcp_pose, seq=self.seq)
+        else:
+            value = collections.namedtuple("Deformation", "seq")(self.seq)
+        stamp_ns = getattr(value, "stamp_ns", 0) or now_ns
+        return collections.namedtuple("Received", "value stamp_ns age_s")(value, stamp_ns, (now_ns - stamp_ns) * 1e-9)
+
+
+class StackService(ServiceOfLaunch):
+    """A ``runtime.Service`` as the planner uses it: its subscriber and publisher (``Out``: every message kept),
+    its error counts and its log's lines."""
+
+    def __init__(self, inputs: StackInputs) -> None:
+        super().__init__("a" * 32)
+        self.inputs, self.sent, self.logged, self.note = inputs, [], [], ""
+        self.log = self
+
+    def subscriber(self, endpoints, topics, background):
+        return self.inputs
+
+    def publisher(self, endpoint):
+        return self
+
+    async def send(self, message, topic):
+        self.sent.append((topic, message))
+
+    def warning(self, text: str, *args) -> None:
+        self.logged.append(text % args)
+
+    info = warning
+
+    def status(self):
+        return None
+
+
+def test_a_goal_that_makes_no_progress_ends_failed_naming_why_and_halts_the_arm(core):
+    """The soak's stall: a push held 3.05 mm short of its 3 mm tolerance. Once the planner has planned for
+    ``planner.stall_s`` (and ``MIN_CYCLES`` cycles) without the error falling, its next cycle ends the goal
+    ``failed``, the reason naming the error, the best, the tolerance and the key; the error is counted
+    (``goal_stalled``) and logged, and each commander gets the halt naming the outcome (the arm's stop cause "goal
+    failed"), not another plan, long before the goal's 120 s timeout. Time with the bubble off the cube does not
+    count."""
+    stall_s = 0.4
+    config = parse_config(SIM_TEXT.replace("[planner]", f"[planner]\nstall_s = {stall_s}\n", 1))
+    assert config.planner.stall_s == stall_s and parse_config(SIM_TEXT).planner.stall_s == 10.0
+    frame = core.frame
+    cube = frame.to_base(core.task.initial_pose()).numpy()
+    tcp = frame.to_base(core.fixed_poses[core.arms["bubble"]]).numpy()
+    service = StackService(StackInputs(cube, tcp))
+    planner = Planner(service, config, core)
+    planner.goal = msg.Goal(task="pushing", dx_m=0.00305, tolerance_mm=3.0, timeout_s=120.0)
+    assert planner.start().ok
+    episode = planner.episode
+    assert episode.outcome == "running" and episode.error_mm == pytest.approx(3.05)
+    for _ in range(MIN_CYCLES):  # cycles that planned on the cube where it started
+        assert not episode.note_progress(time.monotonic())
+    episode.contact.out_of_contact_since = time.monotonic()  # the bubble off the cube: no planning, no clock
+    assert not episode.note_progress(time.monotonic())
+    time.sleep(stall_s)
+    episode.contact.out_of_contact_since = None  # back in contact: that time did not count
+    assert not episode.note_progress(time.monotonic()) and episode.outcome == "running"
+
+    async def cycle_after_stall_s() -> None:
+        await asyncio.sleep(stall_s)
+        await planner.tick()
+        await planner._halting
+
+    asyncio.run(cycle_after_stall_s())
+    assert planner.episode is None and episode.outcome == "failed", (episode.outcome, episode.reason)
+    assert episode.reason.startswith("no progress: error 3.05 mm (best 3.05 mm, tolerance 3 mm)"), episode.reason
+    assert f"planner.stall_s = {stall_s}" in episode.reason
+    assert service.errors.counts == {"goal_stalled": 1} and any(episode.reason in line for line in service.logged)
+    ((topic, halt),) = service.sent  # the halt alone: no plan was sent on the stalled cycle
+    assert topic == "arm_target/bubble" and halt.goal_end == "failed" and halt.deadline_ns <= time.monotonic_ns()
+    np.testing.assert_array_equal(halt.tcp_pose, tcp)
+    reply = planner.status_reply()
+    assert reply.outcome == "failed" and reply.outcome_reason == episode.reason and not reply.running
+    assert reply.elapsed_s < 10.0

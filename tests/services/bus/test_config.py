@@ -41,6 +41,8 @@ def test_the_shipped_configs_load(name):
     (ONE_ARM + "[planner]\nsdf_solver_steps = 33\n", "planner.sdf_solver_steps"),
     (ONE_ARM + "[planner]\nworkers = 0\n", "planner.workers"),
     (ONE_ARM + "[planner]\nnice = 20\n", "planner.nice"),
+    (ONE_ARM + "[planner]\nstall_s = 0\n", "planner.stall_s"),
+    (ONE_ARM + "[planner]\nstall_s = inf\n", "planner.stall_s"),  # "never" is the goal's timeout, not this key
     (ONE_ARM + "[planner]\ndevice = \"gpu\"\n", "planner.device"),
     (ONE_ARM + "[planner]\ndevice = \"cuda:x\"\n", "planner.device"),
     (ONE_ARM + "[planner]\nsamples = 16\nworkers = 17\n", "planner.workers"),  # more workers than samples
