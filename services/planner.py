@@ -31,6 +31,10 @@ object out of contact for ``reapproach.LOST_AFTER_S`` is lost, and the planner d
 (``services/arm/reapproach.py``: up, across, down to the scene's pressing pose) before it plans again, at most
 ``planner.max_reapproaches`` times per goal.
 
+Start-up: the planner builds its model, starts its worker processes and loads (or compiles) its solver, then, when
+the launcher started it before the arm commanders (``$HYDROSOFT_AWAIT_ARMS``, ``await_arm_commanders``), waits until
+each of them has published its arm state; only then does it serve the client API and report ready.
+
 Priority (``planner.nice``): the planner's computing runs at that niceness, in threads of its own (``compute_threads``:
 the build and compile, the penetration and the solve) and the worker processes they start, so that the commander and
 the sensors go first; its event loop, which takes the inputs, estimates the state and sends the targets (a few ms per
@@ -93,12 +97,13 @@ from hydrosoft.services.bus import service_cli
 from hydrosoft.services.bus.config import StackConfig
 from hydrosoft.services.arm.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
 from hydrosoft.services.arm.safety import check_target, outside_workspace
-from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.bus.runtime import AWAIT_ARMS_ENV, Service
 from hydrosoft.services.arm.task_frame import TaskFrame
 
 IDLE_PERIOD_S = 0.05  # s between checks while no goal runs or inputs are stale
 SETTLE_S = 0.3  # a goal is reached once the object stayed within its tolerance this long (s)
 COMMAND_TIMEOUT_S = 1.0
+ARM_WAIT_PERIOD_S = 0.05  # s between checks for the arm commanders' first states (``await_arm_commanders``)
 #: The target lead (``target_lead``): a target outlives this many of the planner's slow (p90) cycles, plus a margin
 #: (s) for the transport and the commander's tick, so one late cycle does not leave the arm without a target.
 LEAD_CYCLES = 2.0
@@ -529,6 +534,14 @@ class Planner:
                 continue
         return states
 
+    def has_arm_state(self, arm: str) -> bool:
+        """Whether the commander of ``arm`` has published a state yet (at any age)."""
+        try:
+            self.inputs.latest(f"arm_state/{arm}", math.inf, msg.ArmState)
+        except Stale:
+            return False
+        return True
+
     def fresh_inputs(self) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, msg.MembraneDeformation]]:
         """The newest object pose, TCP poses (task frame) and deformation images, each within its maximum age
         (else Stale). ``pose_stamps`` keeps the object pose's image and publish stamps (ns) for the Plan,
@@ -884,6 +897,7 @@ async def run(service: Service, config: StackConfig) -> None:
     if config.planner.compile:  # before the model and the worker processes: they load its precompiled functions
         precompiled = artefacts.use_precompiled(config, artefacts.planner_key(config))
     core = await loop.run_in_executor(compute, PlannerCore.build, config)
+    planner = Planner(service, config, core, compute)  # its inputs arrive from now on, while its solver loads
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
         service.compilation = build.status
@@ -897,7 +911,7 @@ async def run(service: Service, config: StackConfig) -> None:
         watch_worker_fallbacks(service, core)
     else:
         service.compilation = "eager (planner.compile = false)"
-    planner = Planner(service, config, core, compute)
+    await await_arm_commanders(service, planner, arms_to_await())
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
     serving = service.supervise(asyncio.create_task(server.serve(), name="planner.serve"))
     await service.ready()
@@ -908,6 +922,28 @@ async def run(service: Service, config: StackConfig) -> None:
         serving.cancel()
         core.close()
         compute.shutdown(wait=False)
+
+
+def arms_to_await() -> list[str]:
+    """The arms whose commanders the launcher starts after the planner (``$HYDROSOFT_AWAIT_ARMS``, comma separated;
+    none when it is unset: a planner started alone, or restarted, waits for no arm)."""
+    return [name for name in os.environ.get(AWAIT_ARMS_ENV, "").split(",") if name]
+
+
+async def await_arm_commanders(service: Service, planner: Planner, arms: Sequence[str]) -> None:
+    """Return once the commander of each of ``arms`` has published its arm state (a commander publishes it only once
+    it is ready, connected to its arm), checking every ``ARM_WAIT_PERIOD_S``; until then the planner serves no
+    client request and is not ready, and its status note names the arms it waits for. The launcher starts the
+    planner first, so that it builds and loads its solver while the arms' owners start; this keeps the rule that
+    nothing takes a goal for an arm before the arm's commander runs."""
+    waiting = [arm for arm in arms if not planner.has_arm_state(arm)]
+    if waiting:
+        service.note = f"waiting for the state of the arm commanders of {', '.join(waiting)} before taking goals"
+        service.log.info("%s", service.note)
+    while waiting:
+        await asyncio.sleep(ARM_WAIT_PERIOD_S)
+        waiting = [arm for arm in waiting if not planner.has_arm_state(arm)]
+    service.note = ""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
