@@ -35,10 +35,13 @@ Start-up: the planner builds its model, starts its worker processes and loads (o
 the launcher started it before the arm commanders (``$HYDROSOFT_AWAIT_ARMS``, ``await_arm_commanders``), waits until
 each of them has published its arm state; only then does it serve the client API and report ready.
 
-Priority (``planner.nice``): the planner's computing runs at that niceness, in threads of its own (``compute_threads``:
-the build and compile, the penetration and the solve) and the worker processes they start, so that the commander and
-the sensors go first; its event loop, which takes the inputs, estimates the state and sends the targets (a few ms per
-cycle on the camera-to-target path), runs at the niceness it was started with.
+Priority (``planner.nice``): once ready, the planner's computing runs at that niceness, in threads of its own
+(``compute_threads``: the penetration and the solve) and in its worker processes (``renice``d then), so that the
+commander and the sensors go first; its event loop, which takes the inputs, estimates the state and sends the targets
+(a few ms per cycle on the camera-to-target path), runs at the niceness it was started with. Its start-up (the model
+build, the worker processes' start, the solver's load and first solve) runs at that niceness too, in a thread of its
+own: no arm moves before the planner is ready, and at nice +10 its start-up waited behind every other program on a
+shared machine.
 
 Device (``planner.device``): the model, the solver and its worker processes compute there; each solve's state moves
 there once (``PlannerCore.observation``), and its plan, targets and Plan message come back to the CPU. A device that is
@@ -866,6 +869,19 @@ def compute_threads(nice: int) -> ThreadPoolExecutor:
                               initargs=(nice,))
 
 
+def renice(pids: Iterable[int], increment: int) -> None:
+    """Add ``increment`` to the niceness of every thread of the processes ``pids`` (on Linux each thread has its
+    own, listed in ``/proc/PID/task``; elsewhere the process's); a process that is gone is left out."""
+    for pid in pids:
+        try:
+            threads = [int(tid) for tid in os.listdir(f"/proc/{pid}/task")]
+        except FileNotFoundError:
+            threads = [pid]
+        for tid in threads:
+            with contextlib.suppress(ProcessLookupError):
+                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+
+
 def worker_fallback(index: int, why: str) -> str:
     """A solver worker process's parts that run eager (``WorkerProcesses.fallbacks``), in words."""
     return f"solver worker process {index}: {why}"
@@ -890,13 +906,15 @@ async def run(service: Service, config: StackConfig) -> None:
         await serve_without_device(service, config, unavailable)
         return
     loop = asyncio.get_running_loop()
-    compute = compute_threads(config.planner.nice)  # the worker processes start there: they inherit its niceness
+    compute = compute_threads(config.planner.nice)
+    start_up = ThreadPoolExecutor(1, thread_name_prefix="planner-start")  # at the service's niceness (``renice``)
     if config.planner.nice:
-        service.log.info("computing at niceness +%d (planner.nice): the other services go first", config.planner.nice)
+        service.log.info("computing at niceness +%d (planner.nice) once ready: the other services go first",
+                         config.planner.nice)
     torch.set_num_threads(config.planner.threads)
     if config.planner.compile:  # before the model and the worker processes: they load its precompiled functions
         precompiled = artefacts.use_precompiled(config, artefacts.planner_key(config))
-    core = await loop.run_in_executor(compute, PlannerCore.build, config)
+    core = await loop.run_in_executor(start_up, PlannerCore.build, config)
     planner = Planner(service, config, core, compute)  # its inputs arrive from now on, while its solver loads
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
@@ -904,13 +922,17 @@ async def run(service: Service, config: StackConfig) -> None:
         service.note = COMPILING_NOTE
         compile = functools.partial(compile_planner, core, None if build.ready else precompiled)
         elsewhere = None if core.processes is None else core.processes.precompiled
-        if not await loop.run_in_executor(compute, build.run, compile, service.log.info, PROGRESS_PERIOD_S, elsewhere):
+        if not await loop.run_in_executor(start_up, build.run, compile, service.log.info, PROGRESS_PERIOD_S,
+                                          elsewhere):
             service.log.warning("the planner runs eager: %s", build.fallback)
         service.note = ""
         service.compilation = build.status
         watch_worker_fallbacks(service, core)
     else:
         service.compilation = "eager (planner.compile = false)"
+    start_up.shutdown()
+    if core.processes is not None:
+        renice(core.processes.pids, config.planner.nice)
     await await_arm_commanders(service, planner, arms_to_await())
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
     serving = service.supervise(asyncio.create_task(server.serve(), name="planner.serve"))

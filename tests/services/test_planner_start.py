@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -151,3 +154,25 @@ async def request_status(config, timeout_s: float) -> msg.StatusReply | None:
             return await client.request(msg.GetStatus(), timeout_s)
         except (TimeoutError, BusError):
             return None
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness in /proc is Linux's")
+def test_renice_lowers_the_priority_of_every_thread_of_the_worker_processes():
+    """Once ready, the planner renices its solver worker processes, started at its own niceness, to ``planner.nice``:
+    every thread of each process (on Linux a thread's niceness is its own), not just the main one."""
+    code = "import threading, time; threading.Thread(target=time.sleep, args=(60,)).start(); print(flush=True); " \
+           "time.sleep(60)"
+    processes = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE) for _ in range(2)]
+    try:
+        for process in processes:
+            process.stdout.readline()  # its second thread runs
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        planner.renice([process.pid for process in processes] + [2**22 + 1], 3)  # a pid that is gone is left out
+        for process in processes:
+            threads = [int(tid) for tid in os.listdir(f"/proc/{process.pid}/task")]
+            assert len(threads) == 2
+            assert [os.getpriority(os.PRIO_PROCESS, tid) for tid in threads] == [own + 3, own + 3]
+    finally:
+        for process in processes:
+            process.kill()
+            process.wait()
