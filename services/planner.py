@@ -38,10 +38,9 @@ each of them has published its arm state; only then does it serve the client API
 Priority (``planner.nice``): once ready, the planner's computing runs at that niceness, in threads of its own
 (``compute_threads``: the penetration and the solve) and in its worker processes (``renice``d then), so that the
 commander and the sensors go first; its event loop, which takes the inputs, estimates the state and sends the targets
-(a few ms per cycle on the camera-to-target path), runs at the niceness it was started with. Its start-up (the model
-build, the worker processes' start, the solver's load and first solve) runs at that niceness too, in a thread of its
-own: no arm moves before the planner is ready, and at nice +10 its start-up waited behind every other program on a
-shared machine.
+(a few ms per cycle on the camera-to-target path), runs at the niceness it was started with. So does its start-up
+(the model build, the worker processes' start, the solver's load and first solve), in a thread of its own: no arm
+moves before the planner is ready, and at +10 its start-up waited behind every other program on a shared machine.
 
 Device (``planner.device``): the model, the solver and its worker processes compute there; each solve's state moves
 there once (``PlannerCore.observation``), and its plan, targets and Plan message come back to the CPU. A device that is
