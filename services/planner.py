@@ -32,10 +32,16 @@ object out of contact for ``reapproach.LOST_AFTER_S`` is lost, and the planner d
 (``services/arm/reapproach.py``: up, across, down to the scene's pressing pose) before it plans again, at most
 ``planner.max_reapproaches`` times per goal.
 
-Priority (``planner.nice``): the planner's computing runs at that niceness, in threads of its own (``compute_threads``:
-the build and compile, the penetration and the solve) and the worker processes they start, so that the commander and
-the sensors go first; its event loop, which takes the inputs, estimates the state and sends the targets (a few ms per
-cycle on the camera-to-target path), runs at the niceness it was started with.
+Start-up: the planner builds its model, starts its worker processes and loads (or compiles) its solver, then, when
+the launcher started it before the arm commanders (``$HYDROSOFT_AWAIT_ARMS``, ``await_arm_commanders``), waits until
+each of them has published its arm state; only then does it serve the client API and report ready.
+
+Priority (``planner.nice``): once ready, the planner's computing runs at that niceness, in threads of its own
+(``compute_threads``: the penetration and the solve) and in its worker processes (``renice``d then), so that the
+commander and the sensors go first; its event loop, which takes the inputs, estimates the state and sends the targets
+(a few ms per cycle on the camera-to-target path), runs at the niceness it was started with. So does its start-up
+(the model build, the worker processes' start, the solver's load and first solve), in a thread of its own: no arm
+moves before the planner is ready, and at +10 its start-up waited behind every other program on a shared machine.
 
 Device (``planner.device``): the model, the solver and its worker processes compute there; each solve's state moves
 there once (``PlannerCore.observation``), and its plan, targets and Plan message come back to the CPU. A device that is
@@ -95,12 +101,13 @@ from hydrosoft.services.bus.config import StackConfig
 from hydrosoft.services.arm.progress import ProgressWatch
 from hydrosoft.services.arm.reapproach import LOST_AFTER_S, ContactWatch, Decision, grasp_offset
 from hydrosoft.services.arm.safety import check_target, outside_workspace
-from hydrosoft.services.bus.runtime import Service
+from hydrosoft.services.bus.runtime import AWAIT_ARMS_ENV, Service
 from hydrosoft.services.arm.task_frame import TaskFrame
 
 IDLE_PERIOD_S = 0.05  # s between checks while no goal runs or inputs are stale
 SETTLE_S = 0.3  # a goal is reached once the object stayed within its tolerance this long (s)
 COMMAND_TIMEOUT_S = 1.0
+ARM_WAIT_PERIOD_S = 0.05  # s between checks for the arm commanders' first states (``await_arm_commanders``)
 #: The target lead (``target_lead``): a target outlives this many of the planner's slow (p90) cycles, plus a margin
 #: (s) for the transport and the commander's tick, so one late cycle does not leave the arm without a target.
 LEAD_CYCLES = 2.0
@@ -552,6 +559,14 @@ class Planner:
                 continue
         return states
 
+    def has_arm_state(self, arm: str) -> bool:
+        """Whether the commander of ``arm`` has published a state yet (at any age)."""
+        try:
+            self.inputs.latest(f"arm_state/{arm}", math.inf, msg.ArmState)
+        except Stale:
+            return False
+        return True
+
     def fresh_inputs(self) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, msg.MembraneDeformation]]:
         """The newest object pose, TCP poses (task frame) and deformation images, each within its maximum age
         (else Stale). ``pose_stamps`` keeps the object pose's image and publish stamps (ns) for the Plan,
@@ -882,6 +897,19 @@ def compute_threads(nice: int) -> ThreadPoolExecutor:
                               initargs=(nice,))
 
 
+def renice(pids: Iterable[int], increment: int) -> None:
+    """Add ``increment`` to the niceness of every thread of the processes ``pids`` (on Linux each thread has its
+    own, listed in ``/proc/PID/task``; elsewhere the process's); a process that is gone is left out."""
+    for pid in pids:
+        try:
+            threads = [int(tid) for tid in os.listdir(f"/proc/{pid}/task")]
+        except FileNotFoundError:
+            threads = [pid]
+        for tid in threads:
+            with contextlib.suppress(ProcessLookupError):
+                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+
+
 def worker_fallback(index: int, why: str) -> str:
     """A solver worker process's parts that run eager (``WorkerProcesses.fallbacks``), in words."""
     return f"solver worker process {index}: {why}"
@@ -906,27 +934,34 @@ async def run(service: Service, config: StackConfig) -> None:
         await serve_without_device(service, config, unavailable)
         return
     loop = asyncio.get_running_loop()
-    compute = compute_threads(config.planner.nice)  # the worker processes start there: they inherit its niceness
+    compute = compute_threads(config.planner.nice)
+    start_up = ThreadPoolExecutor(1, thread_name_prefix="planner-start")  # at the service's niceness (``renice``)
     if config.planner.nice:
-        service.log.info("computing at niceness +%d (planner.nice): the other services go first", config.planner.nice)
+        service.log.info("computing at niceness +%d (planner.nice) once ready: the other services go first",
+                         config.planner.nice)
     torch.set_num_threads(config.planner.threads)
     if config.planner.compile:  # before the model and the worker processes: they load its precompiled functions
         precompiled = artefacts.use_precompiled(config, artefacts.planner_key(config))
-    core = await loop.run_in_executor(compute, PlannerCore.build, config)
+    core = await loop.run_in_executor(start_up, PlannerCore.build, config)
+    planner = Planner(service, config, core, compute)  # its inputs arrive from now on, while its solver loads
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
         service.compilation = build.status
         service.note = COMPILING_NOTE
         compile = functools.partial(compile_planner, core, None if build.ready else precompiled)
         elsewhere = None if core.processes is None else core.processes.precompiled
-        if not await loop.run_in_executor(compute, build.run, compile, service.log.info, PROGRESS_PERIOD_S, elsewhere):
+        if not await loop.run_in_executor(start_up, build.run, compile, service.log.info, PROGRESS_PERIOD_S,
+                                          elsewhere):
             service.log.warning("the planner runs eager: %s", build.fallback)
         service.note = ""
         service.compilation = build.status
         watch_worker_fallbacks(service, core)
     else:
         service.compilation = "eager (planner.compile = false)"
-    planner = Planner(service, config, core, compute)
+    start_up.shutdown()
+    if core.processes is not None:
+        renice(core.processes.pids, config.planner.nice)
+    await await_arm_commanders(service, planner, arms_to_await())
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
     serving = service.supervise(asyncio.create_task(server.serve(), name="planner.serve"))
     await service.ready()
@@ -937,6 +972,28 @@ async def run(service: Service, config: StackConfig) -> None:
         serving.cancel()
         core.close()
         compute.shutdown(wait=False)
+
+
+def arms_to_await() -> list[str]:
+    """The arms whose commanders the launcher starts after the planner (``$HYDROSOFT_AWAIT_ARMS``, comma separated;
+    none when it is unset: a planner started alone, or restarted, waits for no arm)."""
+    return [name for name in os.environ.get(AWAIT_ARMS_ENV, "").split(",") if name]
+
+
+async def await_arm_commanders(service: Service, planner: Planner, arms: Sequence[str]) -> None:
+    """Return once the commander of each of ``arms`` has published its arm state (a commander publishes it only once
+    it is ready, connected to its arm), checking every ``ARM_WAIT_PERIOD_S``; until then the planner serves no
+    client request and is not ready, and its status note names the arms it waits for. The launcher starts the
+    planner first, so that it builds and loads its solver while the arms' owners start; this keeps the rule that
+    nothing takes a goal for an arm before the arm's commander runs."""
+    waiting = [arm for arm in arms if not planner.has_arm_state(arm)]
+    if waiting:
+        service.note = f"waiting for the state of the arm commanders of {', '.join(waiting)} before taking goals"
+        service.log.info("%s", service.note)
+    while waiting:
+        await asyncio.sleep(ARM_WAIT_PERIOD_S)
+        waiting = [arm for arm in waiting if not planner.has_arm_state(arm)]
+    service.note = ""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

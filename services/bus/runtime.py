@@ -72,6 +72,9 @@ __all__ = ["Latest", "Received", "RuntimeConfig", "Service", "Stale", "new_insta
 RESTARTS_ENV = "HYDROSOFT_RESTARTS"
 #: Environment variable in which the launcher passes the id of its launch to every service.
 INSTANCE_ENV = "HYDROSOFT_INSTANCE"
+#: Environment variable in which the launcher names the arms (comma separated) whose commanders it starts after the
+#: planner: the planner takes goals and reports ready only once each of them has published its state.
+AWAIT_ARMS_ENV = "HYDROSOFT_AWAIT_ARMS"
 #: A service's log file is rotated when it reaches this size, bytes; ``LOG_FILE_BACKUPS`` older files are kept
 #: (``NAME.log.1`` ...), so one service's logs take at most (1 + LOG_FILE_BACKUPS) * LOG_FILE_BYTES on disk.
 LOG_FILE_BYTES = 10 * 1024 * 1024

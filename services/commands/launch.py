@@ -12,8 +12,10 @@ leaves no unsupervised arm commander behind. Every line of its stdout and stderr
 (``config.service_log_dir()``), which holds its shutdown lines even when the launcher was killed.
 The next service starts once this one printed ``READY NAME PID`` (within its ``ready_timeout_s``); one that exits
 or stays silent fails the launch: the error names it and everything started is stopped again. The planner is the
-exception (``start_order``): it starts right after the arm commanders are ready, and the sensors start while it
-builds and loads its solver; the stack is ready when it is too.
+exception (``start_order``): it starts first, and the others start one after another while it builds and loads its
+solver; at its first start it gets ``HYDROSOFT_AWAIT_ARMS`` (the arms of the launch's arm commanders) and takes no
+goal, nor reports ready, before each of those commanders has published its arm state; the stack is ready when it is
+too.
 
 Supervision. A service that exits is restarted by its policy (``never``; ``on-failure``: a non-zero exit or a
 signal; ``always``) after a backoff that doubles from ``backoff_s`` (capped at ``MAX_BACKOFF_S``), at most
@@ -67,7 +69,7 @@ from typing import IO
 
 from hydrosoft.services.bus.sockets import BusConfigError, check_secret_key_file
 from hydrosoft.services.bus.config import HOST_ENV, ConfigError, ServiceConfig, StackConfig, load_config
-from hydrosoft.services.bus.runtime import INSTANCE_ENV, RESTARTS_ENV, new_instance_id
+from hydrosoft.services.bus.runtime import AWAIT_ARMS_ENV, INSTANCE_ENV, RESTARTS_ENV, new_instance_id
 
 #: The package holding the service modules.
 SERVICE_PACKAGE = "hydrosoft.services"
@@ -175,17 +177,22 @@ def select_services(config: StackConfig, only: str | None) -> list[str]:
 
 def start_order(names: Sequence[str]) -> list[str]:
     """The order the launcher starts the services ``names`` (given in ``config.service_names()`` order) in: that
-    order, but the planner right after the services that own the arms (sim_world, which hosts the simulated ones, and
-    every arm commander; first when ``names`` has none of them). Its start-up is the longest (its model, its solver
-    worker processes, its compiled step) and needs none of the sensors, so it runs while they start
-    (``STARTS_ALONGSIDE``); it still starts only once every arm commander is ready, so nothing that commands an arm
-    runs before the arm's owner does."""
+    order, but the planner first (after the recorder, which records every start). Its start-up is the longest (its
+    imports, its model, its solver worker processes, its compiled step) and needs no other service, so it runs while
+    the others start (``STARTS_ALONGSIDE``). It takes no goal before the arms' owners run: it serves its client API
+    and reports ready only once every arm commander the launch starts has published its state
+    (``$HYDROSOFT_AWAIT_ARMS``, ``awaited_arms``)."""
     if PLANNER not in names:
         return list(names)
     rest = [name for name in names if name != PLANNER]
-    owners = [index for index, name in enumerate(rest) if name == "sim_world" or module_for(name) == "arm_commander"]
-    at = owners[-1] + 1 if owners else 0
+    at = 1 if rest[:1] == [RECORDER] else 0
     return rest[:at] + [PLANNER] + rest[at:]
+
+
+def awaited_arms(names: Sequence[str]) -> list[str]:
+    """The arms whose commanders are among ``names``: what a planner started before them waits for
+    (``$HYDROSOFT_AWAIT_ARMS``)."""
+    return [name.partition("-")[2] for name in names if module_for(name) == "arm_commander"]
 
 
 def stop_phases(names: Sequence[str]) -> list[list[str]]:
@@ -487,6 +494,8 @@ class Launcher:
         env = {**os.environ, RESTARTS_ENV: str(self.restarts[name]), INSTANCE_ENV: self.instance}
         if self.config.host is not None:
             env[HOST_ENV] = self.config.host
+        if name == PLANNER and self.restarts[name] == 0:  # started before the arm commanders (``start_order``)
+            env[AWAIT_ARMS_ENV] = ",".join(awaited_arms(self.names))
         process = await ServiceProcess.start(name, self.command(name, self.config_path), env, self.sink)
         self.processes[name] = process
         return process

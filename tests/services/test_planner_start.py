@@ -1,15 +1,29 @@
 """The planner's start-up: which precompiled functions one process builds for its solver worker processes to load
-(``services/planner.py``: ``share_sizes``, ``build_precompiled``), without compiling anything."""
+(``services/planner.py``: ``share_sizes``, ``build_precompiled``), without compiling anything; and a planner started
+before its arm commander (``await_arm_commanders``), as a process with the quick preset."""
 
 from __future__ import annotations
 
+import asyncio
+import math
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hydrosoft import compilation
 from hydrosoft.services import planner
+from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import load_config
+from hydrosoft.services.bus.messages import BusError
+from hydrosoft.services.bus.runtime import AWAIT_ARMS_ENV
+from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, RequestClient, Stale
+from service_process import ServiceProcess
+from stack_process import quick_planner
 
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 
@@ -61,3 +75,104 @@ def test_the_functions_without_gradients_build_from_a_solve_without_gradient_ste
     (alone, setting), = made
     assert (alone.grad_steps, alone.samples, alone.workers, alone.horizon) == (0, 32, 1, config.planner.horizon)
     assert config.planner.grad_steps == 2 and setting == compilation.Precompiling(tmp_path / "planner", build=True)
+
+
+def test_a_planner_started_before_its_arm_commander_takes_no_goal_until_the_commander_publishes(tmp_path, monkeypatch):
+    """The launcher starts the planner first, naming the arms it waits for (``$HYDROSOFT_AWAIT_ARMS``): the planner
+    builds its solver, then, as long as no state of the bubble arm's commander has arrived, it does not report READY,
+    answers no client request (its client API is not served) and says in its status what it waits for; once the
+    commander's state arrives it reports READY and answers."""
+    run_dir = tmp_path / "run"
+    path = tmp_path / "sim.toml"
+    path.write_text(quick_planner(SIM_TOML.read_text()).replace('"/tmp/hydrosoft-sim"', f'"{run_dir}"'))
+    config = load_config(path)
+    monkeypatch.setenv(AWAIT_ARMS_ENV, "bubble")
+    process = ServiceProcess("planner", "planner", path, tmp_path / "planner.log")
+
+    async def scenario() -> dict:
+        seen = {}
+        with Bus() as bus:
+            status = LatestSubscriber(bus, config.endpoint("planner", "status"), topics=["status/planner"])
+            seen["waiting"] = await wait_for_status(status, lambda s: "arm commanders of bubble" in s.note, 60.0)
+            loop = asyncio.get_running_loop()
+            seen["ready before"] = await loop.run_in_executor(None, ready_within, process, 1.5)
+            seen["reply before"] = await request_status(config, 1.0)
+            arm = Publisher(bus, config.endpoint("arm_commander-bubble"), source="arm_commander-bubble")
+            ready = loop.run_in_executor(None, ready_within, process, 30.0)
+            while not ready.done():
+                await arm.send(commander_state(), "arm_state/bubble")
+                await asyncio.sleep(0.04)
+            seen["ready after"] = ready.result()
+            seen["reply after"] = await request_status(config, 5.0)
+        return seen
+
+    try:
+        seen = asyncio.run(asyncio.wait_for(scenario(), 120.0))
+    finally:
+        rc = process.stop()
+    assert rc == 0, process.log()
+    assert seen["waiting"] is not None, process.log()
+    assert not seen["ready before"] and seen["reply before"] is None, seen
+    assert seen["ready after"], process.log()
+    assert seen["reply after"] is not None and seen["reply after"].status.note == "", seen
+
+
+def commander_state() -> msg.ArmState:
+    """An arm commander's state at rest."""
+    return msg.ArmState(arm="bubble", tcp_pose=np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]), tcp_speed=np.zeros(6),
+                        running=True, protective_stop=False, emergency_stop=False, servo_active=False)
+
+
+def ready_within(process: ServiceProcess, timeout_s: float) -> bool:
+    """Whether ``process`` printed its READY line within ``timeout_s`` s."""
+    try:
+        process.wait_ready(timeout_s)
+    except AssertionError:
+        return False
+    return True
+
+
+async def wait_for_status(status: LatestSubscriber, holds, timeout_s: float) -> msg.ServiceStatus | None:
+    """The first status on ``status`` for which ``holds(status)`` within ``timeout_s`` s, or None."""
+    deadline_s = time.monotonic() + timeout_s
+    while time.monotonic() < deadline_s:
+        await status.wait(0.5)
+        try:
+            received = status.latest("status/planner", math.inf, msg.ServiceStatus).value
+        except Stale:
+            continue
+        if holds(received):
+            return received
+    return None
+
+
+async def request_status(config, timeout_s: float) -> msg.StatusReply | None:
+    """The planner's answer to GetStatus on its client API within ``timeout_s`` s, or None."""
+    with Bus() as bus:
+        client = RequestClient(bus, config.endpoint("planner", "cmd"), source="test")
+        try:
+            return await client.request(msg.GetStatus(), timeout_s)
+        except (TimeoutError, BusError):
+            return None
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness in /proc is Linux's")
+def test_renice_lowers_the_priority_of_every_thread_of_the_worker_processes():
+    """Once ready, the planner renices its solver worker processes, started at its own niceness, to ``planner.nice``:
+    every thread of each process (on Linux a thread's niceness is its own), not just the main one."""
+    code = "import threading, time; threading.Thread(target=time.sleep, args=(60,)).start(); print(flush=True); " \
+           "time.sleep(60)"
+    processes = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE) for _ in range(2)]
+    try:
+        for process in processes:
+            process.stdout.readline()  # its second thread runs
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        planner.renice([process.pid for process in processes] + [2**22 + 1], 3)  # a pid that is gone is left out
+        for process in processes:
+            threads = [int(tid) for tid in os.listdir(f"/proc/{process.pid}/task")]
+            assert len(threads) == 2
+            assert [os.getpriority(os.PRIO_PROCESS, tid) for tid in threads] == [own + 3, own + 3]
+    finally:
+        for process in processes:
+            process.kill()
+            process.wait()

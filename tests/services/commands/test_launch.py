@@ -45,6 +45,7 @@ from hydrosoft.services.commands.launch import (
     remove_stale_sockets,
     restart_decision,
     select_services,
+    awaited_arms,
     start_order,
     stop_phases,
 )
@@ -93,16 +94,20 @@ def test_stop_phases_put_the_planner_first_then_all_arm_commanders_then_the_rest
     assert stop_phases(["sim_world", "ft_reader-a"]) == [["ft_reader-a"], ["sim_world"]]
 
 
-def test_the_planner_starts_right_after_the_arms_owners_and_the_rest_keep_their_order():
+def test_the_planner_starts_first_after_the_recorder_and_the_rest_keep_their_order():
     names = ["sim_world", "arm_commander-left", "ft_reader-left", "bubble_camera-left", "arm_commander-right",
              "ft_reader-right", "bubble_camera-right", "tag_tracker", "planner"]
-    assert start_order(names) == ["sim_world", "arm_commander-left", "ft_reader-left", "bubble_camera-left",
-                                  "arm_commander-right", "planner", "ft_reader-right", "bubble_camera-right",
-                                  "tag_tracker"]
-    assert start_order(["recorder", "sim_world", "tag_tracker", "planner"]) == ["recorder", "sim_world", "planner",
+    assert start_order(names) == ["planner"] + names[:-1]
+    assert start_order(["recorder", "sim_world", "tag_tracker", "planner"]) == ["recorder", "planner", "sim_world",
                                                                                  "tag_tracker"]
     assert start_order(["tag_tracker", "planner"]) == ["planner", "tag_tracker"]  # a host without the arms
     assert start_order(["sim_world", "ft_reader-a"]) == ["sim_world", "ft_reader-a"]
+
+
+def test_the_planner_waits_for_the_arms_of_the_launchs_arm_commanders():
+    assert awaited_arms(["sim_world", "arm_commander-left", "ft_reader-left", "arm_commander-right", "planner"]) == [
+        "left", "right"]
+    assert awaited_arms(["tag_tracker", "planner"]) == []  # a host without the arms: their commanders run elsewhere
 
 
 @pytest.mark.parametrize(("policy", "code", "restarts", "restart", "delay_s"), [
@@ -225,9 +230,9 @@ def test_a_secret_key_others_may_read_or_an_unknown_host_exits_2_before_anything
 
 
 def test_services_start_in_order_with_prefixed_logs_and_stop_in_the_safe_order(root, runs):
-    """The services start one after another, each once the one before is ready, but the planner: it starts once the
-    arms' owners (sim_world, every arm commander) are ready, and the sensors start while it gets ready (slowly, as
-    it loads its solver); the stack is ready once it is."""
+    """The services start one after another, each once the one before is ready, but the planner: it starts first,
+    told to wait for the launch's arm commanders (``$HYDROSOFT_AWAIT_ARMS``), and the others start while it gets
+    ready (slowly, as it loads its solver); the stack is ready once it is. Only the planner's first run waits."""
     only = ["sim_world", "arm_commander-left", "ft_reader-left", "arm_commander-right", "tag_tracker", "planner"]
     run = runs(write_config(root, ["left", "right"]), "--only", ",".join(only),
                modes={"tag_tracker": "spawns_child", "ft_reader-left": "hang_on_stop", "planner": "slow_ready"})
@@ -236,9 +241,10 @@ def test_services_start_in_order_with_prefixed_logs_and_stop_in_the_safe_order(r
     assert [run.index(f"[launcher] {name} ready (pid") for name in others] == sorted(
         run.index(f"[launcher] {name} ready (pid") for name in others)
     planner_starts = run.index("[launcher] planner started (pid")  # its own first line may come later
-    assert planner_starts > max(run.index(f"[launcher] arm_commander-{arm} ready (pid") for arm in ("left", "right"))
-    assert planner_starts < run.index("[launcher] tag_tracker ready (pid") < run.index("[launcher] planner ready (pid")
-    assert run.index("[launcher] planner ready (pid") < run.index("[launcher] stack ready")
+    assert planner_starts < run.index("[launcher] sim_world ready (pid")
+    assert max(run.index(f"[launcher] {name} ready (pid") for name in only) < run.index("[launcher] stack ready")
+    assert run.find(lambda line: line.startswith("[planner] ") and "awaits arms 'left,right'" in line)
+    assert run.find(lambda line: line.startswith("[sim_world] ") and "awaits arms None" in line)
     for name in only:  # every line of a service arrives with its prefix (here: the runtime's log line)
         assert run.find(lambda line, name=name: line.startswith(f"[{name}] ") and f"fake service {name} " in line)
     assert (root / "run" / "launcher.lock").read_text().strip() == str(run.process.pid)
@@ -285,15 +291,17 @@ def test_a_crashing_service_is_restarted_with_doubling_backoff_then_given_up(roo
 
 
 def test_a_service_that_never_gets_ready_fails_the_launch_naming_it(root, runs):
-    """An arm commander that never gets ready fails the launch; nothing after it starts, the planner least of all
-    (nothing that commands an arm starts before the arm's owner is ready)."""
+    """An arm commander that never gets ready fails the launch; no sensor after it starts, and the planner, started
+    first (and waiting for that commander's state before it takes a goal), is stopped with the rest."""
     extra = "[services.arm_commander-a]\nready_timeout_s = 1.0\n"
     run = runs(write_config(root, ["a"], extra), "--only", "sim_world,arm_commander-a,tag_tracker,planner",
-               modes={"arm_commander-a": "never_ready"})
+               modes={"arm_commander-a": "never_ready", "planner": "slow_ready"})
     assert run.wait_exit(LINE_TIMEOUT_S) == 1, run.text()[-4000:]
     assert "launch failed: arm_commander-a did not report READY within 1 s" in run.text()
-    assert "stopping arm_commander-a (pid" in run.text() and "stopping sim_world (pid" in run.text()
-    assert not run.find(lambda line: line.startswith(("[planner]", "[tag_tracker]")))  # never started
+    assert all(f"stopping {name} (pid" in run.text() for name in ("planner", "arm_commander-a", "sim_world"))
+    assert not run.find(lambda line: line.startswith("[tag_tracker]"))  # never started
+    assert "stack ready" not in run.text()
+    assert_nothing_left(run)
 
 
 def test_a_sensor_that_never_gets_ready_while_the_planner_starts_fails_the_launch_and_stops_the_planner(root, runs):

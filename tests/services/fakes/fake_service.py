@@ -3,7 +3,8 @@ with this folder on ``PYTHONPATH``).
 
 ``python -m fake_service CONFIG --name NAME`` runs through ``run_service`` like a real service: it binds its status
 endpoint, publishes a ``Heartbeat`` on ``heartbeat/NAME-data`` at ``DATA_RATE_HZ`` on its data endpoint (so its status
-shows a rate) and logs one line naming itself and its restart count. What it does beyond that is chosen per service
+shows a rate) and logs one line naming itself, its restart count and the arms the launcher told it to wait for
+(``$HYDROSOFT_AWAIT_ARMS``, the planner's). What it does beyond that is chosen per service
 name by ``$HYDROSOFT_FAKE_MODES`` (``"NAME=MODE,NAME=MODE"``; unnamed services are ``ok``):
 
 - ``ok``: ready at once, runs until stopped.
@@ -28,7 +29,7 @@ import time
 
 from hydrosoft.services.bus.config import load_config
 from hydrosoft.services.bus.messages import Heartbeat
-from hydrosoft.services.bus.runtime import Service, run_service
+from hydrosoft.services.bus.runtime import AWAIT_ARMS_ENV, Service, run_service
 
 MODES_ENV = "HYDROSOFT_FAKE_MODES"
 DATA_RATE_HZ = 20.0
@@ -48,7 +49,8 @@ def mode_for(name: str) -> str:
 
 async def fake_main(service: Service, data_endpoint: str, mode: str) -> None:
     publisher = service.publisher(data_endpoint)
-    service.log.info("fake service %s in mode %s (restart %d)", service.name, mode, service.restarts)
+    service.log.info("fake service %s in mode %s, awaits arms %r (restart %d)", service.name, mode,
+                     os.environ.get(AWAIT_ARMS_ENV), service.restarts)
     if mode == "hang_on_stop":
         async def hang() -> None:
             time.sleep(HANG_S)  # blocks the loop on purpose: the runtime's shutdown bound cannot cut it off
