@@ -121,13 +121,15 @@ def test_a_gpu_rate_on_a_machine_without_cuda_is_refused_with_the_reason(tmp_pat
 @pytest.mark.slow
 def test_the_rate_is_measured_with_worker_threads_and_worker_processes_alike(tmp_path, capsys):
     """The same loop with its two shares on threads and in processes of their own: the same plans, bit for bit (the
-    same arithmetic per row); the step and cost calls are not timed where they run in other processes."""
+    same arithmetic per row); the step and cost calls are not timed where they run in other processes. (B = 16 in two
+    shares of 8, and the quick planner's one-step episode: the same path as B = 64's, for less CPU.)"""
     assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
-                             "--steps", "1", "--goals", "1", "--rate-solves", "2", "--rate-dtypes", "float32",
-                             "--rate-workers", "2", "--rate-worker-kinds", "threads,processes", "--json",
-                             "--out", str(tmp_path))) == 0
+                             "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "2", "--rate-samples", "16",
+                             "--rate-dtypes", "float32", "--rate-workers", "2", "--rate-worker-kinds",
+                             "threads,processes", "--json", "--out", str(tmp_path))) == 0
     threads, processes = json.loads(capsys.readouterr().out)["replanning"]
     assert (threads["worker_kind"], processes["worker_kind"]) == ("threads", "processes")
+    assert threads["samples"] == processes["samples"] == 16
     assert processes["plan_costs"] == threads["plan_costs"] and all(math.isfinite(c) for c in threads["plan_costs"])
     assert processes["step_forward_ms"] is None and threads["step_forward_ms"] > 0
     assert processes["rate_hz"] > 0 and processes["rollout_ms"] > 0 and processes["backward_ms"] > 0
