@@ -34,7 +34,7 @@ def test_defaults_are_the_paper_setting():
 
 @pytest.mark.slow
 def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsys):
-    args = parse("--tasks", "pushing,in_hand", "--models", "nh,pff", "--quick", "--steps", "2", "--goals", "2",
+    args = parse("--tasks", "pushing,in_hand", "--models", "nh,pff", "--quick", "--steps", "1", "--goals", "2",
                  "--rate-solves", "1", "--json", "--out", str(tmp_path))
     assert control.run(args) == 0
     out, err = capsys.readouterr()
