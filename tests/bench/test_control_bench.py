@@ -80,10 +80,10 @@ def test_the_rate_is_measured_per_bubble_solve_setting_in_one_run(tmp_path, caps
 
 def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost_calls_timed(tmp_path, capsys):
     assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
-                             "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
-                             "--rate-workers", "1,2", "--json", "--out", str(tmp_path))) == 0
+                             "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-samples", "16",
+                             "--rate-dtypes", "float32", "--rate-workers", "1,2", "--json", "--out", str(tmp_path))) == 0
     rates = json.loads(capsys.readouterr().out)["replanning"]
-    assert [r["workers"] for r in rates] == [1, 2]
+    assert [(r["workers"], r["samples"]) for r in rates] == [(1, 16), (2, 16)]
     assert [len(r["warmup_solves_ms"]) for r in rates] == [1, 2]  # two workers: a second, untimed warm-up solve
     for r in rates:
         assert 0 < r["step_forward_ms"] and 0 < r["cost_forward_ms"] and r["rate_hz"] > 0
@@ -101,7 +101,7 @@ def test_the_rate_is_measured_per_sample_count_on_the_named_device_in_one_run(tm
     each; a device that is not a torch device, worker processes with a GPU, and fewer samples than elites are
     refused (exit 2) before anything runs."""
     assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
-                             "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
+                             "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
                              "--rate-samples", "16,32", "--device", "cpu", "--json", "--out", str(tmp_path))) == 0
     rates = json.loads(capsys.readouterr().out)["replanning"]
     assert [(r["samples"], r["device"], r["gpu_memory_mib"]) for r in rates] == [(16, "cpu", None), (32, "cpu", None)]
