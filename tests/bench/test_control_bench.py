@@ -34,7 +34,7 @@ def test_defaults_are_the_paper_setting():
 
 @pytest.mark.slow
 def test_json_is_one_document_with_a_row_per_task_model_and_loop(tmp_path, capsys):
-    args = parse("--tasks", "pushing,in_hand", "--models", "nh,pff", "--quick", "--steps", "2", "--goals", "2",
+    args = parse("--tasks", "pushing,in_hand", "--models", "nh,pff", "--quick", "--steps", "1", "--goals", "2",
                  "--rate-solves", "1", "--json", "--out", str(tmp_path))
     assert control.run(args) == 0
     out, err = capsys.readouterr()
@@ -80,10 +80,10 @@ def test_the_rate_is_measured_per_bubble_solve_setting_in_one_run(tmp_path, caps
 
 def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost_calls_timed(tmp_path, capsys):
     assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
-                             "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
-                             "--rate-workers", "1,2", "--json", "--out", str(tmp_path))) == 0
+                             "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-samples", "16",
+                             "--rate-dtypes", "float32", "--rate-workers", "1,2", "--json", "--out", str(tmp_path))) == 0
     rates = json.loads(capsys.readouterr().out)["replanning"]
-    assert [r["workers"] for r in rates] == [1, 2]
+    assert [(r["workers"], r["samples"]) for r in rates] == [(1, 16), (2, 16)]
     assert [len(r["warmup_solves_ms"]) for r in rates] == [1, 2]  # two workers: a second, untimed warm-up solve
     for r in rates:
         assert 0 < r["step_forward_ms"] and 0 < r["cost_forward_ms"] and r["rate_hz"] > 0
@@ -101,7 +101,7 @@ def test_the_rate_is_measured_per_sample_count_on_the_named_device_in_one_run(tm
     each; a device that is not a torch device, worker processes with a GPU, and fewer samples than elites are
     refused (exit 2) before anything runs."""
     assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
-                             "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
+                             "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
                              "--rate-samples", "16,32", "--device", "cpu", "--json", "--out", str(tmp_path))) == 0
     rates = json.loads(capsys.readouterr().out)["replanning"]
     assert [(r["samples"], r["device"], r["gpu_memory_mib"]) for r in rates] == [(16, "cpu", None), (32, "cpu", None)]
@@ -121,13 +121,15 @@ def test_a_gpu_rate_on_a_machine_without_cuda_is_refused_with_the_reason(tmp_pat
 @pytest.mark.slow
 def test_the_rate_is_measured_with_worker_threads_and_worker_processes_alike(tmp_path, capsys):
     """The same loop with its two shares on threads and in processes of their own: the same plans, bit for bit (the
-    same arithmetic per row); the step and cost calls are not timed where they run in other processes."""
+    same arithmetic per row); the step and cost calls are not timed where they run in other processes. (B = 16 in two
+    shares of 8, and the quick planner's one-step episode: the same path as B = 64's, for less CPU.)"""
     assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
-                             "--steps", "1", "--goals", "1", "--rate-solves", "2", "--rate-dtypes", "float32",
-                             "--rate-workers", "2", "--rate-worker-kinds", "threads,processes", "--json",
-                             "--out", str(tmp_path))) == 0
+                             "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "2", "--rate-samples", "16",
+                             "--rate-dtypes", "float32", "--rate-workers", "2", "--rate-worker-kinds",
+                             "threads,processes", "--json", "--out", str(tmp_path))) == 0
     threads, processes = json.loads(capsys.readouterr().out)["replanning"]
     assert (threads["worker_kind"], processes["worker_kind"]) == ("threads", "processes")
+    assert threads["samples"] == processes["samples"] == 16
     assert processes["plan_costs"] == threads["plan_costs"] and all(math.isfinite(c) for c in threads["plan_costs"])
     assert processes["step_forward_ms"] is None and threads["step_forward_ms"] > 0
     assert processes["rate_hz"] > 0 and processes["rollout_ms"] > 0 and processes["backward_ms"] > 0

@@ -214,15 +214,21 @@ def test_many_compiled_steps_in_one_process_all_stay_compiled(fresh_dynamo):
     assert counters["stats"]["unique_graphs"] >= 8
 
 
-def test_a_compiled_step_past_the_recompile_limit_says_so(fresh_dynamo):
-    """Past dynamo's limit the step falls back to eager with a warning instead of silently."""
+def test_a_compiled_step_past_the_recompile_limit_says_so(fresh_dynamo, monkeypatch):
+    """Past dynamo's limit the step falls back to eager with a warning instead of silently, at the first batch size
+    past it. Each batch size counts two graphs against the limit, which is lowered from dynamo's 8 to 4 here: the same
+    path, past it at the third batch size instead of the fifth (each trace takes ~2 s)."""
+    monkeypatch.setattr(torch._dynamo.config, "recompile_limit", 4)
     model, state, u = pushing(batch=1)
     fast = CompiledStep(model, backend="eager", dynamic=False)
+    compiled = []
     with pytest.warns(RuntimeWarning, match="recompile"):
-        for batch in range(1, 12):
+        for batch in range(1, 5):
             expanded = State(*(t.expand(batch, *t.shape[1:]) for t in state[:3]))
             fast(expanded, u.expand(batch, -1, -1))
-    assert not fast.compiled and "recompile" in fast.fallback_reason.lower()
+            compiled.append(fast.compiled)
+    assert compiled == [True, True, False, False]
+    assert "recompile" in fast.fallback_reason.lower()
 
 
 def test_actions_sliced_from_plans_of_any_horizon_reuse_one_graph(fresh_dynamo):
