@@ -112,9 +112,16 @@ def membrane_exit_depth(origin: torch.Tensor, rays: torch.Tensor, radii: tuple[f
 def _camera_in_membrane(camera: PinholeDepth, radii, T_bubble_camera) -> tuple[torch.Tensor, torch.Tensor,
                                                                               torch.Tensor]:
     """The checked camera pose ``(7,)``, its pixel rays ``(H*W, 3)`` in the bubble frame and their membrane exit
-    depth ``(H*W,)`` (m along the optical axis)."""
-    radii = as_radii(radii)
+    depth ``(H*W,)`` (m along the optical axis). Cached per camera, membrane and pose (``_membrane_view``): a bubble's
+    depth camera renders every frame from the same ones, and they were 60 % of a frame's CPU; do not modify them."""
     pose = as_pose(T_bubble_camera, "T_bubble_camera")
+    return _membrane_view(camera, as_radii(radii), tuple(pose.tolist()))
+
+
+@functools.lru_cache(maxsize=8)
+def _membrane_view(camera: PinholeDepth, radii: tuple[float, float, float],
+                   T_bubble_camera: tuple[float, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    pose = torch.tensor(T_bubble_camera, dtype=torch.float64)
     if float((pose[:3] / pose.new_tensor(radii)).square().sum()) >= 1.0:
         raise ValueError(f"T_bubble_camera: the camera at {pose[:3].tolist()} m is not inside the membrane of "
                          f"radii {radii} m")

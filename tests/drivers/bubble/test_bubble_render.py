@@ -13,6 +13,7 @@ import torch
 
 from hydrosoft.drivers.bubble.render import (
     PinholeDepth,
+    _membrane_view,
     pixel_rays,
     reference_depth,
     render_depth,
@@ -145,6 +146,18 @@ def test_a_160x120_frame_renders_within_30ms_on_one_core():
         render_depth(CAMERA, RADII, LOOK_DOWN, CUBE, pose)
         times_s.append(time.perf_counter() - tic_s)
     assert torch.get_num_threads() == 1 and sorted(times_s)[2] < 0.030, times_s
+
+
+def test_frames_of_one_camera_reuse_its_membrane_view_and_render_what_a_fresh_one_renders():
+    rng = np.random.default_rng(5)
+    poses = [random_pose(rng, 0.05) for _ in range(3)]
+    camera = PinholeDepth(64, 48, 16.0, 16.0, 31.5, 23.5)  # a camera no other test renders with
+    _membrane_view.cache_clear()
+    frames = [render_depth(camera, RADII, LOOK_DOWN, CUBE, pose) for pose in poses]
+    assert _membrane_view.cache_info().misses == 1  # the rays and membrane exit depths: once, not per frame
+    for pose, frame in zip(poses, frames):
+        _membrane_view.cache_clear()
+        np.testing.assert_array_equal(frame, render_depth(camera, RADII, LOOK_DOWN, CUBE, pose))
 
 
 # --- encoding and errors ---------------------------------------------------------------------------------------
