@@ -67,16 +67,20 @@ class Profile:
 
 class ProfileCost:
     """The profile ``w(t)`` of each fitted coordinate of ``fit`` (the result of ``material_fit.fit_material(batches,
-    contact, params, start)`` without a pose offset), counting cost evaluations in ``evaluations``."""
+    contact, params, start)`` without a pose offset), counting cost evaluations in ``evaluations``. Only the fitted
+    coordinates with a finite Gauss-Newton variance are profiled or refitted; an undetermined one (the data do not
+    change with it) stays at its fitted value."""
 
     def __init__(self, fit: MaterialFit, batches: Sequence[ReplayBatch], contact: str, params: Sequence[str],
                  start: dict[str, float] | None = None) -> None:
         self.batches, self.contact, self.substeps = batches, contact, fit.substeps
         self.start = dict(START if start is None else start)
-        self.mask = torch.tensor([name in params for name in PARAMETERS])
         self.theta = torch.as_tensor(fit.theta, dtype=torch.float64)
-        self.fitted = self.mask.nonzero().flatten().tolist()
-        self.covariance = fit.covariance
+        fitted = [i for i, name in enumerate(PARAMETERS) if name in params]
+        keep = [j for j, _ in enumerate(fitted) if math.isfinite(fit.covariance[j, j])]
+        self.fitted = [fitted[j] for j in keep]  # the determined coordinates (of PARAMETERS)
+        self.mask = torch.tensor([i in self.fitted for i in range(len(PARAMETERS))])
+        self.covariance = fit.covariance[np.ix_(keep, keep)]
         self.s2 = fit.reduced_chi2
         self.count = fit.residual_count
         self.cost_scale = fit.residual_count / (2 * fit.reduced_chi2)  # as the bootstrap's refits (newton_scale)
