@@ -101,8 +101,8 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
     log and logit coordinates) and ``z_linear`` (``linear_error`` in the same standard deviations; None without
     noise, where the standard deviations are the resolution's), and, with draws,
     ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth;
-    with ``profile``, ``profile``: ``z`` (``fit_profile.signed_roots`` at the truth) and whether the profile interval
-    covers the truth (``|z| <= Z95``), and the row's ``profile``: cost evaluations and seconds. ``evaluations`` and
+    with ``profile``, ``profile``: ``z`` (``fit_profile.signed_roots`` at the truth, with the sign of the fit less
+    the truth, as ``z``'s) and whether the profile interval covers the truth (``|z| <= Z95``), and the row's ``profile``: cost evaluations and seconds. ``evaluations`` and
     ``fit_seconds``: the fit's own."""
     import numpy as np
 
@@ -137,8 +137,8 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
     if profile:
         roots, evaluations = signed_roots(result, batches, "nh", list(TRUTH), TRUTH)
         row["profile"] = {"evaluations": evaluations, "seconds": time.perf_counter() - tic - row["fit_seconds"]}
-        for name, z in roots.items():
-            row[name]["profile"] = {"z": z, "covered": abs(z) <= material_fit.Z95}
+        for name, root in roots.items():  # z: the fit less the truth, as the fitted z's sign
+            row[name]["profile"] = {"z": -root, "covered": abs(root) <= material_fit.Z95}
         row["seconds"] = time.perf_counter() - tic
     if draws:
         boot = bootstrap(result, batches, "nh", list(TRUTH), draws, seed)
