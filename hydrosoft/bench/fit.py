@@ -1,21 +1,21 @@
 """``hydrosoft-stack fit RECORDINGS... --model nh|pf|nh_pressure_normal --params E,K,mu``: the Soft Bubble's
 material identified from ``collect wrench`` recordings.
 
-The recordings' trajectories are split into a fit set and a held-out set (``--holdout``, ``--seed``); the material
-is fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from
-the Gauss-Newton covariance at the optimum, with ``--uncertainty bootstrap`` from a parametric bootstrap,
-``fit_bootstrap``, or with ``--uncertainty profile`` its intervals from the profile likelihood, ``fit_profile``); then the force, torque and tangential RMSE of both sets are printed
-before (start material) and after, in ``bench wrench``'s layout, with the fitted values, their uncertainty and
-which are not identified. ``--out PARAMS.toml`` writes the fitted material as an ``[arms.material]`` table for an
-arm of a stack config (``deploy/*.toml``); its E, K and mu lines also fit a scene's bubble ``[[bodies]]`` table. The
-recordings are only read. ``--pose-offset`` fits a constant object position offset (m, base frame) jointly with the
-material, a nuisance parameter for a tracker's constant error (``material_fit`` module docstring): one offset for
-all the recordings given, so fit one recording at a time when each has its own.
+The recordings' trajectories are split into a fit set and a held-out set (``--holdout``, ``--seed``); the material is
+fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from the
+Gauss-Newton covariance at the optimum, with ``--uncertainty bootstrap`` from a parametric bootstrap, ``fit_bootstrap``,
+or with ``--uncertainty profile`` its intervals from the profile likelihood, ``fit_profile``); then the force, torque
+and tangential RMSE of both sets are printed before (start material) and after, in ``bench wrench``'s layout, with the
+fitted values, their uncertainty and which are not identified. ``--out PARAMS.toml`` writes the fitted material as an
+``[arms.material]`` table for an arm of a stack config (``deploy/*.toml``); its E, K and mu lines also fit a scene's
+bubble ``[[bodies]]`` table. The recordings are only read. ``--pose-offset`` fits a constant object position offset (m,
+base frame) jointly with the material, a nuisance parameter for a tracker's constant error (``material_fit`` module
+docstring): one offset for all the recordings given, so fit one recording at a time when each has its own.
 
 Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
 forward and backward; L-BFGS needs 20 to 70 of them); the bootstrap adds one refit per draw (7 to 30 evaluations
-each); the profile adds 4 to 8 refits of the other parameters per fitted parameter (about 1.5 to 2 times the
-fit's evaluations); ``--pose-offset`` takes 3 to 5 times the evaluations of the material alone. Progress goes to stderr.
+each); the profile adds 2 to 8 refits of the other parameters per fitted parameter (1.7 to 3.6 times the fit's
+evaluations, docs/fit.md); ``--pose-offset`` takes 3 to 5 times the evaluations of the material alone. Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -107,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "values with fresh FT 300 noise; each refit 0.5 to 9 s of CPU, so 100 draws add 1 to 15 "
                              "min on one core) or profile (intervals where the cost, refitted over the other "
                              "parameters, rises by the chi-square's 95 %% quantile: right where stick/slip makes "
-                             "the residuals non-linear in K and mu; 1.5 to 2 times the fit's CPU) (default hessian)")
+                             "the residuals non-linear in K and mu; 2 to 4 times the fit's CPU) (default hessian)")
     parser.add_argument("--draws", type=int, default=DEFAULT_DRAWS,
                         help=f"bootstrap refits with --uncertainty bootstrap (default {DEFAULT_DRAWS})")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
@@ -219,7 +219,8 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
     ``uncertainty`` says how ``sigma`` and ``interval95`` were found (``uncertainty``: ``hessian``, ``bootstrap``
     with ``draws`` refits seeded by ``seed``: then ``bootstrap`` holds its draws, noise scale and both interval
     kinds per parameter, else None; or ``profile``: then ``profile`` holds its cost evaluations, seconds, open sides
-    and the Gauss-Newton intervals it replaced, else None); ``pose_offset``: with ``pose_offset`` (axes, some of ``"xyz"``) the fitted
+    and the Gauss-Newton intervals it replaced, else None);
+    ``pose_offset``: with ``pose_offset`` (axes, some of ``"xyz"``) the fitted
     object position offset per axis (``offset_x``, ``offset_y``, ``offset_z``: value, sigma, interval95 in m, fitted,
     identified; an axis not fitted is 0), added to the recorded poses of both sets for the ``after`` rows; else
     None; ``rows`` per set

@@ -10,11 +10,11 @@ lies in its reported 95 % interval. First the same without noise (the FT 300's r
 With ``--draws N`` each seed's fit is also bootstrapped (``fit_bootstrap``, N refits), and the coverage of the
 bootstrap's percentile and basic intervals is counted beside Gauss-Newton's. With ``--profile`` the same for the
 profile-likelihood intervals (``fit_profile``), each parameter's by its profile z-score at the truth
-(``fit_profile.signed_roots``; the interval holds the truth exactly where it is within ``Z95``). With ``--pose-noise MM,DEG`` the
-recorded object poses carry tracker noise (``synthetic_wrench.tracked_poses``) and the mean relative error over the
-seeds shows the bias it causes. ``--plant-substeps N --substeps N`` makes the fit's replay the plant exactly (the
-plant otherwise takes ``synthetic_wrench.PLANT_SUBSTEPS`` and the replay is chosen by the fit's resolution rule), to
-tell their mismatch from the noise; ``--no-recovery`` skips the noise-free run (for many seeds in chunks).
+(``fit_profile.signed_roots``; the interval holds the truth exactly where it is within ``Z95``). With ``--pose-noise
+MM,DEG`` the recorded object poses carry tracker noise (``synthetic_wrench.tracked_poses``) and the mean relative error
+over the seeds shows the bias it causes. ``--plant-substeps N --substeps N`` makes the fit's replay the plant exactly
+(the plant otherwise takes ``synthetic_wrench.PLANT_SUBSTEPS`` and the replay is chosen by the fit's resolution rule),
+to tell their mismatch from the noise; ``--no-recovery`` skips the noise-free run (for many seeds in chunks).
 
 Each row also gives per parameter ``z_linear``: the error the seed's noise alone gives through the fit's
 linearisation at the truth (``linear_error``). Its mean square over many seeds tells a wrong noise model or
@@ -28,7 +28,7 @@ Jacobian): 101 s for the default 10 seeds and the noise-free run, 11 min 45 s of
 VM (2026-11-27). ``z_linear`` adds one Jacobian at the truth per noisy seed: 0.8 s of CPU at 1 sub-step, 4.2 s at 8
 (about 17 s for seeds 0-9). ``--draws 100`` adds 1 to 15 min of CPU per seed (6 to 21 cost evaluations per refit; more
 sub-steps cost more). ``--profile`` adds one refit of the two others per parameter, at the truth (the interval itself,
-``fit --uncertainty profile``, takes 4 to 8 such refits per parameter).
+``fit --uncertainty profile``, takes 2 to 8 such refits per parameter).
 """
 
 from __future__ import annotations
@@ -94,16 +94,15 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
             pose_noise: tuple[float, float] = (0.0, 0.0), plant_substeps: int | None = None,
             substeps: int | None = None, profile: bool = False) -> dict:
     """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0), with ``profile`` the
-    profile-likelihood intervals, and ``pose_noise``
-    ``(mm, deg)`` of tracker noise on its object poses, the plant at ``plant_substeps`` (None: its default) and the fit's replay at
-    ``substeps`` (None: chosen by the fit); its row of the benchmark's document: per parameter the fit's value,
-    error, Gauss-Newton sigma, interval, ``z`` (the error in Gauss-Newton standard deviations, in the fit's
-    log and logit coordinates) and ``z_linear`` (``linear_error`` in the same standard deviations; None without
-    noise, where the standard deviations are the resolution's), and, with draws,
-    ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth;
-    with ``profile``, ``profile``: ``z`` (``fit_profile.signed_roots`` at the truth, with the sign of the fit less
-    the truth, as ``z``'s) and whether the profile interval covers the truth (``|z| <= Z95``), and the row's ``profile``: cost evaluations and seconds. ``evaluations`` and
-    ``fit_seconds``: the fit's own."""
+    profile's z-score at the truth, and ``pose_noise`` ``(mm, deg)`` of tracker noise on its object poses, the plant at
+    ``plant_substeps`` (None: its default) and the fit's replay at ``substeps`` (None: chosen by the fit); its row of
+    the benchmark's document: per parameter the fit's value, error, Gauss-Newton sigma, interval, ``z`` (the error in
+    Gauss-Newton standard deviations, in the fit's log and logit coordinates) and ``z_linear`` (``linear_error`` in the
+    same standard deviations; None without noise, where the standard deviations are the resolution's), and, with draws,
+    ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth; with
+    ``profile``, ``profile``: ``z`` (``fit_profile.signed_roots`` at the truth, with the sign of the fit less the truth,
+    as ``z``'s) and whether the profile interval covers the truth (``|z| <= Z95``), and the row's ``profile``: cost
+    evaluations and seconds. ``evaluations`` and ``fit_seconds``: the fit's own."""
     import numpy as np
 
     from hydrosoft.bench import material_fit
@@ -295,8 +294,10 @@ def format_table(document: dict) -> str:
         f"{n} {c}/{document['seeds']}" for n, c in document["covered_linear"].items()))
     if profile:
         fit, prof = document["evaluations"]["fit"], document["evaluations"]["profile"]
-        lines.append(f"Cost evaluations over the noisy seeds: fits {fit}, profiles at the truth {prof} ({prof / fit:.2f} times); "
-                     f"CPU-bound wall time {document['seconds']['fit']:.0f} s and {document['seconds']['profile']:.0f} s")
+        seconds = document["seconds"]
+        lines.append(f"Cost evaluations over the noisy seeds: fits {fit}, profiles at the truth {prof} "
+                     f"({prof / fit:.2f} times); CPU-bound wall time {seconds['fit']:.0f} s and "
+                     f"{seconds['profile']:.0f} s")
     return "\n".join(lines)
 
 

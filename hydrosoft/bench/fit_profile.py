@@ -22,7 +22,7 @@ Gauss-Newton's; only ``interval95`` is the profile's.
 
 ``signed_roots``: ``w`` at given values (``bench fit``'s truth), the profile's own z-score: a value lies in the
 profile interval exactly where its ``|w| <= Z95`` (the interval is that set; its ends are found to
-``ROOT_TOLERANCE``), at one refit per parameter instead of the interval's 4 to 8.
+``ROOT_TOLERANCE``), at one refit per parameter instead of the interval's 2 to 8.
 
 Cost: 2 to 4 profile points per side and parameter, each a refit of the others (``hydrosoft-stack fit --help``).
 """
