@@ -1,20 +1,21 @@
 """``hydrosoft-stack fit RECORDINGS... --model nh|pf|nh_pressure_normal --params E,K,mu``: the Soft Bubble's
 material identified from ``collect wrench`` recordings.
 
-The recordings' trajectories are split into a fit set and a held-out set (``--holdout``, ``--seed``); the material
-is fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from
-the Gauss-Newton covariance at the optimum, or with ``--uncertainty bootstrap`` from a parametric bootstrap,
-``fit_bootstrap``); then the force, torque and tangential RMSE of both sets are printed
-before (start material) and after, in ``bench wrench``'s layout, with the fitted values, their uncertainty and
-which are not identified. ``--out PARAMS.toml`` writes the fitted material as an ``[arms.material]`` table for an
-arm of a stack config (``deploy/*.toml``); its E, K and mu lines also fit a scene's bubble ``[[bodies]]`` table. The
-recordings are only read. ``--pose-offset`` fits a constant object position offset (m, base frame) jointly with the
-material, a nuisance parameter for a tracker's constant error (``material_fit`` module docstring): one offset for
-all the recordings given, so fit one recording at a time when each has its own.
+The recordings' trajectories are split into a fit set and a held-out set (``--holdout``, ``--seed``); the material is
+fitted on the first (``material_fit.fit_material``: L-BFGS through the differentiable replay, uncertainty from the
+Gauss-Newton covariance at the optimum, with ``--uncertainty bootstrap`` from a parametric bootstrap, ``fit_bootstrap``,
+or with ``--uncertainty profile`` its intervals from the profile likelihood, ``fit_profile``); then the force, torque
+and tangential RMSE of both sets are printed before (start material) and after, in ``bench wrench``'s layout, with the
+fitted values, their uncertainty and which are not identified. ``--out PARAMS.toml`` writes the fitted material as an
+``[arms.material]`` table for an arm of a stack config (``deploy/*.toml``); its E, K and mu lines also fit a scene's
+bubble ``[[bodies]]`` table. The recordings are only read. ``--pose-offset`` fits a constant object position offset (m,
+base frame) jointly with the material, a nuisance parameter for a tracker's constant error (``material_fit`` module
+docstring): one offset for all the recordings given, so fit one recording at a time when each has its own.
 
 Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
 forward and backward; L-BFGS needs 20 to 70 of them); the bootstrap adds one refit per draw (7 to 30 evaluations
-each); ``--pose-offset`` takes 3 to 5 times the evaluations of the material alone. Progress goes to stderr.
+each); the profile adds 2 to 8 refits of the other parameters per fitted parameter (1.7 to 3.6 times the fit's
+evaluations, docs/fit.md); ``--pose-offset`` takes 3 to 5 times the evaluations of the material alone. Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -40,8 +41,12 @@ UNCERTAINTY_TEXT = {
                  "at the level the residuals show; sigma the draws' standard deviation, interval95 the {interval} "
                  "interval of the draws (bootstrap.intervals95 has both kinds); parameters the data do not "
                  "determine keep the Gauss-Newton verdict",
+    "profile": "profile likelihood: interval95 where the cost, minimised over the other parameters, rises by at most "
+               "1.96^2 times the reduced chi-square; sigma and the identified verdict are Gauss-Newton's; parameters "
+               "the data do not determine keep the Gauss-Newton verdict",
 }
-UNCERTAINTY_TITLE = {"hessian": "Gauss-Newton at the optimum", "bootstrap": "parametric bootstrap"}
+UNCERTAINTY_TITLE = {"hessian": "Gauss-Newton at the optimum", "bootstrap": "parametric bootstrap",
+                     "profile": "profile-likelihood intervals, Gauss-Newton sigma"}
 SET_TITLES = {"fit": "fit", "held_out": "held-out"}
 
 
@@ -100,7 +105,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="how to report each value's uncertainty: hessian (the Gauss-Newton covariance at the "
                              "optimum; adds a few seconds) or bootstrap (--draws refits on data simulated at the fitted "
                              "values with fresh FT 300 noise; each refit 0.5 to 9 s of CPU, so 100 draws add 1 to 15 "
-                             "min on one core) (default hessian)")
+                             "min on one core) or profile (intervals where the cost, refitted over the other "
+                             "parameters, rises by the chi-square's 95 %% quantile: right where stick/slip makes "
+                             "the residuals non-linear in K and mu; 2 to 4 times the fit's CPU) (default hessian)")
     parser.add_argument("--draws", type=int, default=DEFAULT_DRAWS,
                         help=f"bootstrap refits with --uncertainty bootstrap (default {DEFAULT_DRAWS})")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
@@ -209,9 +216,11 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
 
     Returns ``{"model", "parameters": {name: {start, value, sigma, interval95, unit, fitted, identified}},
     "uncertainty", "bootstrap", "rows": [...], "trajectories": [...], "split", "fit": {...}, "settings"}``:
-    ``uncertainty`` says how ``sigma`` and ``interval95`` were found (``uncertainty``: ``hessian``, or ``bootstrap``
+    ``uncertainty`` says how ``sigma`` and ``interval95`` were found (``uncertainty``: ``hessian``, ``bootstrap``
     with ``draws`` refits seeded by ``seed``: then ``bootstrap`` holds its draws, noise scale and both interval
-    kinds per parameter; else None); ``pose_offset``: with ``pose_offset`` (axes, some of ``"xyz"``) the fitted
+    kinds per parameter, else None; or ``profile``: then ``profile`` holds its cost evaluations, seconds, open sides
+    and the Gauss-Newton intervals it replaced, else None);
+    ``pose_offset``: with ``pose_offset`` (axes, some of ``"xyz"``) the fitted
     object position offset per axis (``offset_x``, ``offset_y``, ``offset_z``: value, sigma, interval95 in m, fitted,
     identified; an axis not fitted is 0), added to the recorded poses of both sets for the ``after`` rows; else
     None; ``rows`` per set
@@ -228,8 +237,8 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
     if not set(pose_offset) <= set("xyz"):
         raise ValueError(f"--pose-offset takes axes, some of xyz, got {pose_offset!r}")
     if pose_offset and uncertainty != "hessian":
-        raise ValueError("--pose-offset works with --uncertainty hessian only (the bootstrap refits the material "
-                         "alone)")
+        raise ValueError("--pose-offset works with --uncertainty hessian only (the bootstrap and the profile refit "
+                         "the material alone)")
     if uncertainty == "bootstrap" and draws < 2:
         raise ValueError(f"--draws must be at least 2, got {draws}")
     if model not in FIT_MODELS:
@@ -256,7 +265,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
     result = material_fit.fit_material(batches["fit"], model, params, START, substeps, progress=report,
                                        pose_offset=pose_offset)
     substeps = result.substeps
-    estimates, boot_document = result.estimates, None
+    estimates, boot_document, profile_document = result.estimates, None, None
     if uncertainty == "bootstrap":
         from hydrosoft.bench.fit_bootstrap import BOOTSTRAP_INTERVAL, bootstrap
 
@@ -270,6 +279,19 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
                          "interval": BOOTSTRAP_INTERVAL, "evaluations": boot.evaluations, "seconds": boot.seconds,
                          "intervals95": {kind: {name: list(v) for name, v in kinds.items()}
                                          for kind, kinds in boot.intervals.items()}}
+    if uncertainty == "profile":
+        from hydrosoft.bench.fit_profile import profile_intervals
+
+        def report_parameter(name: str, points: int, seconds: float) -> None:
+            if progress:
+                progress(f"profile of {name}: {points} points at {seconds:.1f} s")
+
+        profile = profile_intervals(result, batches["fit"], model, params, START, progress=report_parameter)
+        estimates = profile.estimates
+        profile_document = {"evaluations": profile.evaluations, "seconds": profile.seconds,
+                            "open": [list(side) for side in profile.open],
+                            "hessian_interval95": {e.name: [_finite_or_none(v) for v in e.interval95]
+                                                   for e in result.estimates if e.fitted}}
     rows, per_trajectory = [], []
     for name in SETS:
         for when, values, offset in (("before", START, None), ("after", result.values, result.offset_m)):
@@ -291,6 +313,7 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
         "uncertainty": UNCERTAINTY_TEXT[uncertainty].format(interval=(boot_document or {}).get("interval")),
         "uncertainty_method": uncertainty,
         "bootstrap": boot_document,
+        "profile": profile_document,
         "rows": rows,
         "trajectories": per_trajectory,
         "split": {"fit": [list(x) for x in fit_labels], "held_out": [list(x) for x in held_labels]},

@@ -8,11 +8,13 @@ fitted (``material_fit.fit_material``, E, K and mu from the scenes' values); a p
 lies in its reported 95 % interval. First the same without noise (the FT 300's resolution only): the recovery.
 
 With ``--draws N`` each seed's fit is also bootstrapped (``fit_bootstrap``, N refits), and the coverage of the
-bootstrap's percentile and basic intervals is counted beside Gauss-Newton's. With ``--pose-noise MM,DEG`` the
-recorded object poses carry tracker noise (``synthetic_wrench.tracked_poses``) and the mean relative error over the
-seeds shows the bias it causes. ``--plant-substeps N --substeps N`` makes the fit's replay the plant exactly (the
-plant otherwise takes ``synthetic_wrench.PLANT_SUBSTEPS`` and the replay is chosen by the fit's resolution rule), to
-tell their mismatch from the noise; ``--no-recovery`` skips the noise-free run (for many seeds in chunks).
+bootstrap's percentile and basic intervals is counted beside Gauss-Newton's. With ``--profile`` the same for the
+profile-likelihood intervals (``fit_profile``), each parameter's by its profile z-score at the truth
+(``fit_profile.signed_roots``; the interval holds the truth exactly where it is within ``Z95``). With ``--pose-noise
+MM,DEG`` the recorded object poses carry tracker noise (``synthetic_wrench.tracked_poses``) and the mean relative error
+over the seeds shows the bias it causes. ``--plant-substeps N --substeps N`` makes the fit's replay the plant exactly
+(the plant otherwise takes ``synthetic_wrench.PLANT_SUBSTEPS`` and the replay is chosen by the fit's resolution rule),
+to tell their mismatch from the noise; ``--no-recovery`` skips the noise-free run (for many seeds in chunks).
 
 Each row also gives per parameter ``z_linear``: the error the seed's noise alone gives through the fit's
 linearisation at the truth (``linear_error``). Its mean square over many seeds tells a wrong noise model or
@@ -25,7 +27,8 @@ Run time: about 9 s of CPU per seed on one core (recording, fit, the replay-reso
 Jacobian): 101 s for the default 10 seeds and the noise-free run, 11 min 45 s of wall time on the loaded 2-core dev
 VM (2026-11-27). ``z_linear`` adds one Jacobian at the truth per noisy seed: 0.8 s of CPU at 1 sub-step, 4.2 s at 8
 (about 17 s for seeds 0-9). ``--draws 100`` adds 1 to 15 min of CPU per seed (6 to 21 cost evaluations per refit; more
-sub-steps cost more).
+sub-steps cost more). ``--profile`` adds one refit of the two others per parameter, at the truth (the interval itself,
+``fit --uncertainty profile``, takes 2 to 8 such refits per parameter).
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
 OBJECT = "cube"
 KINDS = ("shear", "twist", "shear_twist", "shear", "shear_twist", "twist", "shear", "shear_twist")
 STEPS = 12
-METHODS = ("hessian",) + BOOTSTRAP_INTERVALS  # Gauss-Newton, and the bootstrap's two intervals
+METHODS = ("hessian",) + BOOTSTRAP_INTERVALS + ("profile",)  # Gauss-Newton, the bootstrap's two, the profile's
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -55,6 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="parametric bootstrap draws per seed, beside the Gauss-Newton interval, e.g. "
                              f"{DEFAULT_DRAWS}: each is one refit, 0.5 to 9 s of CPU, so 100 add 1 to 15 min per seed "
                              "(default 0: Gauss-Newton only)")
+    parser.add_argument("--profile", action="store_true",
+                        help="also whether each seed's profile-likelihood interval holds the truth, beside "
+                             "Gauss-Newton's (one refit per parameter at the truth)")
     parser.add_argument("--pose-noise", type=_pose_noise, default=(0.0, 0.0), metavar="MM,DEG",
                         help="tracker noise on the recorded object poses, standard deviation per axis of position (mm) "
                              "and rotation (deg); the plant pressed the true pose (default none)")
@@ -86,18 +92,22 @@ def _covered(interval, truth: float) -> bool:
 
 def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
             pose_noise: tuple[float, float] = (0.0, 0.0), plant_substeps: int | None = None,
-            substeps: int | None = None) -> dict:
-    """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0) and ``pose_noise``
-    ``(mm, deg)`` of tracker noise on its object poses, the plant at ``plant_substeps`` (None: its default) and the fit's replay at
-    ``substeps`` (None: chosen by the fit); its row of the benchmark's document: per parameter the fit's value,
-    error, Gauss-Newton sigma, interval, ``z`` (the error in Gauss-Newton standard deviations, in the fit's
-    log and logit coordinates) and ``z_linear`` (``linear_error`` in the same standard deviations; None without
-    noise, where the standard deviations are the resolution's), and, with draws,
-    ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth."""
+            substeps: int | None = None, profile: bool = False) -> dict:
+    """Record and fit one synthetic recording, with ``draws`` bootstrap refits (none for 0), with ``profile`` the
+    profile's z-score at the truth, and ``pose_noise`` ``(mm, deg)`` of tracker noise on its object poses, the plant at
+    ``plant_substeps`` (None: its default) and the fit's replay at ``substeps`` (None: chosen by the fit); its row of
+    the benchmark's document: per parameter the fit's value, error, Gauss-Newton sigma, interval, ``z`` (the error in
+    Gauss-Newton standard deviations, in the fit's log and logit coordinates) and ``z_linear`` (``linear_error`` in the
+    same standard deviations; None without noise, where the standard deviations are the resolution's), and, with draws,
+    ``bootstrap``: its sigma and its ``percentile`` and ``basic`` intervals, each with whether it covers the truth; with
+    ``profile``, ``profile``: ``z`` (``fit_profile.signed_roots`` at the truth, with the sign of the fit less the truth,
+    as ``z``'s) and whether the profile interval covers the truth (``|z| <= Z95``), and the row's ``profile``: cost
+    evaluations and seconds. ``evaluations`` and ``fit_seconds``: the fit's own."""
     import numpy as np
 
     from hydrosoft.bench import material_fit
     from hydrosoft.bench.fit_bootstrap import bootstrap
+    from hydrosoft.bench.fit_profile import signed_roots
     from hydrosoft.bench.synthetic_wrench import PLANT_SUBSTEPS, write_synthetic_recording
     from hydrosoft.bench.wrench_replay import load_recordings
 
@@ -121,7 +131,14 @@ def fit_one(folder: Path, seed: int, noise_scale: float, draws: int = 0,
                        "interval95": list(e.interval95), "identified": e.identified,
                        "covered": _covered(e.interval95, TRUTH[e.name]), "z": float(error / sigma),
                        "z_linear": None if z_linear is None else float(z_linear)}
-    row["seconds"] = time.perf_counter() - tic
+    row["seconds"] = row["fit_seconds"] = time.perf_counter() - tic
+    row["evaluations"] = result.iterations
+    if profile:
+        roots, evaluations = signed_roots(result, batches, "nh", list(TRUTH), TRUTH)
+        row["profile"] = {"evaluations": evaluations, "seconds": time.perf_counter() - tic - row["fit_seconds"]}
+        for name, root in roots.items():  # z: the fit less the truth, as the fitted z's sign
+            row[name]["profile"] = {"z": -root, "covered": abs(root) <= material_fit.Z95}
+        row["seconds"] = time.perf_counter() - tic
     if draws:
         boot = bootstrap(result, batches, "nh", list(TRUTH), draws, seed)
         row["bootstrap"] = {"draws": len(boot.draws), "failed": boot.failed, "noise_scale": boot.noise_scale,
@@ -153,12 +170,14 @@ def linear_error(batches, truth, substeps: int):
 
 def covered_of(row: dict, name: str, method: str) -> bool:
     """Whether ``method`` (``METHODS``) covered parameter ``name``'s truth in a row of ``fit_one``."""
-    return row[name]["covered"] if method == "hessian" else row[name]["bootstrap"][method]["covered"]
+    if method == "hessian":
+        return row[name]["covered"]
+    return row[name]["profile"]["covered"] if method == "profile" else row[name]["bootstrap"][method]["covered"]
 
 
 def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
              pose_noise: tuple[float, float] = (0.0, 0.0), plant_substeps: int | None = None,
-             substeps: int | None = None, recovery: bool = True) -> dict:
+             substeps: int | None = None, recovery: bool = True, profile: bool = False) -> dict:
     """The benchmark's document: ``recovery`` (the noise-free row, no bootstrap), ``noisy`` (one row per seed,
     ``first_seed`` on), ``covered`` (per parameter the count of noisy seeds whose Gauss-Newton 95 % interval holds
     the truth), ``all_covered`` (seeds covering all three), and ``covered_by`` and ``all_covered_by``: the same per
@@ -167,7 +186,9 @@ def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
     ``coverage_interval95``: per method and parameter the exact (Clopper-Pearson) 95 % confidence interval of the
     coverage fraction; ``mean_square_z``: per parameter the mean squared ``z`` (1 for right intervals);
     ``mean_square_z_linear`` and ``covered_linear``: the same of ``z_linear`` (``linear_error``), the noise's share
-    alone, and how many of its ``|z_linear|`` are within the 95 % interval's ``Z95``.
+    alone, and how many of its ``|z_linear|`` are within the 95 % interval's ``Z95``; with ``profile`` (method
+    ``profile`` too) ``mean_square_z_profile``: the same of the profile's z at the truth; ``seconds``: per part
+    (``fit``, ``profile``, the noisy seeds' wall time summed) and ``evaluations`` (the same, cost evaluations).
     ``plant_substeps`` and ``substeps``: as ``fit_one``'s; ``recovery``: whether to run the noise-free row (else
     None)."""
     from scipy.stats import binomtest
@@ -183,10 +204,19 @@ def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
                 progress(f"noise-free recovery in {recovery_row['seconds']:.1f} s")
         noisy = []
         for seed in range(first_seed, first_seed + seeds):
-            noisy.append(fit_one(Path(folder), seed, 1.0, draws, pose_noise, plant_substeps, substeps))
+            noisy.append(fit_one(Path(folder), seed, 1.0, draws, pose_noise, plant_substeps, substeps, profile))
             if progress:
                 progress(f"seed {seed} in {noisy[-1]['seconds']:.1f} s")
-    methods = METHODS if draws else METHODS[:1]
+    methods = [m for m in METHODS if m == "hessian" or (m == "profile" and profile)
+               or (m in BOOTSTRAP_INTERVALS and draws)]
+    parts = ["fit"] + (["profile"] if profile else [])
+    extra = {"seconds": {part: sum(r[f"{part}_seconds"] if part == "fit" else r[part]["seconds"] for r in noisy)
+                         for part in parts},
+             "evaluations": {part: sum(r["evaluations"] if part == "fit" else r[part]["evaluations"] for r in noisy)
+                             for part in parts}}
+    if profile:
+        extra["mean_square_z_profile"] = {name: sum(r[name]["profile"]["z"] ** 2 for r in noisy) / seeds
+                                          for name in TRUTH}
     covered_by = {m: {name: sum(covered_of(r, name, m) for r in noisy) for name in TRUTH} for m in methods}
     all_covered_by = {m: sum(all(covered_of(r, name, m) for name in TRUTH) for r in noisy) for m in methods}
     coverage_interval95 = {m: {name: list(binomtest(count, seeds).proportion_ci(0.95)) for name, count in c.items()}
@@ -200,7 +230,7 @@ def evaluate(seeds: int, progress=None, draws: int = 0, first_seed: int = 0,
             "covered_by": covered_by, "all_covered_by": all_covered_by, "seeds": seeds,
             "first_seed": first_seed, "draws": draws, "pose_noise": list(pose_noise),
             "mean_relative_error": {name: _mean_and_error([r[name]["relative_error"] for r in noisy])
-                                    for name in TRUTH}}
+                                    for name in TRUTH}, **extra}
 
 
 def _mean_and_error(values: list[float]) -> list[float]:
@@ -212,17 +242,20 @@ def _mean_and_error(values: list[float]) -> list[float]:
 
 def format_table(document: dict) -> str:
     """One line per run: per parameter the value, its relative error, the Gauss-Newton 1 sigma and whether its 95 %
-    interval holds the truth, then with draws whether the bootstrap's percentile (p) and basic (b) intervals do;
-    then the coverage counts per method."""
+    interval holds the truth, then with draws whether the bootstrap's percentile (p) and basic (b) intervals do,
+    and with the profile whether its interval (l) does; then the coverage counts per method, the mean squared z
+    and, with the profile, the cost evaluations of the fits and of the profiles."""
     names = list(TRUTH)
     boot = bool(document["draws"])
-    width = 34 + (8 if boot else 0)
+    profile = "profile" in document["covered_by"]
+    width = 34 + (8 if boot else 0) + (6 if profile else 0)
     head = f"{'run':<12}" + "".join(f"| {name:^{width}} " for name in names) + "| chi2/dof | sub-steps"
     lines = [f"Material fit on synthetic {document['object']} recordings ({document['trajectories']} trajectories of "
              f"{document['steps']} steps), truth " + ", ".join(f"{n} {v:.4g}" for n, v in TRUTH.items())
              + (", object poses with tracker noise {:g} mm, {:g} deg".format(*document["pose_noise"])
                 if any(document["pose_noise"]) else "")
-             + (f"; bootstrap of {document['draws']} draws: p percentile, b basic interval" if boot else ""),
+             + (f"; bootstrap of {document['draws']} draws: p percentile, b basic interval" if boot else "")
+             + ("; l profile-likelihood interval" if profile else ""),
              head, "-" * len(head)]
 
     def mark(covered: bool) -> str:
@@ -236,6 +269,8 @@ def format_table(document: dict) -> str:
             if boot:
                 cells += "".join(f"{kind[0]} {mark(covered_of(row, n, kind)) if 'bootstrap' in row else '-':>3} "
                                  for kind in BOOTSTRAP_INTERVALS)
+            if profile:
+                cells += f"l {mark(covered_of(row, n, 'profile')) if 'profile' in row else '-':>3} "
         return f"{title:<12}{cells}| {row['reduced_chi2']:<8.3g} | {row['substeps']}"
 
     if document["recovery"] is not None:
@@ -251,10 +286,18 @@ def format_table(document: dict) -> str:
             for n in names for low, high in [document["coverage_interval95"][method][n]])
             + f"; all three {document['all_covered_by'][method]}/{document['seeds']}")
     lines.append("Mean squared z (1 for right intervals): " + ", ".join(
-        f"{n} {z:.2f}" for n, z in document["mean_square_z"].items()))
+        f"{n} {z:.2f}" for n, z in document["mean_square_z"].items())
+        + ("; the profile's z at the truth: " + ", ".join(
+            f"{n} {z:.2f}" for n, z in document["mean_square_z_profile"].items()) if profile else ""))
     lines.append("Linearised at the truth (the noise alone): mean squared z " + ", ".join(
         f"{n} {z:.2f}" for n, z in document["mean_square_z_linear"].items()) + "; inside 95 %: " + ", ".join(
         f"{n} {c}/{document['seeds']}" for n, c in document["covered_linear"].items()))
+    if profile:
+        fit, prof = document["evaluations"]["fit"], document["evaluations"]["profile"]
+        seconds = document["seconds"]
+        lines.append(f"Cost evaluations over the noisy seeds: fits {fit}, profiles at the truth {prof} "
+                     f"({prof / fit:.2f} times); CPU-bound wall time {seconds['fit']:.0f} s and "
+                     f"{seconds['profile']:.0f} s")
     return "\n".join(lines)
 
 
@@ -276,6 +319,6 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     document = evaluate(args.seeds, lambda text: print(f"[bench fit] {text}", file=sys.stderr, flush=True),
                         args.draws, args.first_seed, args.pose_noise, args.plant_substeps, args.substeps,
-                        not args.no_recovery)
+                        not args.no_recovery, args.profile)
     print(json.dumps(document) if args.json else format_table(document))
     return 0

@@ -123,3 +123,22 @@ def test_fit_reports_a_parametric_bootstrap_with_progress_when_asked(recording, 
     assert "parametric bootstrap of 3 draws" in out.read_text()
     assert fit.run(_args([recording], uncertainty="bootstrap", draws=2)) == 0
     assert "(uncertainty: parametric bootstrap of 2 draws, percentile intervals" in capsys.readouterr().out
+
+
+def test_fit_reports_profile_likelihood_intervals_with_progress_when_asked(recording, tmp_path, capsys):
+    out = tmp_path / "bubble.toml"
+    assert fit.run(_args([recording], json=True, params=["E", "K"], uncertainty="profile", out=out)) == 0
+    captured = capsys.readouterr()
+    document = json.loads(captured.out)
+    assert "[fit] profile of E: " in captured.err and "profile of K" not in captured.err
+    assert document["uncertainty_method"] == "profile" and document["uncertainty"].startswith("profile likelihood")
+    profile, E, K = document["profile"], document["parameters"]["E"], document["parameters"]["K"]
+    assert profile["evaluations"] > 0 and profile["open"] == [] and document["bootstrap"] is None
+    low, high = E["interval95"]
+    assert low < E["value"] < high and E["identified"]
+    # E is linear in the model: its profile interval is Gauss-Newton's, which the document keeps beside it
+    assert [low, high] == pytest.approx(profile["hessian_interval95"]["E"], rel=2e-3)
+    assert K["sigma"] is None and not K["identified"]  # undetermined on a flat face: no profile to follow
+    assert "profile-likelihood intervals, Gauss-Newton sigma" in out.read_text()
+    assert fit.run(_args([recording], uncertainty="profile", pose_offset="z")) == 2
+    assert "--pose-offset works with --uncertainty hessian only" in capsys.readouterr().err

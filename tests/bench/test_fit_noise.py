@@ -59,10 +59,19 @@ def test_the_plant_and_replay_substeps_are_options_and_bad_ones_are_refused(caps
 def test_each_seed_gives_the_error_its_noise_alone_makes_through_the_linearised_fit(monkeypatch):
     monkeypatch.setattr(fit_noise, "KINDS", ("shear", "twist", "shear_twist"))
     monkeypatch.setattr(fit_noise, "STEPS", 6)
-    document = fit_noise.evaluate(1, first_seed=1, plant_substeps=1, substeps=1, recovery=False)
+    document = fit_noise.evaluate(1, first_seed=1, plant_substeps=1, substeps=1, recovery=False, profile=True)
     for row in document["noisy"]:  # E is linear in its interval: the fit's error is the noise's linear share
         z, z_linear = row["E"]["z"], row["E"]["z_linear"]
         assert z_linear != 0 and abs(z - z_linear) < 0.05 * max(1, abs(z))
+        # and the profile's z at the truth is the same: the cost rises as the quadratic says
+        assert abs(row["E"]["profile"]["z"] - z) < 0.05 * max(1, abs(z))
+        assert row["profile"]["evaluations"] > 0 and row["evaluations"] > row["profile"]["evaluations"] / 10
+    for name in fit_noise.TRUTH:  # the profile interval holds the truth where its z there is within Z95
+        assert document["covered_by"]["profile"][name] == sum(
+            abs(row[name]["profile"]["z"]) <= 1.959964 for row in document["noisy"])
+        assert document["mean_square_z_profile"][name] == pytest.approx(document["noisy"][0][name]["profile"]["z"] ** 2)
+    table = fit_noise.format_table(document)
+    assert "Truth inside the 95 % interval (profile, seeds 1-1)" in table and "profiles at the truth" in table
     for name in fit_noise.TRUTH:
         z = [row[name]["z_linear"] for row in document["noisy"]]
         assert document["mean_square_z_linear"][name] == pytest.approx(z[0] ** 2)
