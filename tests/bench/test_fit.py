@@ -19,7 +19,7 @@ from hydrosoft.bench.wrench_recording import RecordingInfo, WrenchRecordingWrite
 from hydrosoft.scene import BodySpec
 from hydrosoft.services.commands.cli import build_parser
 
-TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
+from fit_recordings import TRUTH
 
 
 @pytest.fixture(scope="module")

@@ -8,30 +8,18 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from hydrosoft.bench import fit_bootstrap, material_fit
 from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
-from hydrosoft.bench.wrench_replay import load_recordings
 
-TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    torch.set_num_threads(1)
-
-
-def _batches(path):
-    groups = load_recordings([path])
-    return material_fit.replay_batches(groups, {(g.object, t.index) for g in groups for t in g.trajectories})
+from fit_recordings import TRUTH, replay_batches
 
 
 def test_the_bootstrap_spread_matches_gauss_newton_where_the_model_is_nearly_linear(tmp_path):
     path = tmp_path / "wrench-cube.mcap"
     write_synthetic_recording(path, "cube", TRUTH, ["shear", "twist", "shear_twist"], steps=6, seed=4,
                               noise_scale=1.0)
-    batches = _batches(path)
+    batches = replay_batches(path)
     fit = material_fit.fit_material(batches, "nh", list(TRUTH), substeps=1)
     draws = []
     boot = fit_bootstrap.bootstrap(fit, batches, "nh", list(TRUTH), draws=16, seed=0,
@@ -60,7 +48,7 @@ def test_the_bootstrap_spread_matches_gauss_newton_where_the_model_is_nearly_lin
 def test_a_parameter_the_data_do_not_determine_keeps_its_infinite_uncertainty_under_the_bootstrap(tmp_path):
     path = tmp_path / "wrench-plate.mcap"  # pressing on a flat face: K changes nothing
     write_synthetic_recording(path, "plate", TRUTH, ["press"] * 2, steps=5, seed=2, noise_scale=1.0)
-    batches = _batches(path)
+    batches = replay_batches(path)
     fit = material_fit.fit_material(batches, "nh", ["E", "K"], substeps=1)
     boot = fit_bootstrap.bootstrap(fit, batches, "nh", ["E", "K"], draws=4, seed=0)
     estimates = {e.name: e for e in boot.estimates}

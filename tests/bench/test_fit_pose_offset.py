@@ -15,13 +15,9 @@ from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
 from hydrosoft.bench.wrench_replay import load_recordings
 from hydrosoft.services.commands.cli import build_parser
 
-TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
+from fit_recordings import TRUTH
+
 LOW_M = -1e-4  # every recorded object pose this far below the true one (base z, the press normal)
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    torch.set_num_threads(1)
 
 
 def _holds(interval, value) -> bool:

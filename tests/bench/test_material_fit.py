@@ -16,13 +16,9 @@ from hydrosoft.bench.fit import run_fit
 from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
 from hydrosoft.bench.wrench_replay import load_recordings
 
-TRUTH = {"E": 3e5 * 1.7, "K": 1e5 * 0.6, "mu": 0.35}
+from fit_recordings import TRUTH
+
 MIXED = ["shear", "twist", "shear_twist", "shear", "shear_twist", "twist", "shear", "shear_twist"]
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    torch.set_num_threads(1)
 
 
 def test_the_fit_recovers_a_non_default_material_within_3_percent_and_the_held_out_error_of_the_truth(tmp_path):
