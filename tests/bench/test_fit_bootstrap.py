@@ -12,15 +12,11 @@ import pytest
 from hydrosoft.bench import fit_bootstrap, material_fit
 from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
 
-from fit_recordings import TRUTH, replay_batches
+from fit_recordings import TRUTH, noisy_cube_fit, replay_batches
 
 
 def test_the_bootstrap_spread_matches_gauss_newton_where_the_model_is_nearly_linear(tmp_path):
-    path = tmp_path / "wrench-cube.mcap"
-    write_synthetic_recording(path, "cube", TRUTH, ["shear", "twist", "shear_twist"], steps=6, seed=4,
-                              noise_scale=1.0)
-    batches = replay_batches(path)
-    fit = material_fit.fit_material(batches, "nh", list(TRUTH), substeps=1)
+    batches, fit = noisy_cube_fit(tmp_path)
     draws = []
     boot = fit_bootstrap.bootstrap(fit, batches, "nh", list(TRUTH), draws=16, seed=0,
                                    progress=lambda draw, total, seconds: draws.append((draw, total)))

@@ -16,7 +16,7 @@ from hydrosoft.bench import fit_profile, material_fit
 from hydrosoft.bench.material_fit import Z95
 from hydrosoft.bench.synthetic_wrench import write_synthetic_recording
 
-from fit_recordings import TRUTH, replay_batches
+from fit_recordings import TRUTH, noisy_cube_fit, replay_batches
 
 
 class KinkedProfile:
@@ -54,11 +54,7 @@ def test_the_search_finds_gauss_newtons_end_where_the_cost_is_quadratic_and_wide
 
 
 def test_on_a_noisy_recording_the_profile_matches_gauss_newton_for_e_and_its_ends_and_roots_agree(tmp_path):
-    path = tmp_path / "wrench-cube.mcap"
-    write_synthetic_recording(path, "cube", TRUTH, ["shear", "twist", "shear_twist"], steps=6, seed=4,
-                              noise_scale=1.0)
-    batches = replay_batches(path)
-    fit = material_fit.fit_material(batches, "nh", list(TRUTH), substeps=1)
+    batches, fit = noisy_cube_fit(tmp_path)
     reported = []
     profile = fit_profile.profile_intervals(fit, batches, "nh", list(TRUTH),
                                             progress=lambda name, points, seconds: reported.append(name))
