@@ -1097,7 +1097,8 @@ class CompiledStep(FallsBack):
     first call for each new input signature (dtype, device, shape, whether gradients are needed) compiles: tens of
     seconds on a CPU, which pays off over long rollouts or many planner iterations. A start state (no ``state.phi``
     cached) is first put in the form a step returns (``stepped_form``), so that the first step of a rollout runs the
-    graphs of the steps after it. ``options`` go to ``torch.compile`` (e.g. ``dynamic=True`` to compile once for all batch sizes).
+    graphs of the steps after it. ``options`` go to ``torch.compile`` (e.g. ``dynamic=True`` to compile once for all
+    batch sizes).
     With the default inductor backend and no ``mode``/``options`` given, the options are
     ``compilation.DEFAULT_OPTIONS``:
     inductor's C++ wrapper, which launches the kernels from C++ instead of Python and halves a batch-1 step

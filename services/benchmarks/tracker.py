@@ -13,7 +13,8 @@ of the relative rotation) of the poses against the rendered truth as ``median``,
 when no image gave a pose); ``pos_err_mm_mean_base`` and ``pos_err_mm_mean_camera``: the mean signed position error
 ``[x, y, z]`` (mm) in the base frame and in the camera's (z along the line of sight: a tag seen too small or too
 large shows there as a bias, which the random azimuths average out of the base frame's); ``rejections``: reason
-counts for the images without a pose (reasons cut at the first colon); ``render_ms`` and ``track_ms``: median wall times of rendering and of detection plus pose;
+counts for the images without a pose (reasons cut at the first colon); ``render_ms`` and ``track_ms``: median wall
+times of rendering and of detection plus pose;
 ``track_cpu_ms_mean`` and ``track_cpu_ms_p95``: the tracker's CPU time per image (detection, corner refinement and
 pose: ``time.process_time``, all threads of the process, so OpenCV's worker threads count too).
 ``track_cpu_ms`` sums up the CPU time per image over all rows (``mean``, ``p95``, ``images``).
