@@ -34,6 +34,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -67,7 +68,8 @@ CONNECT_RETRY_S = 0.5
 TARE_S = 0.5
 #: The service publishes nothing and counts an error after this long without a new sample, s (10 frame periods).
 STALE_AFTER_S = 0.1
-#: How often the driver is polled for a new sample, s (half the FT 300's 10 ms frame period).
+#: How often a driver that cannot wake the reader (or that raised) is polled for a new sample, s (half the FT 300's
+#: 10 ms frame period).
 POLL_PERIOD_S = 0.005
 #: How often the driver's CRC error count is read and the status note (the bias's age) renewed, s.
 HEALTH_PERIOD_S = 1.0
@@ -134,12 +136,20 @@ def error_kind(error: DriverError) -> str:
     return "driver"
 
 
+@runtime_checkable
+class WakingSensor(ForceTorqueSensor, Protocol):
+    """A sensor that can wake its reader when a new sample arrives (``FT300Sensor``)."""
+
+    async def wait_newer(self, after_ns: int, timeout_s: float) -> None: ...
+
+
 async def next_sample(sensor: ForceTorqueSensor, after_ns: int, timeout_s: float = STALE_AFTER_S,
                       poll_s: float = POLL_PERIOD_S) -> WrenchSample:
-    """The sensor's newest sample stamped after ``after_ns`` (``time.monotonic_ns``), polling every ``poll_s`` for
-    up to ``timeout_s``. Raises the driver's last error (``Stale``, ``NotConnected``, ...) or, when it kept
-    handing out the same sample, ``Stale``."""
+    """The sensor's newest sample stamped after ``after_ns`` (``time.monotonic_ns``), waiting up to ``timeout_s``:
+    woken as it arrives by a ``WakingSensor``, else polling every ``poll_s``. Raises the driver's last error
+    (``Stale``, ``NotConnected``, ...) or, when it kept handing out the same sample, ``Stale``."""
     deadline_ns = time.monotonic_ns() + round(timeout_s * 1e9)
+    waking = isinstance(sensor, WakingSensor)
     while True:
         error: DriverError | None = None
         try:
@@ -148,9 +158,13 @@ async def next_sample(sensor: ForceTorqueSensor, after_ns: int, timeout_s: float
                 return sample
         except DriverError as err:
             error = err
-        if time.monotonic_ns() >= deadline_ns:
+        now_ns = time.monotonic_ns()
+        if now_ns >= deadline_ns:
             raise error or Stale(f"no new F/T sample within {timeout_s} s")
-        await asyncio.sleep(poll_s)
+        if waking and error is None:
+            await sensor.wait_newer(after_ns, (deadline_ns - now_ns) / 1e9)
+        else:
+            await asyncio.sleep(poll_s)
 
 
 async def wait_for_port(port: str, timeout_s: float = PORT_WAIT_S) -> None:

@@ -65,6 +65,18 @@ class ScriptedSensor:
         return None
 
 
+class WakingScriptedSensor(ScriptedSensor):
+    """A ``ScriptedSensor`` that can wake its reader (``ft_reader.WakingSensor``): each ``wait_newer`` is recorded and
+    returns at once, as a new sample's arrival would end it."""
+
+    def __init__(self, *items) -> None:
+        super().__init__(*items)
+        self.waits: list[tuple[int, float]] = []
+
+    async def wait_newer(self, after_ns: int, timeout_s: float) -> None:
+        self.waits.append((after_ns, timeout_s))
+
+
 def sample(stamp_ns: int, value: float = 0.0) -> WrenchSample:
     return WrenchSample(np.full(6, value), stamp_ns, None)
 
@@ -107,6 +119,18 @@ def test_next_sample_skips_a_sample_it_has_seen_and_raises_the_drivers_error_aft
     with pytest.raises(Stale, match="no new F/T sample"):  # the same sample again and again is stale too
         run(next_sample(ScriptedSensor(sample(10)), after_ns=10, timeout_s=0.1, poll_s=0.01))
     assert time.monotonic() - tic_s >= 0.1
+
+
+def test_next_sample_waits_for_a_waking_sensor_to_wake_it_and_never_polls_it():
+    sensor = WakingScriptedSensor(sample(10), sample(20))
+    tic_s = time.monotonic()
+    got = run(next_sample(sensor, after_ns=10, timeout_s=5.0, poll_s=30.0))  # a poll would outlast the test
+    assert got.stamp_ns == 20 and sensor.reads == 2
+    assert time.monotonic() - tic_s < 1.0
+    assert len(sensor.waits) == 1 and sensor.waits[0][0] == 10 and 4.0 < sensor.waits[0][1] <= 5.0  # the time left
+    stale = WakingScriptedSensor(sample(10))  # woken without a newer sample (its timeout): Stale at the deadline
+    with pytest.raises(Stale, match="no new F/T sample"):
+        run(next_sample(stale, after_ns=10, timeout_s=0.05, poll_s=30.0))
 
 
 def test_the_tare_averages_new_samples_over_its_duration_and_fails_on_a_silent_sensor():
