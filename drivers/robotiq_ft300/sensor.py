@@ -5,8 +5,9 @@ driver does), starts the stream with the Modbus request, checks the reply and wa
 reader thread (pyserial blocks) then feeds a ``FrameScanner`` and keeps the newest wrench with the monotonic time it
 arrived; ``read()`` hands it out, or raises ``Stale`` when it is older than ``max_age_s`` and ``NotConnected``
 while the link is down, and ``wait_newer`` wakes an event loop as a new one arrives (no polling). The thread asks the
-port for the bytes that can complete the next frame (``FrameScanner.bytes_wanted``), so a frame takes one read. The thread drops the link on a serial error or when no valid frame came for
-``restart_after_s``, and opens it again with doubling backoff. ``close()`` stops the stream and closes the port.
+port for the bytes that can complete the next frame (``FrameScanner.bytes_wanted``), so a frame takes one read. It
+drops the link on a serial error or when no valid frame came for ``restart_after_s``, and opens it again with
+doubling backoff. ``close()`` stops the stream and closes the port.
 
 Check a sensor by hand: ``python -m hydrosoft.drivers.robotiq_ft300.sensor --port /dev/serial/by-id/...``.
 """
