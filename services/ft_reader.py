@@ -14,8 +14,9 @@ readings are untared.
 
 Tare on request only: ``Tare`` on the cmd endpoint (``hydrosoft-stack ft tare ARM``). It is refused, with the reason,
 unless the arm is at rest and the bubble shows no contact (``services/arm/tare_rules.py``, from ``arm_state/ARM`` and
-``deformation/ARM``) before and after averaging the samples of ``TARE_S``, and those samples were steady. An
-accepted tare is stored first (a tare that cannot be stored is refused), then used.
+``deformation/ARM``, each at most 0.5 s old, read only then: between tares the reader decodes none of the
+commander's 125 states a second) before and after averaging the samples of ``TARE_S``, and those samples were
+steady. An accepted tare is stored first (a tare that cannot be stored is refused), then used.
 
 A sensor that sends nothing new for ``STALE_AFTER_S`` (stale, unplugged or reconnecting: the driver reconnects on
 its own) is counted under the driver error's kind (``stale``, ``not_connected``, ...) once per ``STALE_AFTER_S``,
@@ -34,6 +35,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
@@ -54,6 +56,8 @@ from hydrosoft.services.arm.tare_rules import (
     tare_refusal,
 )
 
+M = TypeVar("M", bound=msg.Message)
+
 MODULE = "ft_reader"
 #: How long the port may take to appear (sim: until sim_world has linked its pty), s.
 PORT_WAIT_S = 30.0
@@ -67,7 +71,8 @@ CONNECT_RETRY_S = 0.5
 TARE_S = 0.5
 #: The service publishes nothing and counts an error after this long without a new sample, s (10 frame periods).
 STALE_AFTER_S = 0.1
-#: How often the driver is polled for a new sample, s (half the FT 300's 10 ms frame period).
+#: How often a driver that cannot wake the reader (or that raised) is polled for a new sample, s (half the FT 300's
+#: 10 ms frame period).
 POLL_PERIOD_S = 0.005
 #: How often the driver's CRC error count is read and the status note (the bias's age) renewed, s.
 HEALTH_PERIOD_S = 1.0
@@ -134,12 +139,20 @@ def error_kind(error: DriverError) -> str:
     return "driver"
 
 
+@runtime_checkable
+class WakingSensor(ForceTorqueSensor, Protocol):
+    """A sensor that can wake its reader when a new sample arrives (``FT300Sensor``)."""
+
+    async def wait_newer(self, after_ns: int, timeout_s: float) -> None: ...
+
+
 async def next_sample(sensor: ForceTorqueSensor, after_ns: int, timeout_s: float = STALE_AFTER_S,
                       poll_s: float = POLL_PERIOD_S) -> WrenchSample:
-    """The sensor's newest sample stamped after ``after_ns`` (``time.monotonic_ns``), polling every ``poll_s`` for
-    up to ``timeout_s``. Raises the driver's last error (``Stale``, ``NotConnected``, ...) or, when it kept
-    handing out the same sample, ``Stale``."""
+    """The sensor's newest sample stamped after ``after_ns`` (``time.monotonic_ns``), waiting up to ``timeout_s``:
+    woken as it arrives by a ``WakingSensor``, else polling every ``poll_s``. Raises the driver's last error
+    (``Stale``, ``NotConnected``, ...) or, when it kept handing out the same sample, ``Stale``."""
     deadline_ns = time.monotonic_ns() + round(timeout_s * 1e9)
+    waking = isinstance(sensor, WakingSensor)
     while True:
         error: DriverError | None = None
         try:
@@ -148,9 +161,13 @@ async def next_sample(sensor: ForceTorqueSensor, after_ns: int, timeout_s: float
                 return sample
         except DriverError as err:
             error = err
-        if time.monotonic_ns() >= deadline_ns:
+        now_ns = time.monotonic_ns()
+        if now_ns >= deadline_ns:
             raise error or Stale(f"no new F/T sample within {timeout_s} s")
-        await asyncio.sleep(poll_s)
+        if waking and error is None:
+            await sensor.wait_newer(after_ns, (deadline_ns - now_ns) / 1e9)
+        else:
+            await asyncio.sleep(poll_s)
 
 
 async def wait_for_port(port: str, timeout_s: float = PORT_WAIT_S) -> None:
@@ -187,14 +204,31 @@ async def samples_over(sensor: ForceTorqueSensor, duration_s: float = TARE_S) ->
     return np.asarray(wrenches, dtype=np.float64).reshape(-1, 6)
 
 
+async def fresh_input(subscriber: LatestSubscriber, topic: str, kind: type[M], max_age_s: float) -> M | None:
+    """The newest ``kind`` message on ``topic`` at most ``max_age_s`` (s) old, waiting up to ``max_age_s`` for one to
+    come; None when none does. For a subscriber read only now and then (the tare's): what queued since its last read
+    (the bus's high-water marks' and the socket buffers' worth, old by now; the publisher drops the newer ones
+    meanwhile, at no cost to either side) is drained first, and a fresh one follows within a publishing period."""
+    loop = asyncio.get_running_loop()
+    deadline_s = loop.time() + max_age_s
+    while True:
+        try:
+            return subscriber.latest(topic, max_age_s, kind).value
+        except StaleInput:
+            remaining_s = deadline_s - loop.time()
+            if remaining_s <= 0:
+                return None
+        await subscriber.wait(remaining_s)
+
+
 class TareServer:
     """Answers ``Tare`` requests for ``arm``'s sensor: checks the arm and the bubble (``arm.tare_rules``), averages,
     checks again, stores the bias at ``path`` and only then hands it to the publishing loop (``current``).
 
     Args:
         sensor: the connected sensor. current: the reader's tare, replaced on success. arm, port: whose sensor.
-        path: the bias file. arm_states, deformations: subscribers reading ``arm_state/ARM`` and
-        ``deformation/ARM`` in the background.
+        path: the bias file. arm_states, deformations: subscribers of ``arm_state/ARM`` and ``deformation/ARM``,
+        read only while a tare is checked (``fresh_input``), so that no message is decoded between tares.
     """
 
     def __init__(self, service: Service, sensor: ForceTorqueSensor, current: CurrentBias, arm: str, port: str,
@@ -203,31 +237,27 @@ class TareServer:
                                                                                     port, path)
         self._arm_states, self._deformations = arm_states, deformations
 
-    def refusal(self) -> str | None:
+    async def refusal(self) -> str | None:
         """Why a tare may not be taken now (``tare_rules.tare_refusal`` on the newest fresh inputs), or None."""
-        return tare_refusal(self._newest(self._arm_states, msg.ArmState, ARM_STATE_MAX_AGE_S),
-                            self._newest(self._deformations, msg.MembraneDeformation, DEFORMATION_MAX_AGE_S),
-                            self.arm)
-
-    def _newest(self, subscriber: LatestSubscriber, kind: type[msg.Message], max_age_s: float):
-        try:
-            return subscriber.latest(msg.topic_for(kind, self.arm), max_age_s, kind).value
-        except StaleInput:
-            return None
+        arm_state = await fresh_input(self._arm_states, msg.topic_for(msg.ArmState, self.arm), msg.ArmState,
+                                      ARM_STATE_MAX_AGE_S)
+        deformation = await fresh_input(self._deformations, msg.topic_for(msg.MembraneDeformation, self.arm),
+                                        msg.MembraneDeformation, DEFORMATION_MAX_AGE_S)
+        return tare_refusal(arm_state, deformation, self.arm)
 
     async def handle(self, request: msg.Request) -> msg.Reply:
         """The reply to ``request`` (a ``Tare``; anything else is refused); the outcome is logged."""
         if not isinstance(request, msg.Tare):
             return request.reply(ok=False, error=f"ft_reader-{self.arm} answers only Tare, not "
                                                  f"{type(request).__name__}")
-        refused = self.refusal()
+        refused = await self.refusal()
         if refused is None:
             try:
                 wrenches = await samples_over(self.sensor)
             except DriverError as error:
                 refused = f"the sensor failed while averaging: {error}"
             else:
-                refused = spread_refusal(wrenches) or self.refusal()
+                refused = spread_refusal(wrenches) or await self.refusal()
         if refused is None:
             stored = StoredBias(arm=self.arm, port=self.port, bias=tuple(float(v) for v in bias_of(list(wrenches))),
                                 taken_unix_ns=time.time_ns(), samples=len(wrenches), source=TARE_SOURCE)
@@ -262,10 +292,9 @@ async def serve(service: Service, config: StackConfig, arm: str) -> None:
     service.log.info("%s", service.note)
     out = service.publisher(config.endpoint(service.name))
     topic = msg.topic_for(msg.Wrench, arm)
-    arm_states = service.subscriber(config.endpoint(f"arm_commander-{arm}"), [msg.topic_for(msg.ArmState, arm)],
-                                    background=True)
+    arm_states = service.subscriber(config.endpoint(f"arm_commander-{arm}"), [msg.topic_for(msg.ArmState, arm)])
     deformations = service.subscriber(config.endpoint(f"bubble_camera-{arm}"),
-                                      [msg.topic_for(msg.MembraneDeformation, arm)], background=True)
+                                      [msg.topic_for(msg.MembraneDeformation, arm)])
     tares = TareServer(service, sensor, current, arm, port, path, arm_states, deformations)
     requests = service.request_server(config.endpoint(service.name, "cmd"), tares.handle)
     await service.ready()

@@ -286,6 +286,13 @@ class FrameScanner:
         """Bytes held back until more data decides whether they start a frame."""
         return len(self._buffer)
 
+    @property
+    def bytes_wanted(self) -> int:
+        """The fewest more bytes that can complete a frame (at least 1): a reader that asks for this many (or for all
+        that are waiting, when more) gets every frame as soon as its last byte arrives, in one read per frame."""
+        needed = FRAME_SIZE if self._aligned else FRAME_SIZE + HEADER_SIZE
+        return max(1, needed - len(self._buffer))
+
     def clear(self) -> None:
         """Start over on a new link: forget buffered bytes and the alignment (its first alignment is not counted as
         a resync); counters are kept."""

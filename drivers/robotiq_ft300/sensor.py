@@ -4,8 +4,10 @@ Connecting stops any stream the sensor is already sending (0xFF bursts until the
 driver does), starts the stream with the Modbus request, checks the reply and waits for a first valid frame. A
 reader thread (pyserial blocks) then feeds a ``FrameScanner`` and keeps the newest wrench with the monotonic time it
 arrived; ``read()`` hands it out, or raises ``Stale`` when it is older than ``max_age_s`` and ``NotConnected``
-while the link is down. The thread drops the link on a serial error or when no valid frame came for
-``restart_after_s``, and opens it again with doubling backoff. ``close()`` stops the stream and closes the port.
+while the link is down, and ``wait_newer`` wakes an event loop as a new one arrives (no polling). The thread asks the
+port for the bytes that can complete the next frame (``FrameScanner.bytes_wanted``), so a frame takes one read. It
+drops the link on a serial error or when no valid frame came for ``restart_after_s``, and opens it again with
+doubling backoff. ``close()`` stops the stream and closes the port.
 
 Check a sensor by hand: ``python -m hydrosoft.drivers.robotiq_ft300.sensor --port /dev/serial/by-id/...``.
 """
@@ -92,6 +94,7 @@ class FT300Sensor:
         self._last_error: str | None = None
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
+        self._waiters: list[tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]] = []  # ``wait_newer``'s
 
     def __str__(self) -> str:
         return f"FT300Sensor({self.config.port})"
@@ -122,6 +125,25 @@ class FT300Sensor:
         """The newest sample. Raises ``NotConnected`` before ``connect``, after ``close`` and while the link is
         down; ``Stale`` when the newest frame is older than ``max_age_s``."""
         return self.latest()
+
+    async def wait_newer(self, after_ns: int, timeout_s: float) -> None:
+        """Return as soon as a sample stamped after ``after_ns`` (``time.monotonic_ns``) has arrived, at once when
+        one already has, or after ``timeout_s`` (s) without one; raises nothing (``read`` says what there is)."""
+        loop = asyncio.get_running_loop()
+        woken: asyncio.Future[None] = loop.create_future()
+        waiter = (loop, woken)
+        with self._lock:
+            if self._latest is not None and self._latest.stamp_ns > after_ns:
+                return
+            self._waiters.append(waiter)
+        timer = loop.call_later(max(timeout_s, 0.0), _wake, woken)
+        try:
+            await woken
+        finally:
+            timer.cancel()
+            with self._lock:
+                if waiter in self._waiters:
+                    self._waiters.remove(waiter)
 
     def latest(self) -> WrenchSample:
         """``read()`` for callers outside asyncio (same result, same errors)."""
@@ -283,6 +305,12 @@ class FT300Sensor:
             self._latest = WrenchSample(wrench=newest, stamp_ns=stamp_ns, hw_stamp_ns=None)
             self._frame_stamps_ns.extend([stamp_ns] * len(wrenches))
             self._forget_old_stamps(stamp_ns)
+            waiters, self._waiters = self._waiters, []
+        for loop, woken in waiters:
+            try:
+                loop.call_soon_threadsafe(_wake, woken)
+            except RuntimeError:  # its loop has closed: nobody waits there any more
+                pass
         return True
 
     def _forget_old_stamps(self, now_ns: int) -> None:
@@ -308,7 +336,7 @@ class FT300Sensor:
                 port = self._reconnect()
                 continue
             try:
-                data = port.read(port.in_waiting or 1)
+                data = port.read(max(port.in_waiting, self._scanner.bytes_wanted))
             except (serial.SerialException, OSError) as exc:
                 self._drop_link(port, f"serial error: {exc}")
                 port = None
@@ -378,6 +406,12 @@ class FT300Sensor:
             log.warning("%s: could not confirm the stream stopped: %s", self, exc)
         finally:
             port.close()
+
+
+def _wake(woken: asyncio.Future[None]) -> None:
+    """End a ``wait_newer`` (on its loop), unless it has ended already."""
+    if not woken.done():
+        woken.set_result(None)
 
 
 # -- command line ------------------------------------------------------------------------------------------------

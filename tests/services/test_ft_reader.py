@@ -30,6 +30,7 @@ from hydrosoft.services.commands.ft import request_tare
 from hydrosoft.services.ft_reader import (
     bias_of,
     error_kind,
+    fresh_input,
     next_sample,
     samples_over,
     wait_for_port,
@@ -63,6 +64,18 @@ class ScriptedSensor:
 
     async def close(self) -> None:
         return None
+
+
+class WakingScriptedSensor(ScriptedSensor):
+    """A ``ScriptedSensor`` that can wake its reader (``ft_reader.WakingSensor``): each ``wait_newer`` is recorded and
+    returns at once, as a new sample's arrival would end it."""
+
+    def __init__(self, *items) -> None:
+        super().__init__(*items)
+        self.waits: list[tuple[int, float]] = []
+
+    async def wait_newer(self, after_ns: int, timeout_s: float) -> None:
+        self.waits.append((after_ns, timeout_s))
 
 
 def sample(stamp_ns: int, value: float = 0.0) -> WrenchSample:
@@ -109,6 +122,18 @@ def test_next_sample_skips_a_sample_it_has_seen_and_raises_the_drivers_error_aft
     assert time.monotonic() - tic_s >= 0.1
 
 
+def test_next_sample_waits_for_a_waking_sensor_to_wake_it_and_never_polls_it():
+    sensor = WakingScriptedSensor(sample(10), sample(20))
+    tic_s = time.monotonic()
+    got = run(next_sample(sensor, after_ns=10, timeout_s=5.0, poll_s=30.0))  # a poll would outlast the test
+    assert got.stamp_ns == 20 and sensor.reads == 2
+    assert time.monotonic() - tic_s < 1.0
+    assert len(sensor.waits) == 1 and sensor.waits[0][0] == 10 and 4.0 < sensor.waits[0][1] <= 5.0  # the time left
+    stale = WakingScriptedSensor(sample(10))  # woken without a newer sample (its timeout): Stale at the deadline
+    with pytest.raises(Stale, match="no new F/T sample"):
+        run(next_sample(stale, after_ns=10, timeout_s=0.05, poll_s=30.0))
+
+
 def test_the_tare_averages_new_samples_over_its_duration_and_fails_on_a_silent_sensor():
     class Counting(ScriptedSensor):
         async def read(self) -> WrenchSample:
@@ -120,6 +145,48 @@ def test_the_tare_averages_new_samples_over_its_duration_and_fails_on_a_silent_s
     np.testing.assert_allclose(bias_of(list(wrenches)), 0.5, atol=0.1)
     with pytest.raises(Stale):
         run(samples_over(ScriptedSensor(Stale("silent")), duration_s=0.05))
+
+
+def arm_state(speed: float = 0.0) -> msg.ArmState:
+    return msg.ArmState(arm="bubble", tcp_pose=np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]),
+                        tcp_speed=np.array([speed, 0.0, 0.0, 0.0, 0.0, 0.0]), running=True, protective_stop=False,
+                        emergency_stop=False, servo_active=False)
+
+
+def test_a_tare_input_is_read_only_when_asked_old_queued_ones_never_count_and_a_fresh_one_is_awaited(tmp_path):
+    """The tare's subscribers are not read between tares (nothing decoded at the commander's 125 Hz): what queued
+    meanwhile is old and drained, a fresh message is awaited up to the age limit, and none fresh gives None."""
+    endpoint = f"ipc://{tmp_path}/arm"
+    topic = "arm_state/bubble"
+
+    async def scenario():
+        with Bus() as bus:
+            arm = bus_layer.Publisher(bus, endpoint, source="arm_commander-bubble")
+            states = LatestSubscriber(bus, endpoint, [topic])
+            await asyncio.sleep(0.2)  # connected
+            for k in range(40):
+                await arm.send(arm_state(speed=1.0 + k), topic)
+                await asyncio.sleep(0.002)
+            await asyncio.sleep(0.3)
+            unread = states.received[topic]
+            none_fresh = await fresh_input(states, topic, msg.ArmState, 0.2)
+            read_old = states.received[topic]
+
+            async def publish_soon():
+                await asyncio.sleep(0.05)
+                await arm.send(arm_state(speed=0.0), topic)
+
+            sender = asyncio.create_task(publish_soon())
+            tic_s = time.monotonic()
+            fresh = await fresh_input(states, topic, msg.ArmState, 0.2)
+            waited_s = time.monotonic() - tic_s
+            await sender
+            return unread, none_fresh, read_old, fresh, waited_s
+
+    unread, none_fresh, read_old, fresh, waited_s = run(scenario())
+    assert unread == 0 and none_fresh is None  # nothing decoded until asked; 0.3 s old states are not fresh
+    assert read_old > 0  # the old ones queued meanwhile were drained, none of them taken
+    assert fresh is not None and fresh.tcp_speed[0] == 0.0 and waited_s < 0.2
 
 
 def test_error_kinds_and_the_port_wait():

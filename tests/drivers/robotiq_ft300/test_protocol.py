@@ -219,6 +219,35 @@ def test_scanner_output_does_not_depend_on_chunking(garbage, cuts):
     assert as_rows(whole) == as_rows(wrenches)
 
 
+def emitted_at(scanner: FrameScanner, stream: bytes, chunk_sizes) -> list[int]:
+    """Feed ``stream`` in chunks whose sizes ``chunk_sizes(scanner)`` picks: the stream position (bytes read) at which
+    each frame came out, in order."""
+    positions, read = [], 0
+    while read < len(stream):
+        chunk = stream[read : read + chunk_sizes(scanner)]
+        read += len(chunk)
+        positions += [read] * len(scanner.feed(chunk))
+    return positions
+
+
+@settings(max_examples=60, deadline=None)
+@given(garbage=st.binary(max_size=40), damaged=st.sets(st.integers(0, 30 * FRAME_SIZE - 1), max_size=4))
+def test_reading_the_bytes_the_scanner_wants_delays_no_frame(garbage, damaged):
+    """The reader thread asks for ``bytes_wanted`` bytes at a time: each frame still comes out at the byte it would
+    byte by byte (no read ends past the byte that completes one), after garbage and damaged bytes too."""
+    stream = bytearray(garbage + frames_of(counting_wrenches(30)))
+    for index in damaged:
+        stream[len(garbage) + index] ^= 0x5A
+    stream = bytes(stream)
+    byte_by_byte = emitted_at(FrameScanner(), stream, lambda scanner: 1)
+    assert len(byte_by_byte) >= 30 - 3 * len(damaged) - 1
+    assert emitted_at(FrameScanner(), stream, lambda scanner: scanner.bytes_wanted) == byte_by_byte
+    aligned = FrameScanner()
+    assert aligned.bytes_wanted == FRAME_SIZE + 2  # a first frame needs the next one's header behind it
+    aligned.feed(frames_of(counting_wrenches(2)) + FRAME_HEADER + b"\x01")
+    assert aligned.bytes_wanted == FRAME_SIZE - 3  # aligned: the rest of the frame begun
+
+
 def test_scanner_never_yields_a_corrupted_frame_under_heavy_faults():
     """20 000 frames through a line that flips bits, drops bytes and inserts garbage: everything found was sent,
     in the order sent, and most intact frames get through."""

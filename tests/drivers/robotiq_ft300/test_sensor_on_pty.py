@@ -111,6 +111,33 @@ def test_stall_raises_stale_then_recovers_without_reconnecting(make_simulator):
     assert simulator.stats().stalls == 1 and health.reconnects == 0 and health.connected
 
 
+def test_wait_newer_wakes_as_a_frame_arrives_and_times_out_during_a_stall(make_simulator):
+    simulator = make_simulator(wrench_source=CountingWrench())
+
+    async def scenario():
+        async with FT300Sensor(fast_config(simulator.port_path, restart_after_s=1.0)) as sensor:
+            first = await wait_for_sample(sensor)
+            tic_s = time.monotonic()
+            await sensor.wait_newer(first.stamp_ns, 5.0)
+            woken_s = time.monotonic() - tic_s
+            newer = await sensor.read()
+            tic_s = time.monotonic()
+            await sensor.wait_newer(0, 5.0)  # one is there already: no wait
+            at_once_s = time.monotonic() - tic_s
+            simulator.stall(0.6)
+            await wait_for_error(sensor, Stale, timeout_s=0.3)  # the frames stopped
+            frames = sensor.health().frames
+            tic_s = time.monotonic()
+            await sensor.wait_newer(time.monotonic_ns(), 0.1)
+            stalled_s = time.monotonic() - tic_s
+            return first, newer, woken_s, at_once_s, stalled_s, sensor.health().frames - frames
+
+    first, newer, woken_s, at_once_s, stalled_s, frames_meanwhile = run_async(scenario())
+    assert newer.stamp_ns > first.stamp_ns and woken_s < 1.0  # a frame comes every 10 ms; not the 5 s timeout
+    assert at_once_s < 0.5
+    assert 0.1 <= stalled_s < 1.0 and frames_meanwhile == 0  # the timeout ended it, raising nothing
+
+
 def test_long_stall_restarts_the_stream(make_simulator):
     simulator = make_simulator(wrench_source=lambda: WRENCH)
 
