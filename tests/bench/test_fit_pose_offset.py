@@ -71,7 +71,7 @@ def test_the_fit_command_takes_pose_offset_and_refuses_it_with_the_bootstrap_wit
     assert parser.parse_args(["fit", str(path), "--pose-offset", "z"]).pose_offset == "z"
     args = parser.parse_args(["fit", str(path), "--pose-offset", "--uncertainty", "bootstrap", "--holdout", "0"])
     assert args.pose_offset == "xyz" and fit.run(args) == 2
-    assert "--pose-offset works with --uncertainty hessian only" in capsys.readouterr().err
+    assert "--pose-offset works with --uncertainty hessian or profile only" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # an argparse error, exit code 2, naming the axes it takes
         parser.parse_args(["fit", "--pose-offset", str(path)])
     assert "some of xyz" in capsys.readouterr().err
