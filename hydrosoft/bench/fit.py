@@ -15,7 +15,7 @@ docstring): one offset for all the recordings given, so fit one recording at a t
 Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
 forward and backward; L-BFGS needs 20 to 70 of them); the bootstrap adds one refit per draw (7 to 30 evaluations
 each); the profile adds 2 to 8 refits of the other parameters per fitted parameter (1.7 to 3.6 times the fit's
-evaluations, docs/fit.md); ``--pose-offset`` takes 3 to 5 times the evaluations of the material alone. Progress goes
+evaluations, docs/fit.md); ``--pose-offset`` takes 2 to 5 times the evaluations of the material alone. Progress goes
 to stderr.
 """
 
