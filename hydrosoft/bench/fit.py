@@ -15,7 +15,7 @@ docstring): one offset for all the recordings given, so fit one recording at a t
 Run time: about 5 s for 6 trajectories of 12 steps on one shared core (each cost evaluation replays the fit set
 forward and backward; L-BFGS needs 20 to 70 of them); the bootstrap adds one refit per draw (7 to 30 evaluations
 each); the profile adds 2 to 8 refits of the other parameters per fitted parameter (1.7 to 3.6 times the fit's
-evaluations, docs/fit.md); ``--pose-offset`` takes 3 to 5 times the evaluations of the material alone. Progress goes
+evaluations, docs/fit.md); ``--pose-offset`` takes 2 to 5 times the evaluations of the material alone. Progress goes
 to stderr.
 """
 
@@ -92,7 +92,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "object pose, jointly with the material, along AXES (some of xyz; default all three; z: "
                              "the press normal of a horizontal face): a tracker's constant error then widens the "
                              "material's intervals instead of biasing it (one offset for all recordings given; with "
-                             "--uncertainty hessian only)")
+                             "--uncertainty hessian or profile; the profile refits the offset at each point)")
     parser.add_argument("--holdout", type=float, default=0.2,
                         help="fraction of the trajectories held out of the fit and scored after it (default 0.2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the fit/held-out split (default 0)")
@@ -237,9 +237,9 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
         raise ValueError(f"unknown uncertainty {uncertainty!r}; known: {', '.join(UNCERTAINTY_METHODS)}")
     if not set(pose_offset) <= set("xyz"):
         raise ValueError(f"--pose-offset takes axes, some of xyz, got {pose_offset!r}")
-    if pose_offset and uncertainty != "hessian":
-        raise ValueError("--pose-offset works with --uncertainty hessian only (the bootstrap and the profile refit "
-                         "the material alone)")
+    if pose_offset and uncertainty == "bootstrap":
+        raise ValueError("--pose-offset works with --uncertainty hessian or profile only (the bootstrap refits the "
+                         "material alone)")
     if uncertainty == "bootstrap" and draws < 2:
         raise ValueError(f"--draws must be at least 2, got {draws}")
     if model not in FIT_MODELS:
@@ -260,7 +260,8 @@ def run_fit(recordings: Sequence[Path], model: str, params: Sequence[str], holdo
 
     def report(evaluation: int, cost: float, values: dict[str, float]) -> None:
         if progress:
-            shown = ", ".join(f"{n} {values[n]:.4g}" for n in params)
+            shown = ", ".join([f"{n} {values[n]:.4g}" for n in params]
+                              + [f"{n} {1e3 * values[n]:+.4f} mm" for n in material_fit.OFFSET_AXES if n in values])
             progress(f"evaluation {evaluation}: cost {cost:.5g} ({shown}) at {time.perf_counter() - tic:.1f} s")
 
     result = material_fit.fit_material(batches["fit"], model, params, START, substeps, progress=report,

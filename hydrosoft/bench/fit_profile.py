@@ -24,6 +24,10 @@ Gauss-Newton's; only ``interval95`` is the profile's.
 profile interval exactly where its ``|w| <= Z95`` (the interval is that set; its ends are found to
 ``ROOT_TOLERANCE``), at one refit per parameter instead of the interval's 2 to 8.
 
+With a pose offset (``fit --pose-offset``) the offset's fitted axes are among "the others": refitted at each point,
+so E's profile interval carries the offset's uncertainty, as its Gauss-Newton marginal does; the offset itself keeps
+its Gauss-Newton interval.
+
 Cost: 2 to 4 profile points per side and parameter, each a refit of the others (``hydrosoft-stack fit --help``).
 """
 
@@ -39,7 +43,7 @@ import torch
 
 from hydrosoft.bench.fit_bootstrap import theta_to_value
 from hydrosoft.bench.material_fit import (MU_BOUND_LOGIT, START, Z95, MaterialFit, ParameterEstimate, ReplayBatch,
-                                          minimise, residuals, to_theta)
+                                          minimise, residuals, stall_evaluations, to_theta)
 from hydrosoft.bench.material_parameters import MU_MAX, PARAMETERS
 
 ROOT_TOLERANCE = 0.02  # |w| within this of Z95 ends a side's search (1 % of the interval's half-width)
@@ -67,9 +71,11 @@ class Profile:
 
 class ProfileCost:
     """The profile ``w(t)`` of each fitted coordinate of ``fit`` (the result of ``material_fit.fit_material(batches,
-    contact, params, start)`` without a pose offset), counting cost evaluations in ``evaluations``. Only the fitted
-    coordinates with a finite Gauss-Newton variance are profiled or refitted; an undetermined one (the data do not
-    change with it) stays at its fitted value."""
+    contact, params, start)``, with or without a pose offset), counting cost evaluations in ``evaluations``. Only
+    the fitted coordinates with a finite Gauss-Newton variance are profiled or refitted; an undetermined one (the
+    data do not change with it) stays at its fitted value. With a pose offset its fitted axes (``theta[3:6]``, mm)
+    are refitted at each profile point like the other material parameters, so the offset's uncertainty widens the
+    material's intervals as it widens Gauss-Newton's."""
 
     def __init__(self, fit: MaterialFit, batches: Sequence[ReplayBatch], contact: str, params: Sequence[str],
                  start: dict[str, float] | None = None) -> None:
@@ -77,9 +83,10 @@ class ProfileCost:
         self.start = dict(START if start is None else start)
         self.theta = torch.as_tensor(fit.theta, dtype=torch.float64)
         fitted = [i for i, name in enumerate(PARAMETERS) if name in params]
+        fitted += [len(PARAMETERS) + axis for axis, e in enumerate(fit.pose_offset) if e.fitted]  # covariance order
         keep = [j for j, _ in enumerate(fitted) if math.isfinite(fit.covariance[j, j])]
-        self.fitted = [fitted[j] for j in keep]  # the determined coordinates (of PARAMETERS)
-        self.mask = torch.tensor([i in self.fitted for i in range(len(PARAMETERS))])
+        self.fitted = [fitted[j] for j in keep]  # the determined coordinates (of theta)
+        self.mask = torch.tensor([i in self.fitted for i in range(self.theta.shape[0])])
         self.covariance = fit.covariance[np.ix_(keep, keep)]
         self.s2 = fit.reduced_chi2
         self.count = fit.residual_count
@@ -89,7 +96,7 @@ class ProfileCost:
         self.evaluations: list[float] = []
 
     def sigma(self, index: int) -> float:
-        """Gauss-Newton standard deviation of coordinate ``index`` (of ``PARAMETERS``)."""
+        """Gauss-Newton standard deviation of coordinate ``index`` (of theta)."""
         j = self.fitted.index(index)
         return math.sqrt(self.covariance[j, j])
 
@@ -116,7 +123,7 @@ class ProfileCost:
             mean_costs: list[float] = []
             minimise(theta, mask, self.batches, self.contact, self.start, self.substeps, evaluations=mean_costs,
                      preconditioner=np.linalg.cholesky(conditional), cost_scale=self.cost_scale,
-                     tolerance_change=REFIT_TOLERANCE)
+                     tolerance_change=REFIT_TOLERANCE, stall_evaluations=stall_evaluations(theta))
             self.evaluations += [c * self.count for c in mean_costs]
         total = min(self.evaluations[count:])  # each evaluation lies on the slice theta_i = t: the least is its profile
         rise = max(total - self.minimum, 0.0) / self.s2
@@ -166,9 +173,9 @@ def profile_intervals(fit: MaterialFit, batches: Sequence[ReplayBatch], contact:
                       start: dict[str, float] | None = None,
                       progress: Callable[[str, int, float], None] | None = None) -> Profile:
     """Profile-likelihood 95 % intervals (module docstring) of ``fit``, the result of
-    ``material_fit.fit_material(batches, contact, params, start)`` without a pose offset. ``progress(name, points,
-    seconds)`` is called after each parameter. ValueError for a fit with a pose offset."""
-    _material_only(fit)
+    ``material_fit.fit_material(batches, contact, params, start)``. ``progress(name, points, seconds)`` is called
+    after each parameter. The pose offset's axes, where fitted, are refitted at each point, not profiled: they keep
+    Gauss-Newton's intervals (``fit.pose_offset``)."""
     tic = time.perf_counter()
     cost = ProfileCost(fit, batches, contact, params, start)
     estimates, points, open_sides = [], {}, []
@@ -196,14 +203,9 @@ def signed_roots(fit: MaterialFit, batches: Sequence[ReplayBatch], contact: str,
                  at: dict[str, float], start: dict[str, float] | None = None) -> tuple[dict[str, float], int]:
     """The profile's signed root ``w`` (module docstring) at the material ``at`` (E, K, mu) of each fitted,
     determined parameter of ``fit`` (as ``profile_intervals`` takes it), and the cost evaluations that took."""
-    _material_only(fit)
     cost = ProfileCost(fit, batches, contact, params, start)
     target = to_theta(at, cost.start)
     roots = {e.name: cost.signed_root(index, float(target[index])) for index, e in enumerate(fit.estimates)
              if e.fitted and math.isfinite(e.sigma)}
     return roots, len(cost.evaluations)
 
-
-def _material_only(fit: MaterialFit) -> None:
-    if fit.theta.shape[0] != len(PARAMETERS):
-        raise ValueError("the profile intervals are of a material-only fit (no pose offset)")

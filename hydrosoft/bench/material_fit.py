@@ -80,6 +80,12 @@ MU_BOUND_LOGIT = 36.0  # |logit(mu / MU_MAX)| at most this: beyond it float64's 
 OFFSET_AXES = ("offset_x", "offset_y", "offset_z")  # the pose offset's names, base-frame axes (m)
 OFFSET_UNIT_M = 1e-3  # the offset's theta coordinates are in mm
 POSE_OFFSET_PRIOR_M = 2e-3  # 1 sigma of the offset's Gaussian prior per axis: it stays within a few mm
+#: With a pose offset the cost steps (by about half a noise variance on a sim collection) where the offset moves the
+#: object by nanometres, so L-BFGS's line search near the optimum keeps finding "lower" points and never meets its
+#: tolerance: a refit with the offset stops once this many evaluations in a row lowered the best scaled cost by less
+#: than ``STALL_COST`` (``minimise``'s ``stall_evaluations``) and returns the best point it evaluated.
+STALL_EVALUATIONS = 8
+STALL_COST = 1e-3  # in the preconditioned refits' scaled cost: half the chi-square in noise variances
 
 
 @dataclass(frozen=True)
@@ -346,7 +352,8 @@ def _move_to_finer_replay(theta: torch.Tensor, mask: torch.Tensor, step: np.ndar
     except np.linalg.LinAlgError:  # not positive definite: plain L-BFGS
         preconditioner = None
     return minimise(theta, mask, batches, contact, start, substeps, max_iterations, evaluations, progress,
-                    preconditioner=preconditioner, cost_scale=1.0 if preconditioner is None else cost_scale)
+                    preconditioner=preconditioner, cost_scale=1.0 if preconditioner is None else cost_scale,
+                    stall_evaluations=stall_evaluations(theta))
 
 
 def _refit_with_offset(theta: torch.Tensor, mask: torch.Tensor, axes: str, batches, contact, start, substeps: int,
@@ -355,7 +362,8 @@ def _refit_with_offset(theta: torch.Tensor, mask: torch.Tensor, axes: str, batch
     mask ``(6,)``, from the material's optimum
     ``theta (3,)`` at offset 0: L-BFGS preconditioned by the Gauss-Newton covariance there (as the bootstrap's
     refits), so the offset (mm) and the material's log and logit coordinates, of very different curvature, take
-    Newton-sized steps. From a cold start L-BFGS stalled short of the material-only fit's cost."""
+    Newton-sized steps. From a cold start L-BFGS stalled short of the material-only fit's cost. It stops once it
+    stalls (``STALL_EVALUATIONS``)."""
     theta = with_offset(theta, (0.0, 0.0, 0.0))
     mask = torch.cat([mask, torch.tensor([axis in axes for axis in "xyz"])])
     r, J = residuals_and_jacobian(theta, mask, batches, contact, start, substeps)
@@ -365,14 +373,21 @@ def _refit_with_offset(theta: torch.Tensor, mask: torch.Tensor, axes: str, batch
     information += SINGULAR_RCOND * max(float(np.trace(information)), 1e-12) * np.eye(p)  # stays invertible
     preconditioner = np.linalg.cholesky(s2 * np.linalg.inv(information))
     theta = minimise(theta, mask, batches, contact, start, substeps, max_iterations, evaluations, progress,
-                     preconditioner=preconditioner, cost_scale=n / (2 * s2))
+                     preconditioner=preconditioner, cost_scale=n / (2 * s2), stall_evaluations=STALL_EVALUATIONS)
     return theta, mask
+
+
+def stall_evaluations(theta: torch.Tensor) -> int | None:
+    """``minimise``'s ``stall_evaluations`` for a refit from ``theta``: ``STALL_EVALUATIONS`` with a pose offset
+    (its cost has steps), else None."""
+    return None if offset_of(theta) is None else STALL_EVALUATIONS
 
 
 def minimise(theta: torch.Tensor, mask: torch.Tensor, batches: Sequence[ReplayBatch], contact: str,
              start: dict[str, float], substeps: int, max_iterations: int = DEFAULT_MAX_ITERATIONS,
              evaluations: list[float] | None = None, progress=None, preconditioner: np.ndarray | None = None,
-             cost_scale: float = 1.0, tolerance_change: float = 1e-12) -> torch.Tensor:
+             cost_scale: float = 1.0, tolerance_change: float = 1e-12,
+             stall_evaluations: int | None = None) -> torch.Tensor:
     """L-BFGS over the fitted coordinates (``mask``, theta's shape) of ``theta`` (``(3,)``, or ``(6,)`` with a pose
     offset) from there, the others held; the optimum, theta's shape. Appends each cost evaluation (the mean squared
     residual) to ``evaluations``; ``progress`` as ``fit_material``'s.
@@ -381,12 +396,17 @@ def minimise(theta: torch.Tensor, mask: torch.Tensor, batches: Sequence[ReplayBa
     ``theta_0 + C u`` from ``u = 0``, on the cost times ``cost_scale``. With ``C^T H C`` about the identity for
     that cost's Hessian ``H`` its first steps are about Newton's, so a warm start near the optimum takes few
     evaluations (``fit_bootstrap``'s refits). ``tolerance_change``: L-BFGS stops once a step moves ``u`` (or theta)
-    or the scaled cost by less."""
+    or the scaled cost by less.
+
+    ``stall_evaluations``: stop once that many evaluations in a row lowered the best scaled cost by less than
+    ``STALL_COST``, and return the best point evaluated (``STALL_EVALUATIONS``: for a cost with steps); None:
+    L-BFGS's own stopping rules alone."""
     evaluations = [] if evaluations is None else evaluations
     origin = theta[mask].clone()
     C = None if preconditioner is None else torch.as_tensor(preconditioner, dtype=torch.float64)
     free = torch.zeros_like(origin) if C is not None else origin.clone()
     free.requires_grad_(True)
+    best = {"cost": math.inf, "free": free.detach().clone(), "stalled": 0}
 
     def full(free_part: torch.Tensor) -> torch.Tensor:
         return theta.masked_scatter(mask, free_part if C is None else origin + C @ free_part)
@@ -400,11 +420,32 @@ def minimise(theta: torch.Tensor, mask: torch.Tensor, batches: Sequence[ReplayBa
         (cost_scale * cost).backward()
         evaluations.append(float(cost.detach()))
         if progress:
-            progress(len(evaluations), evaluations[-1], to_values(full(free.detach()), start))
+            progress(len(evaluations), evaluations[-1], _shown_values(full(free.detach()), start))
+        scaled = cost_scale * evaluations[-1]
+        best["stalled"] = 0 if scaled < best["cost"] - STALL_COST else best["stalled"] + 1
+        if scaled < best["cost"]:
+            best["cost"], best["free"] = scaled, free.detach().clone()
+        if stall_evaluations is not None and best["stalled"] >= stall_evaluations:
+            raise _Stalled
         return cost_scale * cost.detach()
 
-    optimizer.step(closure)
+    try:
+        optimizer.step(closure)
+    except _Stalled:
+        return full(best["free"])
     return full(free.detach())
+
+
+class _Stalled(Exception):
+    """``minimise``'s refit made no progress over ``stall_evaluations`` evaluations."""
+
+
+def _shown_values(theta: torch.Tensor, start: dict[str, float]) -> dict[str, float]:
+    """The material at ``theta`` (``to_values``) and, with a pose offset, its axes (``OFFSET_AXES``, m): what
+    ``progress`` reports."""
+    offset = offset_of(theta)
+    offsets = {} if offset is None else dict(zip(OFFSET_AXES, offset.tolist()))
+    return {**to_values(theta, start), **offsets}
 
 
 def replay_shift(theta: torch.Tensor, J: np.ndarray, r: np.ndarray, covariance: np.ndarray, batches, contact,

@@ -13,7 +13,9 @@ real ``FT300Sensor`` on ``ft_port``. In sim mode (``mode = "sim"``) the collecto
 (``python -m hydrosoft.services.commands.collect CONFIG --object NAME``) that serves a simulated UR controller on
 ``ur_host`` and a simulated FT 300 on ``ft_port``, fed by an NH plant of the benchmark object clamped to the table
 (sim_world's ``SimPlant``, device start-up and physics loop, on the wrench scene). In the lab the same code drives
-the real devices; clamp one object at ``--object-at`` (its centre on the table top, base frame) per run.
+the real devices; clamp one object at ``--object-at`` (its centre on the table top, base frame) per run. In sim,
+``--sim-clamp-error`` clamps it that far off ``--object-at`` while the recording keeps ``--object-at``: a constant
+pose error in the recording, as a clamp measured wrong or a tracker's offset gives, for ``fit --pose-offset``.
 
 Safety: every target of every trajectory is checked against the config's workspace box before the arm moves; moves
 are interpolated within ``limits.max_speed_m_s`` and ``limits.max_angular_speed_rad_s`` at ``limits.servo_rate_hz``;
@@ -74,6 +76,7 @@ RETRY_PAUSE_S = 1.0  # after such a trajectory's stop, wait this long before loo
 SERVO_LOOKAHEAD_S = 0.05  # servoL: a 30 ms tracking lag (UR range 0.03-0.2 s, 100-2000), for quick settling
 SERVO_GAIN = 500.0
 IDENTITY_POSE = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+MAX_SIM_CLAMP_ERROR_M = 2e-3  # --sim-clamp-error per axis at most: a few tenths of a press's depth
 
 
 class CollectError(RuntimeError):
@@ -107,6 +110,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         default=IDENTITY_POSE, metavar="X,Y,Z,QW,QX,QY,QZ",
                         help="the TCP (bubble) frame's pose in the F/T sensor's frame, m and wxyz, recorded for the "
                              "benchmark (default identity: the sim's FT 300 reports about the TCP)")
+    parser.add_argument("--sim-clamp-error", type=functools.partial(_floats, count=3, what="--sim-clamp-error"),
+                        default=(0.0, 0.0, 0.0), metavar="DX,DY,DZ",
+                        help="sim only: the plant clamps the object this far (m, base frame) from --object-at while "
+                             "the recording still says --object-at, as a clamp measured wrong or a tracker's constant "
+                             "error (default 0,0,0; fit --pose-offset finds it back)")
     parser.add_argument("--hold-s", type=float, default=0.1,
                         help="how long the arm holds each step at rest before the sample, s (default 0.1)")
 
@@ -412,6 +420,12 @@ class PlantProcess:
         self.proc.stdout.close()
 
 
+def plant_origin(args: argparse.Namespace) -> tuple[float, ...]:
+    """Where the sim plant clamps the object (its centre on the table top, base frame, m): ``--object-at`` moved by
+    ``--sim-clamp-error``; the recording keeps ``--object-at``, so its object poses are off by minus that error."""
+    return tuple(float(a) + float(e) for a, e in zip(args.object_at, args.sim_clamp_error))
+
+
 async def collect(config: StackConfig, args: argparse.Namespace, objects: list[str], log=print) -> list[Path]:
     """Every object's recording (sim: each with its own plant process); see the module docstring."""
     arm = args.arm or config.arms[0].name
@@ -422,7 +436,10 @@ async def collect(config: StackConfig, args: argparse.Namespace, objects: list[s
         plant = None
         if config.mode == "sim":
             Path(config.run_dir).mkdir(parents=True, exist_ok=True)
-            plant = PlantProcess(args.config, name, args.object_at, arm)
+            plant = PlantProcess(args.config, name, plant_origin(args), arm)
+            if any(args.sim_clamp_error):
+                log(f"{name}: the sim plant clamps it at {plant_origin(args)} m, {args.sim_clamp_error} m off "
+                    "--object-at; the recording keeps --object-at")
         try:
             if plant is not None:
                 await asyncio.to_thread(plant.wait_ready)
@@ -450,6 +467,12 @@ def _check_options(config: StackConfig, args: argparse.Namespace) -> list[str]:
         raise ConfigError(f"--steps must be 2 to {MAX_STEPS}, got {args.steps}")
     if not (math.isfinite(args.hold_s) and args.hold_s >= 0):
         raise ConfigError(f"--hold-s must be a non-negative number of seconds, got {args.hold_s}")
+    if any(args.sim_clamp_error) and config.mode != "sim":
+        raise ConfigError("--sim-clamp-error: the sim plant's clamp only (mode = 'sim'); in the lab the clamp is where "
+                          "it is")
+    if not all(math.isfinite(e) and abs(e) <= MAX_SIM_CLAMP_ERROR_M for e in args.sim_clamp_error):
+        raise ConfigError(f"--sim-clamp-error must be within {1e3 * MAX_SIM_CLAMP_ERROR_M:g} mm per axis, got "
+                          f"{args.sim_clamp_error}")
     arm = config.arm(args.arm or config.arms[0].name)
     if not arm.ft_port:
         raise ConfigError(f"arms.{arm.name}.ft_port: the benchmark needs the F/T sensor")

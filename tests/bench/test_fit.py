@@ -140,5 +140,3 @@ def test_fit_reports_profile_likelihood_intervals_with_progress_when_asked(recor
     assert [low, high] == pytest.approx(profile["hessian_interval95"]["E"], rel=2e-3)
     assert K["sigma"] is None and not K["identified"]  # undetermined on a flat face: no profile to follow
     assert "profile-likelihood intervals, Gauss-Newton sigma" in out.read_text()
-    assert fit.run(_args([recording], uncertainty="profile", pose_offset="z")) == 2
-    assert "--pose-offset works with --uncertainty hessian only" in capsys.readouterr().err

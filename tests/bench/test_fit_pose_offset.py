@@ -71,7 +71,7 @@ def test_the_fit_command_takes_pose_offset_and_refuses_it_with_the_bootstrap_wit
     assert parser.parse_args(["fit", str(path), "--pose-offset", "z"]).pose_offset == "z"
     args = parser.parse_args(["fit", str(path), "--pose-offset", "--uncertainty", "bootstrap", "--holdout", "0"])
     assert args.pose_offset == "xyz" and fit.run(args) == 2
-    assert "--pose-offset works with --uncertainty hessian only" in capsys.readouterr().err
+    assert "--pose-offset works with --uncertainty hessian or profile only" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # an argparse error, exit code 2, naming the axes it takes
         parser.parse_args(["fit", "--pose-offset", str(path)])
     assert "some of xyz" in capsys.readouterr().err
@@ -95,3 +95,24 @@ def test_a_gauss_newton_step_to_a_finer_replay_that_raises_the_cost_is_replaced_
     good = material_fit._move_to_finer_replay(theta, mask, np.array([0.0]), np.array([[1e-4]]), 1.0, batches, "nh",
                                               material_fit.START, 2, 30, [], None)
     assert torch.equal(good, theta)  # a step that does not raise the cost is taken as it is
+
+
+def test_a_refit_on_a_cost_with_steps_stops_when_it_stalls_and_returns_the_best_point(monkeypatch):
+    # the offset's cost steps where it moves the object by nanometres: L-BFGS's line search then keeps finding
+    # "lower" points by a hair and runs to its evaluation cap; the stall rule stops it and keeps the best point
+    def stepped(theta, batches, contact, start, substeps):
+        ripple = 0.05 * torch.remainder(torch.floor(theta * 1e7), 2).detach()
+        return torch.cat([theta - 0.5, 0.5 * (theta - 0.5) ** 2, 0.1 * torch.sin(3 * theta), ripple])
+
+    monkeypatch.setattr(material_fit, "residuals", stepped)
+    mask, start, scale = torch.tensor([True, True, True]), torch.zeros(3, dtype=torch.float64), 100.0
+    runs = {}
+    for stall in (None, material_fit.STALL_EVALUATIONS):
+        evaluations = []
+        theta = material_fit.minimise(start, mask, [], "nh", material_fit.START, 1, evaluations=evaluations,
+                                      preconditioner=np.eye(3), cost_scale=scale, stall_evaluations=stall)
+        runs[stall] = len(evaluations), float(stepped(theta, [], "", {}, 1).square().mean()), min(evaluations)
+    (plain, plain_cost, _), (stalled, stalled_cost, best) = runs[None], runs[material_fit.STALL_EVALUATIONS]
+    assert plain >= 1.25 * material_fit.DEFAULT_MAX_ITERATIONS  # L-BFGS alone: to its evaluation cap
+    assert stalled < plain / 3 and stalled_cost == best  # stopped early, at the best point it evaluated
+    assert scale * (stalled_cost - plain_cost) < material_fit.STALL_COST  # as good, within the rule's tolerance

@@ -25,7 +25,7 @@ from hydrosoft.bench.wrench_recording import TOPIC, read_wrench_recording
 from hydrosoft.bench.wrench_scenes import bench_object
 from hydrosoft.drivers.robotiq_ft300.noise import frame_noise, quantized
 from hydrosoft.services.commands import cli
-from hydrosoft.services.commands.collect import settle_change
+from hydrosoft.services.commands.collect import plant_origin, settle_change
 from hydrosoft.services.bus.config import load_config
 from loopback import free_ur_host
 from stack_process import quick_planner
@@ -157,6 +157,14 @@ def test_a_target_outside_the_workspace_is_refused_before_anything_starts(tmp_pa
     assert not (tmp_path / "run").exists()  # no plant was started
 
 
+def test_the_sim_plant_clamps_the_object_off_object_at_by_the_clamp_error_the_recording_does_not_see():
+    args = cli.build_parser().parse_args(["collect", "wrench", str(SIM_TOML), "--out", "out", "--object-at",
+                                          "0.01,0,0", "--sim-clamp-error", "0,0.0002,-0.0001"])
+    assert plant_origin(args) == pytest.approx((0.01, 0.0002, -0.0001)) and args.object_at == (0.01, 0.0, 0.0)
+    plain = cli.build_parser().parse_args(["collect", "wrench", str(SIM_TOML), "--out", "out"])
+    assert plant_origin(plain) == plain.object_at == (0.0, 0.0, 0.0)
+
+
 def test_bad_options_are_refused_with_exit_status_2(tmp_path, capsys):
     command = ["collect", "wrench", str(private_config(tmp_path)), "--out", str(tmp_path / "out")]
     for options, text in ((("--objects", "sphere"), "unknown ['sphere']"), (("--steps", "41"), "--steps"),
@@ -167,4 +175,10 @@ def test_bad_options_are_refused_with_exit_status_2(tmp_path, capsys):
     lab.write_text((Path(__file__).parents[3] / "deploy" / "lab.toml").read_text())
     assert cli.main(["collect", "wrench", str(lab), "--out", str(tmp_path / "out"), "--objects", "cube,plate"]) == 2
     assert "one object per run" in capsys.readouterr().err
+    # the sim plant's clamp error exists in sim only, and within 2 mm per axis
+    assert cli.main(["collect", "wrench", str(lab), "--out", str(tmp_path / "out"), "--objects", "cube",
+                     "--sim-clamp-error", "0,0,-0.0001"]) == 2
+    assert "--sim-clamp-error: the sim plant's clamp only" in capsys.readouterr().err
+    assert cli.main([*command, "--sim-clamp-error", "0,0,0.003"]) == 2
+    assert "--sim-clamp-error must be within 2 mm" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
