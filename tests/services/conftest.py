@@ -4,10 +4,6 @@
 tracker, recorded by two recorders at once: one SIGKILLed mid-run (``killed``, camera images as JPEG, the default),
 one stopped cleanly at the end (``clean``, camera images raw, lossless, so a replay re-runs the tracker exactly).
 The recorder, replay and plot tests read these files. Every process is stopped by its pid.
-
-``precompiled_plant`` (session): ``hydrosoft-stack compile`` of a stack config, once per plant artefact key, so that
-the launches of one plant (``test_stack_requests.py``'s two, ``test_two_hosts_stack.py``'s) load it instead of
-each compiling it: the path users take (compile once, then launch).
 """
 
 from __future__ import annotations
@@ -18,9 +14,7 @@ from pathlib import Path
 
 import pytest
 from recording_processes import publisher, recorder, remove_root, service, short_root, write_config
-from stack_process import precompile
 
-from hydrosoft.services.bus import artefacts
 from hydrosoft.services.bus.config import StackConfig, load_config
 
 RUN_BEFORE_KILL_S = 3.0  # the publisher's run recorded by both recorders, s
@@ -71,19 +65,3 @@ def recorded_run():
     logs = {process.name: process.log() for process in processes}
     yield RecordedRun(root, config_path, load_config(config_path), clean, killed, kill_ns, clean_exit, logs)
     remove_root(root)
-
-
-@pytest.fixture(scope="session")
-def precompiled_plant():
-    """``precompiled_plant(config_path)``: the plant of the stack config at ``config_path`` built whole into the
-    launches' compile cache (``stack_process.precompile``), once per plant key in the session; the compile's output
-    (its first run's for that key)."""
-    outputs: dict[str, str] = {}
-
-    def build(config_path: Path) -> str:
-        key = artefacts.plant_key(load_config(config_path)).key
-        if key not in outputs:
-            outputs[key] = precompile(config_path)
-        return outputs[key]
-
-    return build

@@ -96,22 +96,6 @@ def bimanual_stack_config(tmp_path: Path) -> Path:
     return path
 
 
-def precompile(config: Path) -> str:
-    """``hydrosoft-stack compile CONFIG`` as a subprocess (stopped by its pid past ``READY_TIMEOUT_S``), into the
-    compile cache the config's launches use (``$TORCHINDUCTOR_CACHE_DIR``, else torch's default); its output, after
-    checking it exited 0 with the plant built or loaded whole (``compiled (artefact KEY, precompiled)``)."""
-    done = subprocess.run([sys.executable, "-m", "hydrosoft.services.commands.cli", "compile", str(config)],
-                          capture_output=True, text=True, timeout=READY_TIMEOUT_S)
-    out = done.stdout + done.stderr
-    assert done.returncode == 0 and re.search(r"plant: compiled \(artefact \w+, precompiled\)", out), out
-    return out
-
-
-PLANT_LOADED = re.compile(r"plant: compiled \(artefact \w+, precompiled\) in \S+ s \(\d+ graphs compiled, \d+ loaded "
-                          r"from the cache; 0 precompiled functions built, [1-9]\d* loaded, 0 traced instead\)")
-"""sim_world's line for a plant loaded whole from its precompiled files (``precompile``'s), none built or traced."""
-
-
 class Stack:
     """The launcher as a subprocess in its own session, its output collected to a file."""
 
