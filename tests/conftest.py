@@ -7,7 +7,7 @@
   processes; set before torch is imported, unless the environment names it): the same kernels, without a pool of
   compile worker processes started in each compiling process. A cold plant compile (``hydrosoft-stack compile``) took
   35.4 and 44.9 CPU-s with it against 39.5 and 50.6 without on the loaded 2-core machine, 33.7 against 35.2 idle;
-  a cold launch of `test_stack.py` 70.0 and 69.9 CPU-s against 87.6 and 74.2, idle; the compiled-step check in a
+  a cold launch of ``test_stack.py`` 70.0 and 69.9 CPU-s against 87.6 and 74.2, idle; the compiled-step check in a
   pytest worker gained nothing (docs/benchmarks.md, "The test suite").
 - the suite runs on two pytest-xdist workers (``-n 2 --dist loadgroup --no-loadscope-reorder``, the README's
   command), which take the units of work in the order this file sorts them (``pytest_collection_modifyitems``):
