@@ -3,6 +3,12 @@
 - torch runs single-threaded: on two shared cores OpenMP worker threads stall each other (a B = 64 step measured
   ~10x slower with 2 threads than with 1 while another process was busy), and the suite's figures stay stable.
 - hypothesis runs derandomized under CI so a red build is reproducible.
+- inductor compiles in the compiling process itself (``TORCHINDUCTOR_COMPILE_THREADS=1``, inherited by the stacks'
+  processes; set before torch is imported, unless the environment names it): the same kernels, without a pool of
+  compile worker processes started in each compiling process. A cold plant compile (``hydrosoft-stack compile``) took
+  35.4 and 44.9 CPU-s with it against 39.5 and 50.6 without on the loaded 2-core machine, 33.7 against 35.2 idle;
+  a cold launch of ``test_stack.py`` 70.0 and 69.9 CPU-s against 87.6 and 74.2, idle; the compiled-step check in a
+  pytest worker gained nothing (docs/benchmarks.md, "The test suite").
 - the suite runs on two pytest-xdist workers (``-n 2 --dist loadgroup --no-loadscope-reorder``, the README's
   command), which take the units of work in the order this file sorts them (``pytest_collection_modifyitems``):
   1. the ``stacks`` group, the modules that launch a whole stack or the real launcher on the split-stack hosts
@@ -23,9 +29,11 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import pytest
-import torch
-from hypothesis import settings
+os.environ.setdefault("TORCHINDUCTOR_COMPILE_THREADS", "1")  # before torch (module docstring)
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+from hypothesis import settings  # noqa: E402
 
 TESTS = Path(__file__).resolve().parent
 PROCESS_DIRS = ("services", "drivers")
