@@ -45,7 +45,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import msgspec
 import torch
@@ -57,9 +56,8 @@ from hydrosoft.dynamics import Model, State, press_in, substeps_for
 from hydrosoft.geometry import sdf as sdfs
 from hydrosoft.geometry import se3
 from hydrosoft.geometry import surface as surfaces
+from hydrosoft.scene_spec import BodySpec, ObjectSpec, SceneError
 
-OBJECT_SHAPES = ("plate", "box", "cube", "triangle_prism", "trapezoid_prism", "cylinder", "mesh")
-IDENTITY_POSE = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 MAX_SURFACE_POINTS = 100_000
 """Most surface points an object may have: each point costs every step of every planner sample a force state per
 body, so more would exhaust memory (a 0.1 mm spacing on a 5 cm cube asks for 1.5 million)."""
@@ -67,63 +65,6 @@ MAX_SUBSTEPS = 10_000
 """Most sub-steps a scene may allow per step (``max_substeps``): more would take seconds per step."""
 MAX_GRAVITY = 1e3
 """m/s^2: the largest gravity a scene may have (about 100 g); far beyond it the forces overflow."""
-
-
-class SceneError(ValueError):
-    """A scene that cannot be loaded or compiled; the message names the offending field."""
-
-
-def _check_pose(pose: list[float], where: str) -> None:
-    if len(pose) != 7 or not all(math.isfinite(v) for v in pose):
-        raise SceneError(f"{where}: a pose is 7 finite numbers [x, y, z, qw, qx, qy, qz], got {pose}")
-    if abs(math.sqrt(sum(v * v for v in pose[3:])) - 1.0) > 1e-6:
-        raise SceneError(f"{where}: quaternion {pose[3:]} is not unit length")
-
-
-class ObjectSpec(msgspec.Struct, forbid_unknown_fields=True):
-    """The rigid object: ``shape`` (one of OBJECT_SHAPES; ``mesh`` takes ``path``), its size ``params`` (m),
-    surface ``spacing`` (m), ``mass`` (kg) and initial ``pose``."""
-
-    shape: str
-    mass: float
-    params: dict[str, Any] = {}
-    spacing: float = 0.005
-    pose: list[float] = msgspec.field(default_factory=lambda: list(IDENTITY_POSE))
-    path: str | None = None
-
-    def __post_init__(self) -> None:
-        if self.shape not in OBJECT_SHAPES:
-            raise SceneError(f"object.shape: unknown shape {self.shape!r}; known: {', '.join(OBJECT_SHAPES)}")
-        if self.shape == "mesh" and not self.path:
-            raise SceneError("object.path: a mesh object needs the path of a watertight STL/OBJ file")
-        if not (self.mass > 0 and math.isfinite(self.mass)):
-            raise SceneError(f"object.mass: must be a positive number of kg, got {self.mass}")
-        if not (self.spacing > 0 and math.isfinite(self.spacing)):
-            raise SceneError(f"object.spacing: must be a positive number of metres, got {self.spacing}")
-        _check_pose(self.pose, "object.pose")
-
-
-class BodySpec(msgspec.Struct, forbid_unknown_fields=True):
-    """A compliant body: ``sdf`` kind and ``params`` (m), ``pose``, material ``E``, ``K`` (Pa/m), ``mu``."""
-
-    name: str
-    sdf: str
-    E: float
-    K: float
-    mu: float
-    params: dict[str, Any] = {}
-    pose: list[float] = msgspec.field(default_factory=lambda: list(IDENTITY_POSE))
-    actuated: bool = True
-
-    def __post_init__(self) -> None:
-        where = f"bodies[{self.name}]"
-        for field in ("E", "K"):
-            value = getattr(self, field)
-            if not (value > 0 and math.isfinite(value)):
-                raise SceneError(f"{where}.{field}: must be a positive number of Pa/m, got {value}")
-        if not (self.mu >= 0 and math.isfinite(self.mu)):
-            raise SceneError(f"{where}.mu: must be a non-negative number, got {self.mu}")
-        _check_pose(self.pose, f"{where}.pose")
 
 
 class Scene(msgspec.Struct, forbid_unknown_fields=True):

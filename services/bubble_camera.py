@@ -40,7 +40,7 @@ from hydrosoft.services.bus.config import ConfigError, StackConfig
 from hydrosoft.services.bus import service_cli
 from hydrosoft.services.bus.runtime import Service
 from hydrosoft.services.sim.devices import BusDepthCamera, depth_topic
-from hydrosoft.tasks import make_task
+from hydrosoft.scene_spec import task_scene_parts
 
 MODULE = "bubble_camera"
 #: The camera is stale after this many frame periods (of ``depth.fps``) without a new frame.
@@ -60,7 +60,7 @@ class BadFrame(ValueError):
 def membrane_radii(config: StackConfig, arm: str) -> tuple[float, float, float]:
     """The radii (m, bubble frame) of ``arm``'s nominal membrane: the ellipsoid of the scene body named ``arm``.
     Raises ConfigError when the scene has no such body or it is not an ellipsoid."""
-    scene = make_task(config.scene.task).scene
+    scene = task_scene_parts(config.scene.task)
     body = next((b for b in scene.bodies if b.name == arm), None)
     if body is None or body.sdf != "ellipsoid":
         raise ConfigError(f"arms: {arm!r} must name an ellipsoid (Soft Bubble) body of the {config.scene.task!r} "

@@ -49,7 +49,7 @@ from hydrosoft.drivers.camera.tags import (
 )
 from hydrosoft.drivers.errors import DriverError
 from hydrosoft.drivers.poses import check_pose, compose, inverse
-from hydrosoft.scene import ObjectSpec
+from hydrosoft.scene_spec import ObjectSpec, task_scene_parts
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus import service_cli
 from hydrosoft.services.bus.config import ConfigError, StackConfig
@@ -67,7 +67,6 @@ from hydrosoft.services.tag_detection import (
     reject_ambiguous,
     solve_tag,
 )
-from hydrosoft.tasks import make_task
 
 SERVICE = "tag_tracker"
 TAG_CAMERA = "tag_camera"  # the camera's name: CameraImage.camera and the instance of image/, tags/ topics
@@ -198,7 +197,7 @@ def config_layout(config: StackConfig, T_base_camera: np.ndarray) -> TagLayout:
     """``object_layout`` of the object of the config's task at its scene pose carried into the base frame by
     ``scene.task_frame`` (so the tags go on the faces the camera sees wherever the scene lies), with
     ``scene.tag_size_m``."""
-    spec = make_task(config.scene.task).scene.object
+    spec = task_scene_parts(config.scene.task).object
     pose = compose(np.asarray(config.scene.task_frame, dtype=np.float64), np.asarray(spec.pose, dtype=np.float64))
     return object_layout(msgspec.structs.replace(spec, pose=pose.tolist()), config.scene.tag_size_m, T_base_camera)
 

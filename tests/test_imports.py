@@ -111,3 +111,30 @@ def test_each_module_imports_alone():
     assert result.returncode == 0, result.stderr
     failed = json.loads(result.stdout.strip().splitlines()[-1])
     assert not failed, "\n".join(f"{name}:\n{trace}" for name, trace in failed.items())
+
+
+SENSOR_START = """
+import json, sys
+import numpy as np
+from hydrosoft.services.bus.config import load_config
+config = load_config(sys.argv[1])
+from hydrosoft.services import arm_commander, ft_reader
+from hydrosoft.services.tag_tracker import config_layout
+config_layout(config, np.asarray(config.camera.pose, dtype=np.float64))
+heavy = ("torch", "torch._dynamo", "hydrosoft.dynamics")
+light = [key for key in heavy if key in sys.modules]
+from hydrosoft.services.bubble_camera import BubbleDepth
+BubbleDepth.nominal(config, config.arms[0].name)
+print(json.dumps({"light": light, "bubble": [key for key in heavy[1:] if key in sys.modules]}))
+"""
+
+
+def test_sensor_services_start_without_the_compiler():
+    """The tag tracker, arm commander and F/T reader import and lay out their start without torch, and the bubble
+    camera without torch's compiler (``torch._dynamo``) or the model: each would cost every start (and every restart
+    after a fault) seconds of CPU and a hundred MB or more (docs/benchmarks.md, "Stack start")."""
+    result = subprocess.run([sys.executable, "-c", SENSOR_START, str(ROOT / "deploy" / "sim.toml")], cwd=ROOT,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    imported = json.loads(result.stdout.strip().splitlines()[-1])
+    assert imported == {"light": [], "bubble": []}
