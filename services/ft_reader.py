@@ -14,8 +14,8 @@ readings are untared.
 
 Tare on request only: ``Tare`` on the cmd endpoint (``hydrosoft-stack ft tare ARM``). It is refused, with the reason,
 unless the arm is at rest and the bubble shows no contact (``services/arm/tare_rules.py``, from ``arm_state/ARM`` and
-``deformation/ARM``, each at most 0.5 s old, read only then: between tares the reader decodes none of the
-commander's 125 states a second) before and after averaging the samples of ``TARE_S``, and those samples were
+``deformation/ARM``, each published after the check began, read only then: between tares the reader decodes
+none of the commander's 125 states a second) before and after averaging the samples of ``TARE_S``, and those samples were
 steady. An accepted tare is stored first (a tare that cannot be stored is refused), then used.
 
 A sensor that sends nothing new for ``STALE_AFTER_S`` (stale, unplugged or reconnecting: the driver reconnects on
@@ -205,19 +205,24 @@ async def samples_over(sensor: ForceTorqueSensor, duration_s: float = TARE_S) ->
 
 
 async def fresh_input(subscriber: LatestSubscriber, topic: str, kind: type[M], max_age_s: float) -> M | None:
-    """The newest ``kind`` message on ``topic`` at most ``max_age_s`` (s) old, waiting up to ``max_age_s`` for one to
-    come; None when none does. For a subscriber read only now and then (the tare's): what queued since its last read
-    (the bus's high-water marks' and the socket buffers' worth, old by now; the publisher drops the newer ones
-    meanwhile, at no cost to either side) is drained first, and a fresh one follows within a publishing period."""
+    """The first ``kind`` message on ``topic`` published after this call began, waiting up to ``max_age_s`` (s) for
+    it; None when none comes. For a subscriber read only now and then (the tare's): what queued since its last read
+    is the oldest of what was sent meanwhile (the bus's high-water marks' and the socket buffers' worth: the
+    publisher drops the newer ones while they are full), so none of it counts, however young; it is drained, and a
+    message published after the call follows within a publishing period."""
     loop = asyncio.get_running_loop()
-    deadline_s = loop.time() + max_age_s
+    asked_s = loop.time()
+    deadline_s = asked_s + max_age_s
     while True:
         try:
-            return subscriber.latest(topic, max_age_s, kind).value
+            received = subscriber.latest(topic, max_age_s, kind)
+            if received.age_s <= loop.time() - asked_s:  # published after the call began
+                return received.value
         except StaleInput:
-            remaining_s = deadline_s - loop.time()
-            if remaining_s <= 0:
-                return None
+            pass
+        remaining_s = deadline_s - loop.time()
+        if remaining_s <= 0:
+            return None
         await subscriber.wait(remaining_s)
 
 

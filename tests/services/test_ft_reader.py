@@ -155,7 +155,9 @@ def arm_state(speed: float = 0.0) -> msg.ArmState:
 
 def test_a_tare_input_is_read_only_when_asked_old_queued_ones_never_count_and_a_fresh_one_is_awaited(tmp_path):
     """The tare's subscribers are not read between tares (nothing decoded at the commander's 125 Hz): what queued
-    meanwhile is old and drained, a fresh message is awaited up to the age limit, and none fresh gives None."""
+    meanwhile is drained and never taken, even when younger than the age limit (it is the oldest of what was sent:
+    the publisher drops the newer ones while the queue is full), a message published after the ask is awaited up to
+    the age limit, and none gives None."""
     endpoint = f"ipc://{tmp_path}/arm"
     topic = "arm_state/bubble"
 
@@ -176,6 +178,9 @@ def test_a_tare_input_is_read_only_when_asked_old_queued_ones_never_count_and_a_
                 await asyncio.sleep(0.05)
                 await arm.send(arm_state(speed=0.0), topic)
 
+            for _ in range(3):  # young, but sent before the ask: a moving arm that has stopped since
+                await arm.send(arm_state(speed=7.0), topic)
+            await asyncio.sleep(0.02)
             sender = asyncio.create_task(publish_soon())
             tic_s = time.monotonic()
             fresh = await fresh_input(states, topic, msg.ArmState, 0.2)
