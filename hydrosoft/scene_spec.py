@@ -19,6 +19,8 @@ import msgspec
 TASK_SCENES = ("pushing", "rotation", "rolling", "in_hand")
 OBJECT_SHAPES = ("plate", "box", "cube", "triangle_prism", "trapezoid_prism", "cylinder", "mesh")
 IDENTITY_POSE = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
 class SceneError(ValueError):
     """A scene that cannot be loaded or compiled; the message names the offending field."""
 
