@@ -52,6 +52,7 @@ from hydrosoft.drivers.base import WrenchSample as WrenchReading
 from hydrosoft.drivers.errors import DriverError, Stale
 from hydrosoft.drivers.robotiq_ft300.noise import RESOLUTION, SIGNAL_NOISE
 from hydrosoft.drivers.robotiq_ft300.protocol import STREAM_RATE_HZ
+from hydrosoft.scene_spec import IDENTITY_POSE
 from hydrosoft.services.bus.config import ConfigError, LimitsConfig, StackConfig, load_config
 from hydrosoft.services.arm.safety import check_target, interpolate, is_moving, rotation_angle_rad
 
@@ -75,7 +76,6 @@ TRAJECTORY_ATTEMPTS = 5  # a trajectory a driver error interrupted (stale, link 
 RETRY_PAUSE_S = 1.0  # after such a trajectory's stop, wait this long before looking at the arm again
 SERVO_LOOKAHEAD_S = 0.05  # servoL: a 30 ms tracking lag (UR range 0.03-0.2 s, 100-2000), for quick settling
 SERVO_GAIN = 500.0
-IDENTITY_POSE = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 MAX_SIM_CLAMP_ERROR_M = 2e-3  # --sim-clamp-error per axis at most: a few tenths of a press's depth
 
 
