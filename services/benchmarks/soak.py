@@ -23,7 +23,9 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
 - the slowest plans (``tail``, ``tail_parts``): which parts made the p99 of the total, one part alone or several
   late together;
 - the host's load average (``load_average``: ``os.getloadavg``'s 1-minute figure when the idle phase starts, when the
-  goals start and when they end): other work on the machine slows the stack, so figures compare only at like loads.
+  goals start and when they end): other work on the machine slows the stack, so figures compare only at like loads;
+- with ``--background-load CORES``, that much other work made on purpose (``cpu_load``) from the idle phase to the
+  end, and the CPU it got (``background_load``): the stack's margin against a known load, in any hour.
 
 It prints a table and one JSON document (only the document with ``--json``). Every process it starts is stopped
 by its pid. Latencies are the planner host's monotonic clock, so they are meaningful in sim mode; in the lab the
@@ -59,6 +61,7 @@ from hydrosoft.services.benchmarks.launched_stack import (
     start_goal,
     thread_cpu_times_s,
 )
+from hydrosoft.services.benchmarks.cpu_load import load_processes
 from hydrosoft.services.bus.sockets import Bus
 from hydrosoft.services.client import true_error_mm
 from hydrosoft.services.bus.config import StackConfig, load_config
@@ -296,12 +299,21 @@ def _load_average() -> float:
     return round(os.getloadavg()[0], 2)
 
 
-def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: Path | None = None
-            ) -> dict[str, object]:
+def start_background_load(cores: float, root: Path) -> list[Child]:
+    """``cpu_load`` processes that together take ``cores`` of the host's cores, their output in ``root``."""
+    return [Child([sys.executable, "-m", "hydrosoft.services.benchmarks.cpu_load", repr(fraction)],
+                  root / f"cpu_load-{index}.log")
+            for index, fraction in enumerate(load_processes(cores))]
+
+
+def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: Path | None = None,
+            background_cores: float = 0.0) -> dict[str, object]:
     """Launch the stack of ``config``, measure it idle, soak it with goals for ``minutes`` and compare the first and
-    the last ``window_s`` (module docstring). ``keep``: a folder to keep the logs in."""
+    the last ``window_s`` (module docstring). ``keep``: a folder to keep the logs in. ``background_cores``: other work
+    on the host, in cores, from the idle phase to the end."""
     root = Path(tempfile.mkdtemp(prefix="hs-soak-", dir="/tmp"))
     stack = None
+    load: list[Child] = []
     try:
         config_path = private_config(config, root)
         stack_config = load_config(config_path)
@@ -316,11 +328,19 @@ def measure(config: Path, minutes: float, window_s: float, idle_s: float, keep: 
         missing = sorted(set(names) - set(pids))
         if missing:
             raise RuntimeError(f"no status (pid) from {missing}; see {root / 'launcher.log'}")
+        load = start_background_load(background_cores, root)
+        load_start = [(time.monotonic(), cpu_time_s(child.process.pid)) for child in load]
         result = asyncio.run(_soak(config_path, stack_config, pids, idle_s, 60 * minutes, window_s))
+        got = sum((cpu_time_s(child.process.pid) - cpu_s) / (time.monotonic() - t_s)
+                  for child, (t_s, cpu_s) in zip(load, load_start))
+        result["background_load"] = {"cores": background_cores, "processes": len(load),
+                                     "cpu_percent": round(100 * got, 1)}
         reports = asyncio.run(collect(stack_config, names, STATUS_WINDOW_S))
         errors = {name: report["errors"] for name, report in reports.items() if report and report["errors"]}
         return {"config": str(config), "window_s": window_s, **result, "errors": errors}
     finally:
+        for child in load:
+            child.stop()
         if stack is not None:
             stack.stop()
         if keep is not None:
@@ -334,8 +354,11 @@ def format_table(result: dict[str, object]) -> str:
     """Idle CPU, then per service and latency stage the first and last window side by side with the growth."""
     first, last, grown = result["first"], result["last"], result["growth"]
     load = result.get("load_average", {})
+    background = result.get("background_load", {})
     lines = ["load average (1 min) at the idle phase's start, the goals' start and end: "
-             + " / ".join(str(load.get(key, "-")) for key in ("idle_start", "soak_start", "soak_end")),
+             + " / ".join(str(load.get(key, "-")) for key in ("idle_start", "soak_start", "soak_end"))
+             + (f"; background load asked {background['cores']} cores, got {background['cpu_percent']} % of one core"
+                if background.get("processes") else ""),
              f"idle: {result['idle']['cpu_percent_total']} % of one core in all ("
              + ", ".join(f"{n} {s['cpu_percent']}" for n, s in result["idle"]["services"].items()) + ")"]
     for name, split in result["idle"].get("threads", {}).items():
@@ -384,6 +407,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--idle-seconds", type=float, default=30.0,
                         help="how long the idle stack is measured before the goals, s (default 30)")
     parser.add_argument("--keep", type=Path, default=None, metavar="DIR", help="copy the logs to DIR")
+    parser.add_argument("--background-load", type=float, default=0.0, metavar="CORES",
+                        help="other work on the host made on purpose from the idle phase to the end, in cores (e.g. "
+                        "0.3: a process spinning 30 %% of each 10 ms); measures the stack's margin in any hour "
+                        "(default 0: none)")
     parser.add_argument("--json", action="store_true", help="print only the JSON document")
 
 
@@ -397,7 +424,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: --idle-seconds and --window must be at least {shortest_s:g} s (two samples, "
               f"{SAMPLE_PERIOD_S:g} s apart, make a CPU figure)", file=sys.stderr)
         return 2
-    result = measure(args.config, args.minutes, args.window, args.idle_seconds, args.keep)
+    if not (0.0 <= args.background_load <= (os.cpu_count() or 1)):
+        print(f"error: --background-load must be between 0 and this host's {os.cpu_count()} cores",
+              file=sys.stderr)
+        return 2
+    result = measure(args.config, args.minutes, args.window, args.idle_seconds, args.keep, args.background_load)
     if not args.json:
         print(format_table(result))
     print(json.dumps(result))

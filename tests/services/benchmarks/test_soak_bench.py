@@ -133,7 +133,10 @@ def test_resident_memory_of_this_process():
 
 @pytest.mark.parametrize("argv, named", [(["--minutes", "1", "--window", "40"], "--window must be at most half"),
                                          (["--idle-seconds", "5"], "--idle-seconds and --window"),
-                                         (["--minutes", "1", "--window", "5"], "--idle-seconds and --window")])
+                                         (["--minutes", "1", "--window", "5"], "--idle-seconds and --window"),
+                                         (["--background-load", "-0.5"], "--background-load must be between"),
+                                         (["--background-load", "nan"], "--background-load must be between"),
+                                         (["--background-load", "64"], "--background-load must be between")])
 def test_settings_that_cannot_be_measured_are_refused_before_launching(argv, named, capsys):
     parser = argparse.ArgumentParser()
     add_arguments(parser)
