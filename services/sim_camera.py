@@ -30,7 +30,6 @@ import argparse
 import asyncio
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from hydrosoft.drivers.errors import Stale
@@ -49,9 +48,6 @@ TRUTH_SOURCE = "sim_world"
 #: No new truth for this many frame periods: stale (the tracker's camera goes stale after as many).
 STALE_TRUTH_PERIODS = 5.0
 RATE_LOG_PERIOD_S = 10.0  # how often the exposure-to-image latency is logged
-#: OpenCV threads of the renderer. OpenCV's default (one per core) cost 5.5-6.8 ms of CPU per 640 x 480 image against
-#: 3.4-3.9 ms with one thread, for no shorter render (3.5-4.6 against 3.4-3.9 ms; the same images, bit for bit).
-RENDER_THREADS = 1
 
 
 @dataclass(frozen=True)
@@ -123,7 +119,6 @@ async def serve(service: Service, config: StackConfig) -> None:
     """Render every exposure of sim_world's shutter until cancelled (see the module docstring)."""
     if config.mode != "sim":
         raise ConfigError(f"sim_camera runs only in mode = 'sim', the config says {config.mode!r}")
-    cv2.setNumThreads(RENDER_THREADS)
     camera = tag_camera(config, lambda: np.full(7, np.nan))  # the pose comes with each truth, not from the source
     subscriber = service.subscriber(config.endpoint(TRUTH_SOURCE), [TruthFeed.topic])
     feed = TruthFeed(subscriber, STALE_TRUTH_PERIODS / config.camera.fps)
