@@ -282,7 +282,7 @@ def test_the_tracker_process_follows_rendered_images_counts_rejections_and_says_
         poses: dict[str, list[msg.ObjectPose]] = {"A": [], "B": []}
         stamps: dict[int, str] = {}
         with Bus() as bus:
-            camera = Publisher(bus, config.endpoint("sim_camera"), source="test")
+            camera = Publisher(bus, config.endpoint("sim_world"), source="test")
             tracked = LatestSubscriber(bus, config.endpoint("tag_tracker"), ["object_pose/object"])
             status = LatestSubscriber(bus, config.endpoint("tag_tracker", "status"), ["status/tag_tracker"])
 
