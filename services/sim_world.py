@@ -22,16 +22,13 @@
   sensor's zero-load offset ``sim.ft_bias``, which the real serial driver in the F/T reader reads. sim_world stores
   that offset as the arm's tare (``services/arm/ft_bias.py``, in ``state_dir``) before the sensor starts: the tare a
   person would take before the membrane touches the object, since the scenes start in contact.
-- Each bubble's rendered depth image (``sim.render``, in a worker thread so the physics keeps its rate) on
+- Rendered sensors (``sim.render``), each in a worker thread so the physics keeps its rate: the tag
+  camera's image on ``image/tag_camera`` (``CameraImage``) at ``camera.fps``, and each bubble's depth image on
   ``depth/ARM`` (``DepthFrame``) at ``arm.depth.fps`` or as fast as it renders.
-- The tag camera's shutter: the object's true pose on ``eval/object_pose`` at ``camera.fps``, each message's stamp
-  the time of the plant's state it carries. The ``sim_camera`` service (``services/sim_camera.py``) renders each
-  into the camera's image in a process of its own, so the renderer does not wait for this process's GIL beside the
-  plant and the simulated devices (as a real camera does not).
-- The truth leaves only on ``eval/object_pose`` (``camera.fps``) and ``eval/contact_forces`` (10 Hz), which no
-  control service reads.
+- The truth leaves only on ``eval/object_pose`` and ``eval/contact_forces`` (10 Hz), which no control service
+  reads.
 
-The achieved physics rate, step times and depth render times are logged every ``RATE_LOG_PERIOD_S``. The plant and the
+The achieved physics rate, step times and render times are logged every ``RATE_LOG_PERIOD_S``. The plant and the
 statistics are plain classes tested without sockets; ``serve`` is the loop.
 """
 
@@ -52,6 +49,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hydrosoft.drivers.camera.sim import SimCamera
+from hydrosoft.drivers.errors import DriverError
 from hydrosoft.drivers.poses import check_pose
 from hydrosoft.drivers.robotiq_ft300.simulator import SimulatedFT300
 from hydrosoft.drivers.ur.config import URSimulatorConfig
@@ -66,16 +65,16 @@ from hydrosoft.services.bus import service_cli
 from hydrosoft.services.bus.config import ConfigError, StackConfig
 from hydrosoft.services.arm.ft_bias import StoredBias, bias_path, save_bias
 from hydrosoft.services.bus.runtime import Service
-from hydrosoft.services.sim.render import BubbleDepthCamera
-from hydrosoft.services.sim.stats import DurationStats
+from hydrosoft.services.sim.devices import image_topic
+from hydrosoft.services.sim.render import BubbleDepthCamera, tag_camera
 from hydrosoft.services.arm.task_frame import TaskFrame
-from hydrosoft.services.tag_tracker import OBJECT
+from hydrosoft.services.tag_tracker import OBJECT, TAG_CAMERA
 from hydrosoft.tasks import make_task
 from hydrosoft.tasks.evaluation import PlantSettings, with_body_materials, with_contact, with_solver_steps
 
 SERVICE = "sim_world"
 PLANT = PlantSettings()  # the evaluation plant's contact model and sub-step factor, which sim_world shares
-EVAL_PERIOD_S = 0.1  # the contact forces on eval/ at 10 Hz
+EVAL_PERIOD_S = 0.1  # ground truth on eval/ at 10 Hz
 RATE_LOG_PERIOD_S = 10.0  # how often the achieved rates and step and render times are logged
 MAX_LAG_TICKS = 5  # most plant steps one late tick catches up; further behind, the schedule restarts from now
 TORCH_THREADS = 1  # per torch op: physics and depth rendering run side by side on a small machine
@@ -293,6 +292,30 @@ class SimPlant:
 # --- rates --------------------------------------------------------------------------------------------------------
 
 
+@dataclass
+class DurationStats:
+    """How often a repeated job ran and how long it took, since the last ``summary``."""
+
+    name: str
+    count: int = 0
+    total_s: float = 0.0
+    max_s: float = 0.0
+
+    def add(self, duration_s: float, runs: int = 1) -> None:
+        """Count ``runs`` runs done together in ``duration_s`` s (the max is per such batch)."""
+        self.count += runs
+        self.total_s += duration_s
+        self.max_s = max(self.max_s, duration_s)
+
+    def summary(self, window_s: float) -> str:
+        """``"<name> <rate> Hz, <mean> ms mean, <max> ms max"`` over ``window_s`` s (mean per run); starts a new
+        window."""
+        mean_ms = 1e3 * self.total_s / self.count if self.count else 0.0
+        text = f"{self.name} {self.count / window_s:.1f} Hz, {mean_ms:.1f} ms mean, {1e3 * self.max_s:.1f} ms max"
+        self.count, self.total_s, self.max_s = 0, 0.0, 0.0
+        return text
+
+
 # --- the service --------------------------------------------------------------------------------------------------
 
 
@@ -371,19 +394,18 @@ async def physics_forever(service: Service, plant: SimPlant, controllers: Mappin
         physics.shutdown(wait=False)  # a tick still running ends on its own; the loop does not wait for it
 
 
-async def shutter_forever(plant: SimPlant, out: Publisher, fps: float) -> None:
-    """The tag camera's shutter: publish the object's true pose (``EvalObjectPose``, base frame) every ``1 / fps`` s
-    on a fixed schedule; a slot the loop woke too late for is skipped, never sent as a burst. The message's stamp
-    (set as it is sent) is the frame's exposure time: the plant's newest state is the world at that instant."""
-    loop = asyncio.get_running_loop()
-    period_s = 1.0 / fps
-    next_s = loop.time()
+async def _tag_camera_forever(service: Service, camera: SimCamera, out: Publisher, stats: DurationStats) -> None:
+    """Publish the tag camera's frames; ``stats`` gets each frame's latency from its exposure to its image."""
+    topic = image_topic(TAG_CAMERA)
+    await camera.connect()
     while True:
-        await out.send(msg.EvalObjectPose(object=OBJECT, pose=plant.snapshot.object_pose))
-        next_s += period_s
-        if next_s < loop.time():
-            next_s += period_s * math.ceil((loop.time() - next_s) / period_s)
-        await asyncio.sleep(next_s - loop.time())
+        try:
+            frame = await camera.read()
+        except DriverError as error:
+            service.count_error("tag_camera", str(error))
+            continue
+        stats.add((frame.stamp_ns - frame.hw_stamp_ns) * 1e-9)
+        await out.send(msg.CameraImage.of(TAG_CAMERA, frame.image, frame.hw_stamp_ns), topic)
 
 
 async def _depth_forever(camera: BubbleDepthCamera, plant: SimPlant, out: Publisher, rate_hz: float,
@@ -403,10 +425,11 @@ async def _depth_forever(camera: BubbleDepthCamera, plant: SimPlant, out: Publis
         await asyncio.sleep(next_s - loop.time())
 
 
-async def _contact_forces_forever(plant: SimPlant, out: Publisher) -> None:
-    """Publish the contact forces on eval/ every ``EVAL_PERIOD_S``."""
+async def _truth_forever(plant: SimPlant, out: Publisher) -> None:
+    """Publish the object's pose and the contact forces on eval/ every ``EVAL_PERIOD_S``."""
     bodies = tuple(plant.model.body_names)
     while True:
+        await out.send(msg.EvalObjectPose(object=OBJECT, pose=plant.snapshot.object_pose))
         points, forces = plant.contact_forces()
         await out.send(msg.EvalContactForces(bodies=bodies, points=points, forces=forces))
         await asyncio.sleep(EVAL_PERIOD_S)
@@ -422,19 +445,19 @@ async def log_rates_forever(service: Service, stats: Sequence[DurationStats]) ->
         since_s = now_s
 
 
-def _warm_up(plant: SimPlant, depth_cameras: Sequence[BubbleDepthCamera]) -> None:
-    """The plant's steps at rest (``SimPlant.warm_up``) and one image of each depth camera, before READY: the first
-    calls fill caches (slow; a compiled plant compiles here), and a scene that cannot be simulated or rendered fails
-    at start rather than in the loop."""
+def _warm_up(plant: SimPlant, camera: SimCamera, depth_cameras: Sequence[BubbleDepthCamera]) -> None:
+    """The plant's steps at rest (``SimPlant.warm_up``) and one image of each camera, before READY: the first calls
+    fill caches (slow; a compiled plant compiles here), and a scene that cannot be simulated or rendered fails at
+    start rather than in the loop."""
     plant.warm_up()
     snapshot = plant.snapshot
+    camera.render(snapshot.object_pose)
     for depth in depth_cameras:
         depth.render(snapshot.tcp_poses[depth.arm], snapshot.object_pose)
 
 
 async def serve(service: Service, config: StackConfig) -> None:
-    """Run the plant, the simulated devices, the depth renderers, the tag camera's shutter and the truth until
-    cancelled."""
+    """Run the plant, the simulated devices, the renderers and the truth until cancelled."""
     if config.mode != "sim":
         raise ConfigError(f"sim_world runs only in mode = 'sim', the config says {config.mode!r}")
     torch.set_num_threads(TORCH_THREADS)
@@ -446,8 +469,10 @@ async def serve(service: Service, config: StackConfig) -> None:
                      plant.model.n_points, list(plant.model.body_names), 1.0 / plant.model.dt, plant.model.substeps)
     out = service.publisher(config.endpoint(service.name, "data"))
     controllers = await start_devices(service, config, plant)
+    camera = tag_camera(config, lambda: plant.snapshot.object_pose)
     depth_cameras = [BubbleDepthCamera.from_config(config, arm.name, index) for index, arm in enumerate(config.arms)]
     physics_stats = DurationStats("physics")
+    image_stats = DurationStats("tag camera (exposure to image)")
     depth_stats = [DurationStats(f"depth {c.arm}") for c in depth_cameras]
     if plant.compiled_step is None:
         service.compilation = "eager (sim.compile = false)"
@@ -457,15 +482,15 @@ async def serve(service: Service, config: StackConfig) -> None:
         if not await loop.run_in_executor(None, build.run, plant.compile, service.log.info):
             service.log.warning("the plant step runs eager: %s", build.fallback)
         service.compilation = build.status
-    await loop.run_in_executor(None, _warm_up, plant, depth_cameras)
+    await loop.run_in_executor(None, _warm_up, plant, camera, depth_cameras)
     await service.ready()
     async with asyncio.TaskGroup() as tasks:
         tasks.create_task(physics_forever(service, plant, controllers, physics_stats))
-        tasks.create_task(shutter_forever(plant, out, config.camera.fps))
+        tasks.create_task(_tag_camera_forever(service, camera, out, image_stats))
         for depth, stats in zip(depth_cameras, depth_stats):
             tasks.create_task(_depth_forever(depth, plant, out, config.arm(depth.arm).depth.fps, stats))
-        tasks.create_task(_contact_forces_forever(plant, out))
-        tasks.create_task(log_rates_forever(service, [physics_stats, *depth_stats]))
+        tasks.create_task(_truth_forever(plant, out))
+        tasks.create_task(log_rates_forever(service, [physics_stats, image_stats, *depth_stats]))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,6 +1,6 @@
 """The tag tracker service: the object's pose in the robot base frame from the AprilTags in the tag camera's images.
 
-Camera: in sim mode ``sim.devices.BusCamera`` on sim_camera's ``image/tag_camera``; in the lab ``OpenCVCamera`` on
+Camera: in sim mode ``sim.devices.BusCamera`` on sim_world's ``image/tag_camera``; in the lab ``OpenCVCamera`` on
 ``camera.device``. Calibration (``camera_calibration``): the ``camera.calibration`` file when set (intrinsics and
 ``T_base_camera``), otherwise the numbers of ``[camera]`` (``pose`` = ``T_base_camera``).
 
@@ -333,11 +333,11 @@ class PoseWatch:
 
 
 def open_camera(service: Service, config: StackConfig) -> Camera:
-    """The tag camera: sim_camera's images over the bus in sim mode, ``OpenCVCamera(camera.device)`` in the lab.
+    """The tag camera: sim_world's images over the bus in sim mode, ``OpenCVCamera(camera.device)`` in the lab.
     Raises ConfigError for a lab config without ``camera.device``."""
     camera = config.camera
     if config.mode == "sim":
-        subscriber = service.subscriber(config.endpoint("sim_camera"), [image_topic(TAG_CAMERA)])
+        subscriber = service.subscriber(config.endpoint("sim_world"), [image_topic(TAG_CAMERA)])
         return BusCamera(subscriber, TAG_CAMERA, timeout_s=STALE_FRAME_PERIODS / camera.fps)
     if not camera.device:
         raise ConfigError("camera.device: the lab's tag camera needs an OpenCV device index or URL")

@@ -65,7 +65,7 @@ from hydrosoft.drivers.camera.render import Renderer, RenderOptions
 from hydrosoft.drivers.camera.tags import box_layout
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import StackConfig, load_config
-from hydrosoft.services.sim.tag_camera import tag_camera
+from hydrosoft.services.sim.render import tag_camera
 from hydrosoft.services.tag_tracker import TAG_CAMERA, TagTracker, full_frame_every
 from hydrosoft.services.tag_detection import (
     ObjectPose,

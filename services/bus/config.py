@@ -29,7 +29,7 @@ Layout (see ``deploy/sim.toml`` for a commented example)::
                                       CURVE public key and (optionally) its own run_dir
     host                              the host this process runs on (``launch --host``, ``$HYDROSOFT_HOST``)
 
-Service names: ``sim_world`` and ``sim_camera`` (sim mode only), ``tag_tracker``, ``planner`` and one ``arm_commander-ARM``,
+Service names: ``sim_world`` (sim mode only), ``tag_tracker``, ``planner`` and one ``arm_commander-ARM``,
 ``bubble_camera-ARM`` and ``ft_reader-ARM`` per arm. Each binds ``ipc://RUN_DIR/NAME.data`` (its topics) and
 ``ipc://RUN_DIR/NAME.status`` (status, heartbeat); the planner also ``ipc://RUN_DIR/planner.cmd`` (the client API).
 
@@ -593,9 +593,8 @@ class StackConfig(Strict):
                     raise ConfigError(f"hosts.{placed[service]}: {err}") from err
 
     def service_names(self) -> list[str]:
-        """Every service of this stack, in start order (sim_world first, then sim_camera, which renders its shutter's
-        truth, in sim mode; the planner last)."""
-        names = ["sim_world", "sim_camera"] if self.mode == "sim" else []
+        """Every service of this stack, in start order (sim_world first, the planner last)."""
+        names = ["sim_world"] if self.mode == "sim" else []
         for arm in self.arms:
             names += [f"arm_commander-{arm.name}", f"ft_reader-{arm.name}", f"bubble_camera-{arm.name}"]
         return names + ["tag_tracker", "planner"]

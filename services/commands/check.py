@@ -126,7 +126,7 @@ async def check(config: StackConfig) -> list[Probe]:
                       else Probe("tag camera", False, "camera.device is not set", 0.0))
         probes.append(await _timed("calibration", _calibration(config)))
     else:
-        probes.append(Probe("tag camera", True, "rendered by sim_camera", 0.0))
+        probes.append(Probe("tag camera", True, "rendered by sim_world", 0.0))
     return probes
 
 

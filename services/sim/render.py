@@ -1,6 +1,8 @@
-"""What sim_world's simulated depth cameras see, rendered from the plant's poses (the tag camera: ``tag_camera.py``,
-rendered by the ``sim_camera`` service).
+"""What sim_world's simulated cameras see, rendered from the plant's poses.
 
+- The tag camera: ``drivers.camera.sim.SimCamera`` (AprilTags of ``tag_tracker.object_layout`` on the object's
+  faces, the table plane at the task frame's height), with the calibration the tracker uses
+  (``camera_calibration``) and sim's image noise and blur, at ``camera.fps``.
 - Each bubble's depth camera: ``drivers.bubble.render.render_depth`` of the nominal membrane (the bubble's scene
   ellipsoid) pushed in by the object (its exact signed distance, ``object_sdf``), seen from
   ``T_bubble_camera = arm.depth.camera_in_bubble()``, with Gaussian depth noise ``sim.depth_noise_m`` on every
@@ -12,19 +14,36 @@ bubble's frame.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hydrosoft.drivers.bubble.render import PinholeDepth, render_depth, to_counts
+from hydrosoft.drivers.camera.config import SimCameraConfig
+from hydrosoft.drivers.camera.sim import SimCamera
 from hydrosoft.drivers.poses import compose, inverse
 from hydrosoft.geometry.sdf import Box, Cylinder
 from hydrosoft.scene import ObjectSpec
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import StackConfig
+from hydrosoft.services.tag_tracker import camera_calibration, config_layout
 from hydrosoft.tasks import make_task
 
+IMAGE_SEED = 0  # seed of the tag camera's pixel noise
 DEPTH_SEED = 1  # seed of the depth noise (one generator per bubble, offset by its index)
+
+
+def tag_camera(config: StackConfig, object_pose_source: Callable[[], np.ndarray]) -> SimCamera:
+    """The simulated tag camera of ``config``: it renders the object at ``object_pose_source()`` (base frame) at
+    ``camera.fps`` with ``sim.image_noise`` (grey levels) and ``sim.image_blur_px``, over the table top (every task
+    scene's half-space z <= 0) at the task frame's height (``scene.task_frame``: level)."""
+    calibration = camera_calibration(config)
+    settings = SimCameraConfig(fps=config.camera.fps, noise_std=config.sim.image_noise,
+                               blur_sigma_px=config.sim.image_blur_px, seed=IMAGE_SEED,
+                               table_height_m=config.scene.task_frame[2])
+    return SimCamera(settings, calibration.intrinsics, calibration.T_base_camera,
+                     config_layout(config, calibration.T_base_camera), object_pose_source)
 
 
 def object_sdf(spec: ObjectSpec) -> Box | Cylinder:

@@ -144,7 +144,7 @@ def test_plain_parts():
                           '[curve]\nsecret_key_file = "/k"\nauthorized_keys_dir = "/d"\n')
     local, remote = bus_endpoints(config)
     assert remote == ["tcp://10.0.0.2:5555"]
-    assert "ipc:///tmp/x/sim_world.data" in local and "ipc:///tmp/x/planner.status" in local and len(local) == 13
+    assert "ipc:///tmp/x/sim_world.data" in local and "ipc:///tmp/x/planner.status" in local and len(local) == 11
 
 
 # --- recordings of a run -----------------------------------------------------------------------------------------

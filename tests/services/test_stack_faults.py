@@ -328,7 +328,7 @@ def test_every_service_counts_fuzzed_input_on_every_topic_and_stays_up(tmp_path)
         "planner": ("planner", [("tag_tracker", "data", ["object_pose/object"]),
                                 (f"arm_commander-{ARM}", "data", [f"arm_state/{ARM}"]),
                                 (f"bubble_camera-{ARM}", "data", [f"deformation/{ARM}"])]),
-        "tag_tracker": ("cameras", [("sim_camera", "data", ["image/tag_camera"])]),
+        "tag_tracker": ("cameras", [("sim_world", "data", ["image/tag_camera"])]),
         f"bubble_camera-{ARM}": ("cameras", [("sim_world", "data", [f"depth/{ARM}"])]),
     }
 

@@ -18,7 +18,7 @@ from hydrosoft.drivers.camera.tags import MARKER_CELLS, Tag, TagLayout, box_layo
 from hydrosoft.services import tag_detection as tracking
 from hydrosoft.services.benchmarks.tracker import camera_pose
 from hydrosoft.services.bus.config import load_config
-from hydrosoft.services.sim.tag_camera import tag_camera
+from hydrosoft.services.sim.render import tag_camera
 from hydrosoft.services.tag_tracker import TagTracker
 from hydrosoft.services.tag_detection import (
     ObjectPose,

@@ -23,7 +23,7 @@ from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Bus, LatestSubscriber, Publisher, Stale as NoStatus
 from hydrosoft.services.bus.config import load_config, parse_config
 from hydrosoft.services.sim.devices import BusCamera, image_topic
-from hydrosoft.services.sim.tag_camera import tag_camera
+from hydrosoft.services.sim.render import tag_camera
 from hydrosoft.services.tag_detection import MAX_VIEW_ANGLE_DEG, Rejection, solve_tag
 from hydrosoft.services.tag_tracker import (
     BLIND_AFTER_S,

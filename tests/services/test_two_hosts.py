@@ -31,7 +31,7 @@ FIRST_PORT = 5600
 STATUS_TIMEOUT_S = 30.0
 #: How long the intruder listens to show that nothing reaches it, s (the fakes publish at 20 Hz).
 LISTEN_S = 1.5
-ROBOT_SERVICES = ["sim_world", "sim_camera", "arm_commander-a", "ft_reader-a", "bubble_camera-a", "tag_tracker"]
+ROBOT_SERVICES = ["sim_world", "arm_commander-a", "ft_reader-a", "bubble_camera-a", "tag_tracker"]
 
 
 @pytest.fixture

@@ -39,7 +39,7 @@ HOST_LOSS_STOP_BOUND_S = 0.5 + 0.008 + 0.008 + 0.2
 #: How long the arm is watched after the compute host died, to show that nothing moves it again, s.
 WATCH_AFTER_S = 3.0
 FIRST_PORT = 5600
-ROBOT_SERVICES = ["sim_world", "sim_camera", "arm_commander-bubble", "ft_reader-bubble", "bubble_camera-bubble", "tag_tracker"]
+ROBOT_SERVICES = ["sim_world", "arm_commander-bubble", "ft_reader-bubble", "bubble_camera-bubble", "tag_tracker"]
 
 
 class HostStack(Stack):

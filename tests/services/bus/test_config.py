@@ -20,7 +20,7 @@ ONE_ARM = 'arms = [{ name = "bubble" }]\n'
 def test_the_shipped_configs_load(name):
     config = load_config(DEPLOY / name)
     names = config.service_names()
-    assert names[:2] == ["sim_world", "sim_camera"] and names[-1] == "planner"
+    assert names[0] == "sim_world" and names[-1] == "planner"
     assert all(f"arm_commander-{arm.name}" in names for arm in config.arms)
     assert config.endpoint("planner", "cmd").startswith("ipc://")
 
@@ -134,7 +134,7 @@ authorized_keys_dir = "/keys/authorized"
 
 [hosts.robot]
 address = "10.0.0.2"
-services = ["sim_world", "sim_camera", "arm_commander-bubble", "ft_reader-bubble", "bubble_camera-bubble", "tag_tracker"]
+services = ["sim_world", "arm_commander-bubble", "ft_reader-bubble", "bubble_camera-bubble", "tag_tracker"]
 public_key_file = "/keys/robot.key"
 secret_key_file = "/keys/robot.key_secret"
 run_dir = "/run/robot"

@@ -50,7 +50,7 @@ def test_console_script_entry_point_runs():
     assert result.returncode == 0 and "hydrosoft-stack" in result.stdout
 
 
-@pytest.mark.parametrize("module", ["sim_world", "sim_camera", "tag_tracker", "planner", "arm_commander", "ft_reader",
+@pytest.mark.parametrize("module", ["sim_world", "tag_tracker", "planner", "arm_commander", "ft_reader",
                                     "bubble_camera"])
 def test_every_service_refuses_a_missing_config_with_exit_code_2(module, tmp_path, capsys):
     service = importlib.import_module(f"hydrosoft.services.{module}")

@@ -72,7 +72,7 @@ def test_nothing_running_lists_every_service_as_null_and_exits_0(root):
     result = run_status(config, "--json", "--wait", "0.3")
     assert result.returncode == 0, result.stderr
     document = json.loads(result.stdout)
-    assert document == {"services": dict.fromkeys(["sim_world", "sim_camera", "arm_commander-a", "ft_reader-a", "bubble_camera-a",
+    assert document == {"services": dict.fromkeys(["sim_world", "arm_commander-a", "ft_reader-a", "bubble_camera-a",
                                                    "tag_tracker", "planner"])}
     assert time.monotonic() - tic_s < STATUS_TIMEOUT_S
 
@@ -95,10 +95,9 @@ def test_status_json_reports_each_running_service(root):
         result = run_status(config, "--json", "--wait", "3")
         assert result.returncode == 0, result.stderr
         services = json.loads(result.stdout)["services"]
-        assert set(services) == {"sim_world", "sim_camera", "arm_commander-a", "ft_reader-a", "bubble_camera-a", "tag_tracker",
+        assert set(services) == {"sim_world", "arm_commander-a", "ft_reader-a", "bubble_camera-a", "tag_tracker",
                                  "planner"}
-        assert all(services[name] is None for name in ("sim_camera", "arm_commander-a", "ft_reader-a", "bubble_camera-a",
-                                                              "planner"))
+        assert all(services[name] is None for name in ("arm_commander-a", "ft_reader-a", "bubble_camera-a", "planner"))
         for name, pid in pids.items():
             report = services[name]
             assert report["state"] == "ready" and report["pid"] == pid and report["restarts"] == 0, report

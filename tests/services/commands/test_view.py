@@ -102,7 +102,7 @@ def test_a_websocket_client_gets_the_scene_channels_and_decodes_their_updates():
     assert EXPECTED <= set(channels), sorted(channels)
     assert channels["/scene/forces/predicted"]["schemaName"] == "foxglove.SceneUpdate"
     assert channels["/image/tag_camera"]["schemaName"] == "foxglove.CompressedImage"
-    assert channels["sim_camera/image/tag_camera"]["encoding"] == "msgpack"  # an image kind's raw channel
+    assert channels["sim_world/image/tag_camera"]["encoding"] == "msgpack"  # an image kind's raw channel
     wrench = channels["ft_reader-bubble/wrench/bubble"]
     assert wrench["encoding"] == "json" and wrench["schemaName"] == "Wrench"
     forces = decoded["/scene/forces/predicted"][-1]

@@ -6,7 +6,7 @@ status endpoint), binds its endpoints, waits ``CONNECT_S`` and publishes until S
 schedule (``RATES_HZ``):
 
 - ``wrench/ARM`` (ft_reader-ARM), ``arm_state/ARM`` (arm_commander-ARM);
-- ``image/tag_camera`` (sim_camera): the scene's object rendered by the simulated tag camera at one of
+- ``image/tag_camera`` (sim_world): the scene's object rendered by sim_world's tag camera at one of
   ``IMAGE_POSES`` in turn (rendered once at start), stamped ``hw_stamp_ns`` = the send time;
 - ``depth/ARM``, ``eval/object_pose``, ``eval/contact_forces`` (sim_world) and ``plan/TASK`` (planner), the plan's
   forces shaped for the planner's scene (``SceneGeometry``).
@@ -27,7 +27,7 @@ from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Publisher
 from hydrosoft.services.bus.config import StackConfig, load_config
 from hydrosoft.services.bus.runtime import Service, run_service
-from hydrosoft.services.sim.tag_camera import tag_camera
+from hydrosoft.services.sim.render import tag_camera
 
 RATES_HZ = {"wrench": 100.0, "arm_state": 50.0, "image": 10.0, "depth": 10.0, "eval": 10.0, "plan": 5.0}
 #: Object poses (base frame) the tag camera images show, one after the other.
@@ -82,7 +82,7 @@ def topics(config: StackConfig) -> dict[str, tuple[str, str]]:
     """Each topic this publisher sends -> (the service whose data endpoint it goes to, its RATES_HZ key)."""
     arm = config.arms[0].name
     return {f"wrench/{arm}": (f"ft_reader-{arm}", "wrench"), f"arm_state/{arm}": (f"arm_commander-{arm}", "arm_state"),
-            "image/tag_camera": ("sim_camera", "image"), f"depth/{arm}": ("sim_world", "depth"),
+            "image/tag_camera": ("sim_world", "image"), f"depth/{arm}": ("sim_world", "depth"),
             "eval/object_pose": ("sim_world", "eval"), "eval/contact_forces": ("sim_world", "eval"),
             f"plan/{config.scene.task}": ("planner", "plan")}
 
