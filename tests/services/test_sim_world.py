@@ -16,6 +16,7 @@ import socket
 import time
 from dataclasses import replace
 
+import cv2
 import msgspec
 import numpy as np
 import pytest
@@ -29,7 +30,7 @@ from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Bus, LatestSubscriber
 from hydrosoft.services import sim_world
 from hydrosoft.services.bus.config import load_config, parse_config
-from hydrosoft.services.sim.render import BubbleDepthCamera
+from hydrosoft.services.sim.render import BubbleDepthCamera, tag_camera
 from hydrosoft.services.sim_world import (
     DurationStats,
     PlantStepError,
@@ -282,6 +283,27 @@ def test_an_arm_must_be_an_actuated_body_of_the_plant():
         SimPlant(model, state, ["left"])
     with pytest.raises(ValueError, match="does not actuate"):
         SimPlant(model, state, ["table"])
+
+
+def test_the_renderers_give_the_same_images_on_sim_worlds_opencv_threads_as_on_opencvs_default():
+    """sim_world renders on ``OPENCV_THREADS`` (one: less CPU per image); the images are those of OpenCV's default
+    thread count, bit for bit, noise included (fresh cameras, same seeds)."""
+    config = pushing_config(camera='[camera]\nfps = 20.0\n')
+    poses = [CUBE_POSE, CUBE_POSE + np.array([0.01, -0.005, 0.0, 0.0, 0.0, 0.0, 0.0])]
+
+    def images() -> list[np.ndarray]:
+        camera = tag_camera(config, lambda: CUBE_POSE)
+        depth = BubbleDepthCamera.from_config(config, "bubble", 0)
+        return [camera.render(pose) for pose in poses] + [depth.render(BUBBLE_POSE, pose) for pose in poses]
+
+    default_threads = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(sim_world.OPENCV_THREADS)
+        on_sim_worlds = images()
+    finally:
+        cv2.setNumThreads(default_threads)
+    for got, want in zip(on_sim_worlds, images(), strict=True):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_duration_stats_give_rate_mean_and_max_then_start_over():
