@@ -766,14 +766,18 @@ def _shape_text(spec: ArraySpec) -> str:
     return "(" + ", ".join(f"{r.name}<={r.max}" if isinstance(r, Dim) else str(r) for r in spec.shape) + ")"
 
 
+@functools.cache
+def _fields(cls: type[Payload]) -> tuple[tuple[str, str, ArraySpec | None], ...]:
+    """Each field of ``cls``: its name, its name in error texts and its ``ArraySpec`` (None: not an array). Made
+    once per kind, as ``validate`` runs twice per message (encode and decode)."""
+    return tuple((name, f"{cls.__name__}.{name}", cls.ARRAYS.get(name)) for name in cls.__struct_fields__)
+
+
 def validate(payload: Payload) -> None:
     """Check ``payload`` (and the payloads nested in it) against its kind's rules; raise a ``MessageError``."""
-    cls = type(payload)
     dims: dict[str, int] = {}
-    for name in cls.__struct_fields__:
+    for name, where, spec in _fields(type(payload)):
         value = getattr(payload, name)
-        where = f"{cls.__name__}.{name}"
-        spec = cls.ARRAYS.get(name)
         if spec is not None:
             if value is None and spec.optional:
                 continue

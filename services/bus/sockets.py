@@ -515,6 +515,11 @@ class Publisher:
     ``source``, checks
     the message and hands its arrays to ZeroMQ without copying them (do not modify an array after sending it).
     A subscriber that is not keeping up loses new messages beyond ``sndhwm``; the publisher never blocks.
+
+    Send path. A PUB socket never blocks (libzmq drops what a subscriber's queue cannot hold), so ``send`` hands
+    the frames to a plain pyzmq socket that shadows this one, with ``NOBLOCK``, instead of ``zmq.asyncio``'s
+    send: no future, no loop callback per message (``zmq.asyncio`` would only try the same non-blocking send
+    first). ``send`` stays a coroutine, so a caller's code does not change.
     """
 
     def __init__(
@@ -531,6 +536,7 @@ class Publisher:
         self.sent: Counter[str] = Counter()
         self._clock_ns = bus.clock_ns
         self._sock = bus.socket(zmq.PUB, endpoint, bind=bind, curve=curve, options=[(zmq.SNDHWM, sndhwm)])
+        self._plain = zmq.Socket.shadow(self._sock.underlying)  # the same socket, sent to without futures
 
     @property
     def endpoint(self) -> str:
@@ -543,8 +549,7 @@ class Publisher:
         topic = msg.topic if topic is None else topic
         stamped = msgspec.structs.replace(msg, seq=self.sent[topic] + 1, stamp_ns=self._clock_ns(),
                                           source=self.source)
-        frames = encode(stamped, topic)
-        await self._sock.send_multipart(frames, copy=False)
+        self._plain.send_multipart(encode(stamped, topic), zmq.NOBLOCK, copy=False)  # PUB: never raises Again
         self.sent[topic] += 1
         return stamped
 

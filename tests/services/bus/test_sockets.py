@@ -247,6 +247,28 @@ def test_a_second_bind_to_the_same_endpoint_is_a_config_error():
 # --- streams -----------------------------------------------------------------------------------------------------
 
 
+def test_a_publisher_whose_subscriber_reads_nothing_drops_at_its_hwm_and_never_suspends(ipc_dir):
+    """The send path (a plain socket, NOBLOCK): every send completes at once, also with the subscriber's and the
+    publisher's queues full, and only the subscriber's queue's worth arrives."""
+    async def scenario():
+        with b.Bus() as bus:
+            publisher = b.Publisher(bus, f"ipc://{ipc_dir}/pub", source="ft_reader", sndhwm=2)
+            subscriber = b.LatestSubscriber(bus, publisher.endpoint, ["heartbeat", "wrench"], rcvhwm=2)
+            assert await connected(publisher, subscriber)
+            received_before = subscriber.received["wrench"]
+            for _ in range(2000):
+                sending = publisher.send(WRENCH)
+                with pytest.raises(StopIteration):  # done without yielding to the event loop once
+                    sending.send(None)
+            assert publisher.sent["wrench"] == 2000
+            await asyncio.sleep(0.1)
+            subscriber.drain()
+            assert subscriber.received["wrench"] - received_before < 1000  # the rest was dropped, not queued
+            assert not subscriber.errors.counts
+
+    asyncio.run(scenario())
+
+
 def test_publisher_stamps_each_topic_and_the_subscriber_hands_out_the_newest(ipc_dir):
     async def scenario():
         with b.Bus() as bus:
