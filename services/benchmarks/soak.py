@@ -22,6 +22,8 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
   per second of the goals' wall time);
 - the slowest plans (``tail``, ``tail_parts``): which parts made the p99 of the total, one part alone or several
   late together;
+- the total's p50, p99 and largest per ``SERIES_PERIOD_S`` of the soak (``series``, ``latency_series``): whether the
+  slow plans gather at a time (the goals' start, one goal) or spread over the soak;
 - the host's load average (``load_average``: ``os.getloadavg``'s 1-minute figure when the idle phase starts, when the
   goals start and when they end): other work on the machine slows the stack, so figures compare only at like loads;
 - with ``--background-load CORES``, that much other work made on purpose (``cpu_load``) from the idle phase to the
@@ -88,6 +90,7 @@ STAGES = {
 PARTS = ("detection", "queue", "estimation", "solve")
 #: ``tail_parts`` looks at this fraction of the plans, the slowest by their total (at least one plan).
 TAIL_FRACTION = 0.02
+SERIES_PERIOD_S = 10.0  # the length of each stretch of the soak ``latency_series`` sums up, s
 
 
 def latency_split(plans: list[msg.Plan]) -> dict[str, dict[str, float]]:
@@ -138,6 +141,25 @@ def tail_parts(plans: list[msg.Plan], fraction: float = TAIL_FRACTION) -> dict[s
             "together": int((np.sum([late[part] for part in PARTS], axis=0) >= 2).sum()),
             "solver_ms": round(float(np.mean([whole[i].solve_ms for i in tail])), 2),
             "solver_p50_ms": round(float(np.percentile([p.solve_ms for p in whole], 50)), 2)}
+
+
+def latency_series(plans: list[tuple[float, msg.Plan]], period_s: float = SERIES_PERIOD_S) -> list[dict[str, float]]:
+    """Per ``period_s`` of the soak (``plans``: ``(t_s, Plan)``, times since the soak began), from its first stretch
+    to its last: ``from_s`` and, over the plans published in it that carry both stamps of the total, ``plans`` and
+    the total's ``p50_ms``, ``p99_ms`` and ``max_ms`` (a stretch without such a plan has ``plans`` 0 only)."""
+    start, end = STAGES["total"]
+    timed = [(t_s, _stage_ms(plan, "total")) for t_s, plan in plans if getattr(plan, start) and getattr(plan, end)]
+    if not timed:
+        return []
+    series = []
+    for index in range(int(max(t_s for t_s, _ in timed) // period_s) + 1):
+        ms = [value for t_s, value in timed if index * period_s <= t_s < (index + 1) * period_s]
+        row: dict[str, float] = {"from_s": round(index * period_s, 1), "plans": len(ms)}
+        if ms:
+            row.update(p50_ms=round(float(np.percentile(ms, 50)), 1), p99_ms=round(float(np.percentile(ms, 99)), 1),
+                       max_ms=round(max(ms), 1))
+        series.append(row)
+    return series
 
 
 @dataclass
@@ -290,6 +312,7 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
             "soak_seconds": round(end_s, 1), "goals": goals, "first": first, "last": last,
             "growth": growth(first, last), "whole": window_summary(samples, 0.0, end_s),
             "tail": tail_parts([plan for _, plan in samples.plans]),
+            "series": latency_series(samples.plans),
             "replanning_hz": round(len(samples.plans) / goal_s, 2) if goal_s > 0 else 0.0,
             "load_average": load_average}
 
@@ -382,6 +405,10 @@ def format_table(result: dict[str, object]) -> str:
                                  for part, row in parts.items())
                      + f"; two or more parts above their p90 in {tail['together']} of {tail['plans']}; the solver's "
                      f"own time there {tail['solver_ms']} ms (p50 over all plans {tail['solver_p50_ms']} ms)")
+    series = result.get("series")
+    if series:
+        lines.append(f"camera to arm targets per {SERIES_PERIOD_S:g} s of the soak, p99 (largest) ms: "
+                     + ", ".join(f"{row['p99_ms']} ({row['max_ms']})" if row["plans"] else "-" for row in series))
     lines.append("errors counted: " + ("; ".join(f"{name} " + ", ".join(f"{kind} {n}" for kind, n in kinds.items())
                                                  for name, kinds in result["errors"].items()) or "none"))
     lines.append(f"{'':<24}{'first window':>24}{'last window':>24}{'growth':>10}")

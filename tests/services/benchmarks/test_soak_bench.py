@@ -20,6 +20,7 @@ from hydrosoft.services.benchmarks.soak import (
     add_arguments,
     format_table,
     growth,
+    latency_series,
     latency_split,
     run,
     tail_parts,
@@ -65,6 +66,21 @@ def test_the_tail_names_the_parts_that_made_the_slowest_plans_slow():
     unstamped = parts_plan(20, 5, 4, 60)
     assert tail_parts([msg.Plan(**{**{f: getattr(unstamped, f) for f in unstamped.__struct_fields__},
                                    "image_stamp_ns": 0})]) == {}
+
+
+def test_the_series_gives_each_stretch_of_the_soak_its_own_total_latency_and_skips_none():
+    # Slow plans at the start (a first goal's solves at 150 ms), steady ones later, nothing in the third stretch.
+    plans = [(1.0 + k, parts_plan(20, 5, 4, 150)) for k in range(3)]
+    plans += [(10.5 + 0.5 * k, parts_plan(20, 5, 4, 60 + k)) for k in range(10)] + [(35.0, parts_plan(20, 5, 4, 70))]
+    series = latency_series(plans, period_s=10.0)
+    assert [row["from_s"] for row in series] == [0.0, 10.0, 20.0, 30.0]
+    assert [row["plans"] for row in series] == [3, 10, 0, 1]
+    assert series[0]["p99_ms"] == series[0]["max_ms"] == 179.0  # 20 + 5 + 4 + 150
+    assert series[1]["max_ms"] == 98.0 and series[1]["p50_ms"] == pytest.approx(93.5)
+    assert "p99_ms" not in series[2] and series[3]["max_ms"] == 99.0
+    unstamped = parts_plan(20, 5, 4, 60)
+    no_image = msg.Plan(**{**{f: getattr(unstamped, f) for f in unstamped.__struct_fields__}, "image_stamp_ns": 0})
+    assert latency_series([(1.0, no_image)]) == []
 
 
 def test_the_latency_split_takes_each_stage_between_its_stamps():
