@@ -80,7 +80,7 @@ from hydrosoft.compilation import building_precompiled
 from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
 from hydrosoft.control import device_unavailable as control_device_unavailable
-from hydrosoft.control.worker_processes import eager_parts
+from hydrosoft.control.worker_processes import SETTLE_AFTER, eager_parts
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import State, with_object_update
@@ -808,14 +808,21 @@ def core_problem(problem: tuple) -> tuple[Callable, Callable, Callable]:
 
 
 def compile_step(core: PlannerCore) -> float:
-    """Compile the planner's step for every input signature a solve uses, by one solve from the scene's initial
-    state (its result is dropped), then settle the garbage collector
-    (``garbage_collection.settle_garbage_collector``: the compiler's objects out of its way); the seconds it took.
-    With torch's compile cache warm this loads the compiled code instead (seconds, not minutes)."""
+    """Compile the planner's step for every input signature a solve uses, by ``SETTLE_AFTER`` solves of one solver
+    from the scene's initial state (the later ones warm-started, as a goal's; their results are dropped), then settle
+    the garbage collector (``garbage_collection.settle_garbage_collector``: the compiler's objects out of its way);
+    the seconds it took. With torch's compile cache warm this loads the compiled code instead (seconds, not minutes).
+
+    Why that many solves: a solver worker process settles its own collector after that many improves of a problem
+    (``worker_processes.SETTLE_AFTER``). The first settle walks the compiler's half a million objects (about 0.2 s on
+    2 cores); later ones walk only what came after. With one solve here, that first settle fell on the first goal's
+    second solve: 211 against 31-41 ms for every other solve (idle, the paper planner)."""
     started = time.monotonic()
     _, initial, _ = compile_scene(planner_scene(core.task, core.config), dtype=core.model.dtype)
     arm_poses = {name: initial.body_poses[0, index].double() for name, index in core.arms.items()}
-    core.solver(core.task.initial_pose(), initial.object_pose[0].double(), arm_poses).solve(initial)
+    solver = core.solver(core.task.initial_pose(), initial.object_pose[0].double(), arm_poses)
+    for _ in range(SETTLE_AFTER):
+        solver.solve(initial)
     settle_garbage_collector()
     return time.monotonic() - started
 
