@@ -53,6 +53,7 @@ import numpy as np
 import zmq
 
 from hydrosoft.services.bus import messages as msg
+from hydrosoft.services.benchmarks.cpu_load import load_processes
 from hydrosoft.services.benchmarks.launched_stack import (
     Child,
     add_config_argument,
@@ -63,7 +64,6 @@ from hydrosoft.services.benchmarks.launched_stack import (
     start_goal,
     thread_cpu_times_s,
 )
-from hydrosoft.services.benchmarks.cpu_load import load_processes
 from hydrosoft.services.bus.sockets import Bus
 from hydrosoft.services.client import true_error_mm
 from hydrosoft.services.bus.config import StackConfig, load_config
