@@ -1,7 +1,6 @@
 """A rollout's start state in the form a step returns (``dynamics.stepped_form``): the same first step, outputs and
 gradients, and one compiled sub-step per grad mode instead of two."""
 
-import msgspec
 import pytest
 import torch
 
