@@ -24,6 +24,10 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
   late together;
 - the total's p50, p99 and largest per ``SERIES_PERIOD_S`` of the soak (``series``, ``latency_series``): whether the
   slow plans gather at a time (the goals' start, one goal) or spread over the soak;
+- the arm commanders' servo ticks (``servo_ticks``): the intervals between the ``arm_state`` messages each commander
+  publishes while it servoes (one per tick), p50, p99 and largest, and how many exceeded ``LATE_TICK_PERIODS``
+  servo periods: a commander that waits for a core ticks late, and a few late periods in a row let the controller's
+  watchdog stop the arm;
 - the host's load average (``load_average``: ``os.getloadavg``'s 1-minute figure when the idle phase starts, when the
   goals start and when they end): other work on the machine slows the stack, so figures compare only at like loads;
 - with ``--background-load CORES``, that much other work made on purpose (``cpu_load``) from the idle phase to the
@@ -91,6 +95,7 @@ PARTS = ("detection", "queue", "estimation", "solve")
 #: ``tail_parts`` looks at this fraction of the plans, the slowest by their total (at least one plan).
 TAIL_FRACTION = 0.02
 SERIES_PERIOD_S = 10.0  # the length of each stretch of the soak ``latency_series`` sums up, s
+LATE_TICK_PERIODS = 2.0  # ``servo_ticks`` counts an interval between two servo ticks longer than this many periods
 
 
 def latency_split(plans: list[msg.Plan]) -> dict[str, dict[str, float]]:
@@ -162,13 +167,27 @@ def latency_series(plans: list[tuple[float, msg.Plan]], period_s: float = SERIES
     return series
 
 
+def servo_ticks(states: list[msg.ArmState], period_s: float) -> dict[str, float]:
+    """The intervals (ms) between consecutive ``states`` of one arm (in the order published) that both servoed
+    (``servo_active``), each a commander tick: ``ticks`` (intervals), ``p50_ms``, ``p99_ms``, ``max_ms``, and ``late``,
+    those over ``LATE_TICK_PERIODS`` x ``period_s`` (s). Empty when fewer than two servoed."""
+    ms = [(b.stamp_ns - a.stamp_ns) * 1e-6 for a, b in zip(states, states[1:])
+          if a.servo_active and b.servo_active and b.seq == a.seq + 1]
+    if not ms:
+        return {}
+    return {"ticks": len(ms), "p50_ms": round(float(np.percentile(ms, 50)), 2),
+            "p99_ms": round(float(np.percentile(ms, 99)), 2), "max_ms": round(max(ms), 2),
+            "late": sum(m > LATE_TICK_PERIODS * period_s * 1e3 for m in ms)}
+
+
 @dataclass
 class Samples:
-    """What the soak saw: per service ``(t_s, resident MB, CPU time s)`` samples, and the plans ``(t_s, Plan)``;
-    times since the soak began."""
+    """What the soak saw: per service ``(t_s, resident MB, CPU time s)`` samples, the plans ``(t_s, Plan)``
+    (times since the soak began), and each arm's states in the order published."""
 
     usage: dict[str, list[tuple[float, float, float]]] = field(default_factory=lambda: defaultdict(list))
     plans: list[tuple[float, msg.Plan]] = field(default_factory=list)
+    arm_states: dict[str, list[msg.ArmState]] = field(default_factory=lambda: defaultdict(list))
 
 
 def window_summary(samples: Samples, start_s: float, end_s: float) -> dict[str, object]:
@@ -254,6 +273,20 @@ async def _read_plans(config: StackConfig, samples: Samples, t0_s: float, until_
                 samples.plans.append((time.monotonic() - t0_s, plan))
 
 
+async def _read_arm_states(config: StackConfig, samples: Samples) -> None:
+    """Keep every state each arm commander publishes until cancelled."""
+    with Bus() as bus:
+        sock = bus.socket(zmq.SUB, config.endpoint(f"arm_commander-{config.arms[0].name}"), bind=False,
+                          options=[(zmq.RCVHWM, 1000), (zmq.MAXMSGSIZE, msg.MAX_FRAME_BYTES),
+                                   (zmq.SUBSCRIBE, b"arm_state/")])
+        for arm in config.arms[1:]:
+            sock.connect(config.endpoint(f"arm_commander-{arm.name}"))
+        while True:
+            _, state = msg.decode(await sock.recv_multipart(copy=False))
+            if isinstance(state, msg.ArmState):
+                samples.arm_states[state.arm].append(state)
+
+
 async def _goals(config_path: Path, task: str, until_s: float) -> list[dict[str, object]]:
     """Goals of ``SOAK_GOALS[task]`` back to back until ``until_s`` (monotonic); each one's outcome, planner error,
     true error (mm), solves, re-approaches of a lost cube and wall time."""
@@ -295,7 +328,8 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
     t0_s = time.monotonic()
     until_s = t0_s + soak_s
     watchers = [asyncio.create_task(_sample(pids, samples, t0_s, math.inf)),
-                asyncio.create_task(_read_plans(config, samples, t0_s, math.inf))]
+                asyncio.create_task(_read_plans(config, samples, t0_s, math.inf)),
+                asyncio.create_task(_read_arm_states(config, samples))]
     try:
         goals = await _goals(config_path, config.scene.task, until_s)
     finally:
@@ -313,6 +347,8 @@ async def _soak(config_path: Path, config: StackConfig, pids: dict[str, int], id
             "growth": growth(first, last), "whole": window_summary(samples, 0.0, end_s),
             "tail": tail_parts([plan for _, plan in samples.plans]),
             "series": latency_series(samples.plans),
+            "servo_ticks": {arm: servo_ticks(states, 1.0 / config.limits.servo_rate_hz)
+                            for arm, states in sorted(samples.arm_states.items())},
             "replanning_hz": round(len(samples.plans) / goal_s, 2) if goal_s > 0 else 0.0,
             "load_average": load_average}
 
@@ -409,6 +445,10 @@ def format_table(result: dict[str, object]) -> str:
     if series:
         lines.append(f"camera to arm targets per {SERIES_PERIOD_S:g} s of the soak, p99 (largest) ms: "
                      + ", ".join(f"{row['p99_ms']} ({row['max_ms']})" if row["plans"] else "-" for row in series))
+    for arm, ticks in result.get("servo_ticks", {}).items():
+        lines.append(f"arm commander {arm}'s servo ticks: " + (
+            f"{ticks['ticks']} intervals, p50 / p99 / largest {ticks['p50_ms']} / {ticks['p99_ms']} / "
+            f"{ticks['max_ms']} ms, {ticks['late']} over {LATE_TICK_PERIODS:g} periods" if ticks else "none servoed"))
     lines.append("errors counted: " + ("; ".join(f"{name} " + ", ".join(f"{kind} {n}" for kind, n in kinds.items())
                                                  for name, kinds in result["errors"].items()) or "none"))
     lines.append(f"{'':<24}{'first window':>24}{'last window':>24}{'growth':>10}")

@@ -23,6 +23,7 @@ from hydrosoft.services.benchmarks.soak import (
     latency_series,
     latency_split,
     run,
+    servo_ticks,
     tail_parts,
     thread_split,
     window_summary,
@@ -81,6 +82,25 @@ def test_the_series_gives_each_stretch_of_the_soak_its_own_total_latency_and_ski
     unstamped = parts_plan(20, 5, 4, 60)
     no_image = msg.Plan(**{**{f: getattr(unstamped, f) for f in unstamped.__struct_fields__}, "image_stamp_ns": 0})
     assert latency_series([(1.0, no_image)]) == []
+
+
+def arm_state(seq: int, stamp_ms: float, servo_active: bool = True) -> msg.ArmState:
+    return msg.ArmState(arm="bubble", tcp_pose=np.array([0.0, 0.0, 0.1, 1.0, 0.0, 0.0, 0.0]), tcp_speed=np.zeros(6),
+                        running=True, protective_stop=False, emergency_stop=False, servo_active=servo_active,
+                        seq=seq, stamp_ns=int(stamp_ms * MS))
+
+
+def test_servo_ticks_time_each_servoed_tick_and_count_the_late_ones_but_no_gap_of_a_lost_message_or_a_rest():
+    # 8 ms ticks, one 20 ms late (over 2 periods: late) and one 15 ms (not); then a lost message (seq 7 -> 9), a rest
+    # (servo inactive for 500 ms) and servoing again: neither of the last two is a tick interval.
+    stamps = [0, 8, 16, 36, 44, 59, 67]
+    states = [arm_state(seq, ms) for seq, ms in enumerate(stamps, start=1)]
+    states += [arm_state(9, 75), arm_state(10, 83, servo_active=False), arm_state(11, 583), arm_state(12, 591)]
+    ticks = servo_ticks(states, period_s=0.008)
+    assert ticks["ticks"] == 7  # seq 1-7 give 6, and 11 -> 12 one
+    assert ticks["max_ms"] == 20.0 and ticks["late"] == 1 and ticks["p50_ms"] == 8.0
+    assert servo_ticks(states[:1], period_s=0.008) == {}
+    assert servo_ticks([arm_state(1, 0, False), arm_state(2, 8, False)], period_s=0.008) == {}
 
 
 def test_the_latency_split_takes_each_stage_between_its_stamps():
