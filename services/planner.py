@@ -38,7 +38,10 @@ each of them has published its arm state; only then does it serve the client API
 
 Priority (``planner.nice``): once ready, the planner's computing runs at that niceness, in threads of its own
 (``compute_threads``: the penetration and the solve) and in its worker processes (``renice``d then), so that the
-commander and the sensors go first; its event loop, which takes the inputs, estimates the state and sends the targets
+commander and the sensors go first (each worker process leads a session of its own, and ``renice`` sets its
+scheduling group's niceness too: where the kernel schedules each session as one group, Linux's autogroup, a niceness
+counts only within its group, and before this the workers' +10 had counted only against the planner's own threads);
+its event loop, which takes the inputs, estimates the state and sends the targets
 (a few ms per cycle on the camera-to-target path), runs at the niceness it was started with. So does its start-up
 (the model build, the worker processes' start, the solver's load and first solve), in a thread of its own: no arm
 moves before the planner is ready, and at +10 its start-up waited behind every other program on a shared machine.
@@ -904,17 +907,30 @@ def compute_threads(nice: int) -> ThreadPoolExecutor:
                               initargs=(nice,))
 
 
-def renice(pids: Iterable[int], increment: int) -> None:
+def renice(pids: Iterable[int], increment: int) -> list[str]:
     """Add ``increment`` to the niceness of every thread of the processes ``pids`` (on Linux each thread has its
-    own, listed in ``/proc/PID/task``; elsewhere the process's); a process that is gone is left out."""
+    own, listed in ``/proc/PID/task``; elsewhere the process's). A process that leads a session of its own (the
+    solver's worker processes do) also gets its scheduling group set to its new niceness (``/proc/PID/autogroup``,
+    where the kernel groups each session: without it the niceness counts only within the group). A process that is
+    gone is left out. Returns what could not be set, in words ([] when all was)."""
+    problems = []
     for pid in pids:
         try:
             threads = [int(tid) for tid in os.listdir(f"/proc/{pid}/task")]
         except FileNotFoundError:
             threads = [pid]
-        for tid in threads:
-            with contextlib.suppress(ProcessLookupError):
-                os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+        try:
+            for tid in threads:
+                with contextlib.suppress(ProcessLookupError):
+                    os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+            if os.getsid(pid) == pid:
+                with contextlib.suppress(FileNotFoundError), open(f"/proc/{pid}/autogroup", "w") as group:
+                    group.write(str(os.getpriority(os.PRIO_PROCESS, pid)))
+        except ProcessLookupError:
+            continue
+        except OSError as error:
+            problems.append(f"process {pid}: {error}")
+    return problems
 
 
 def worker_fallback(index: int, why: str) -> str:
@@ -967,7 +983,9 @@ async def run(service: Service, config: StackConfig) -> None:
         service.compilation = "eager (planner.compile = false)"
     start_up.shutdown()
     if core.processes is not None:
-        renice(core.processes.pids, config.planner.nice)
+        for problem in renice(core.processes.pids, config.planner.nice):
+            service.log.warning("the solver's worker processes may not run at niceness +%d: %s",
+                                config.planner.nice, problem)
     await await_arm_commanders(service, planner, arms_to_await())
     server = service.request_server(config.endpoint("planner", "cmd"), planner.handle)
     serving = service.supervise(asyncio.create_task(server.serve(), name="planner.serve"))

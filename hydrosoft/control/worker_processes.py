@@ -11,7 +11,11 @@ a picklable description) and a few hundred microseconds of messages per solve.
 serve (``python -c "from hydrosoft.control.worker_processes import serve_fd; serve_fd(FD)"``; run as ``-m`` it was
 imported twice, and runpy warned of it), each talking to its parent over a socket pair. (A fork of a process that
 runs torch's threads is unsafe, and multiprocessing's ``spawn`` re-imports the parent's main script, which a script
-without a ``__main__`` guard cannot survive.) ``set_problem(problem)`` has each call ``build(problem) -> (dynamics,
+without a ``__main__`` guard cannot survive.) Each starts in a session of its own: where the kernel schedules each
+session as one group (Linux's autogroup, on by default in Ubuntu's kernels), a worker then competes with the other
+programs as a program of its own, and its niceness can be set against theirs (a group's niceness,
+``/proc/PID/autogroup``); in its parent's group the two workers shared one program's share, and their niceness
+counted only against their parent's threads. ``set_problem(problem)`` has each call ``build(problem) -> (dynamics,
 stage_cost, terminal_cost)`` and keep a ``CemGd`` of its own on it (one worker, the parent's bounds, dtype and
 settings), as for a new goal; ``build`` must be a module-level function and ``problem`` picklable, and ``build`` may
 keep what does not change between problems (the model and its compiled step). ``improve(x0, shares)`` sends the batch-1
@@ -115,7 +119,7 @@ class WorkerProcesses:
             with theirs:
                 self._processes.append(subprocess.Popen(
                     [sys.executable, "-c", f"from {__name__} import serve_fd; serve_fd({theirs.fileno()})"],
-                    pass_fds=[theirs.fileno()], stdout=STDERR_FD))
+                    pass_fds=[theirs.fileno()], stdout=STDERR_FD, start_new_session=True))
             self._pipes.append(Connection(ours.detach()))
         self._broadcast("start", [solver] * workers)
 

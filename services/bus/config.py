@@ -368,7 +368,8 @@ class PlannerConfig(Strict):
     the scheduling niceness, 0-19 (``os.nice``), of the planner's computing (its build, compile and solve threads and
     its worker processes; its event loop keeps its own): on cores it shares with the arm commander and the sensor
     services, a positive one lets them run first whenever they are ready, so a solve or a compile never starves the
-    commander's servo loop or the controller link. device: where the
+    commander's servo loop or the controller link (and so do other programs at a lower niceness: each worker process
+    is a program of its own to the scheduler, its session's group set to this niceness). device: where the
     planner's model, solver and worker processes compute, ``cpu`` (the default), ``cuda`` or ``cuda:N`` (a torch
     device); a planner whose GPU is not available says so in its status and plans nothing (no fallback to the CPU)."""
 

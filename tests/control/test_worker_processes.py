@@ -222,3 +222,16 @@ def test_a_worker_process_starts_without_a_warning(capfd):
     assert_stopped(pids)
     err = capfd.readouterr().err
     assert "Warning" not in err, err
+
+
+def test_each_worker_process_leads_a_session_of_its_own_so_the_scheduler_weighs_it_as_a_program():
+    """Where the kernel schedules each session as one group (autogroup), two workers in their parent's session shared
+    one program's share of the cores, and their niceness counted only against their parent's threads."""
+    workers = start(CemGdConfig(seed=0, workers=2))
+    pids = workers.pids
+    try:
+        assert [os.getsid(pid) for pid in pids] == pids
+        assert os.getsid(0) not in pids
+    finally:
+        workers.close()
+    assert_stopped(pids)

@@ -203,3 +203,26 @@ def test_renice_lowers_the_priority_of_every_thread_of_the_worker_processes():
         for process in processes:
             process.kill()
             process.wait()
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="the kernel groups no sessions (autogroup)")
+def test_renice_sets_the_scheduling_group_of_a_process_that_leads_its_session_and_no_other():
+    """Where the kernel schedules each session as one group, a process's niceness counts only within its group: a
+    worker process that leads its own session gets its group's niceness set too, so that against the other programs
+    it runs at ``planner.nice``. A process in the planner's own session leaves the planner's group alone."""
+    code = "import time; print(flush=True); time.sleep(60)"
+    alone = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, start_new_session=True)
+    ours = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+    try:
+        for process in (alone, ours):
+            process.stdout.readline()
+        group_nice = open("/proc/self/autogroup").read().split()[-1]
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        assert planner.renice([alone.pid, ours.pid], 4) == []
+        assert open(f"/proc/{alone.pid}/autogroup").read().split()[-1] == str(own + 4)
+        assert open(f"/proc/{ours.pid}/autogroup").read().split()[-1] == group_nice
+        assert os.getpriority(os.PRIO_PROCESS, ours.pid) == own + 4
+    finally:
+        for process in (alone, ours):
+            process.kill()
+            process.wait()
