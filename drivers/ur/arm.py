@@ -467,7 +467,8 @@ class URArm:
         nothing: ``guard.abandon``), servoL must return within ``REALTIME_CALL_TIMEOUT_S`` of its start (else
         ``DeviceFault``, counted ``command_timeout``, as a call that never started because the control thread was
         busy). ``DeviceFault`` (``command_rejected``) when servoL raises; a getter's error propagates as from
-        ``read_state``. It counts as a control call in flight (no watchdog kick meanwhile) and as a command only
+        ``read_state``. Once the caller stops waiting (an error, a timeout, a cancellation), a call still reading
+        sends nothing. It counts as a control call in flight (no watchdog kick meanwhile) and as a command only
         when servoL was sent."""
         self._control_calls_in_flight += 1
         job = self._control_thread.submit(call)
@@ -497,7 +498,7 @@ class URArm:
             raise DeviceFault(f"{self}: ur_rtde call failed: {exc}") from exc
         finally:
             self._control_calls_in_flight -= 1
-            if guard.sent_ns is not None:
+            if guard.abandon() is not None:  # cancelled or not: a call still reading sends nothing now
                 self._last_command_ns = time.monotonic_ns()
 
     def _command_timeout(self, timeout_s: float) -> DeviceFault:
