@@ -6,8 +6,10 @@ RTDE registers (devices.md section 3). Poses cross this edge converted between U
 the stack's ``(7,)`` ``[x, y, z, qw, qx, qy, qz]`` (``pose.py``), in the robot base frame.
 
 Threads. Every ur_rtde method blocks in C++ with the GIL released, so each client gets one dedicated worker thread
-(the calls of one client are serialised; the event loop never waits on them). The constructors and destructors
-are the exception: they hold the GIL. Before constructing, ``connect`` checks with asyncio that the RTDE stream
+(the calls of one client are serialised; the event loop never waits on them). One exception: ``servo_to`` reads
+the receive client's status words on the control thread, right before its servoL, in the same hop (one hop per
+command instead of two); those getters only copy the newest values under ur_rtde's state lock and never wait on
+the network. The constructors and destructors differ too: they hold the GIL. Before constructing, ``connect`` checks with asyncio that the RTDE stream
 flows and that the dashboard and script ports answer (``probe.py``), so a controller that is gone or stalled fails
 fast without freezing the loop; a successful construction still freezes the loop for its duration (about 5 ms
 for the receive client and 20-40 ms for the control client on loopback, more when a script must be replaced). A destructor sleeps 500 ms holding the GIL, so retired clients are
@@ -18,7 +20,8 @@ Safety behaviour:
 - ``connect`` arms the controller's watchdog (``setWatchdog(watchdog_min_hz)``): when no command reaches the
   controller for ``1 / watchdog_min_hz`` s (this process died or hangs) the script stops and so does the arm. While
   connected, a supervisor task kicks the watchdog whenever no other command went out within a quarter period.
-- ``servo_to`` reads the state first and never commands while the stream is stale, while the controller reports a
+- ``servo_to`` reads the state first (the status words, on the control thread, with no event-loop turn between
+  the read and the command) and never commands while the stream is stale, while the controller reports a
   stop of its own (any safety stop bit, a robot mode other than RUNNING, the program not playing: named in
   ``ArmState.controller_stop`` by ``safety_status.py``): it raises ``Stale`` or ``DeviceFault`` instead.
 - ``read_state`` raises ``Stale`` when the newest state is older than ``max_age_s``, its age estimated from the
