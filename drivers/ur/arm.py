@@ -6,15 +6,15 @@ RTDE registers (devices.md section 3). Poses cross this edge converted between U
 the stack's ``(7,)`` ``[x, y, z, qw, qx, qy, qz]`` (``pose.py``), in the robot base frame.
 
 Threads. Every ur_rtde method blocks in C++ with the GIL released, so each client gets one dedicated worker thread
-(the calls of one client are serialised; the event loop never waits on them). One exception: ``servo_to`` reads
-the receive client's status words on the control thread, right before its servoL, in the same hop (one hop per
-command instead of two); those getters only copy the newest values under ur_rtde's state lock and never wait on
-the network. The constructors and destructors differ too: they hold the GIL. Before constructing, ``connect`` checks with asyncio that the RTDE stream
-flows and that the dashboard and script ports answer (``probe.py``), so a controller that is gone or stalled fails
-fast without freezing the loop; a successful construction still freezes the loop for its duration (about 5 ms
-for the receive client and 20-40 ms for the control client on loopback, more when a script must be replaced). A destructor sleeps 500 ms holding the GIL, so retired clients are
-disconnected on their worker thread (the sleep there does not hold the GIL) and parked in ``_RETIRED_CLIENTS``
-until the interpreter exits.
+(the calls of one client are serialised; the event loop never waits on them). One exception: ``servo_to`` reads the
+receive client's status words on the control thread, right before its servoL, in the same hop (one hop per command
+instead of two); those getters only copy the newest values under ur_rtde's state lock and never wait on the network.
+The constructors and destructors differ too: they hold the GIL. Before constructing, ``connect`` checks with asyncio
+that the RTDE stream flows and that the dashboard and script ports answer (``probe.py``), so a controller that is
+gone or stalled fails fast without freezing the loop; a successful construction still freezes the loop for its
+duration (about 5 ms for the receive client and 20-40 ms for the control client on loopback, more when a script must
+be replaced). A destructor sleeps 500 ms holding the GIL, so retired clients are disconnected on their worker thread
+(the sleep there does not hold the GIL) and parked in ``_RETIRED_CLIENTS`` until the interpreter exits.
 
 Safety behaviour:
 - ``connect`` arms the controller's watchdog (``setWatchdog(watchdog_min_hz)``): when no command reaches the
@@ -474,8 +474,8 @@ class URArm:
         sends nothing. It counts as a control call in flight (no watchdog kick meanwhile) and as a command only
         when servoL was sent."""
         self._control_calls_in_flight += 1
-        job = self._control_thread.submit(call)
         try:
+            job = self._control_thread.submit(call)
             try:
                 async with asyncio.timeout(REALTIME_CALL_TIMEOUT_S):
                     return await asyncio.wrap_future(job)
