@@ -6,19 +6,22 @@ RTDE registers (devices.md section 3). Poses cross this edge converted between U
 the stack's ``(7,)`` ``[x, y, z, qw, qx, qy, qz]`` (``pose.py``), in the robot base frame.
 
 Threads. Every ur_rtde method blocks in C++ with the GIL released, so each client gets one dedicated worker thread
-(the calls of one client are serialised; the event loop never waits on them). The constructors and destructors
-are the exception: they hold the GIL. Before constructing, ``connect`` checks with asyncio that the RTDE stream
-flows and that the dashboard and script ports answer (``probe.py``), so a controller that is gone or stalled fails
-fast without freezing the loop; a successful construction still freezes the loop for its duration (about 5 ms
-for the receive client and 20-40 ms for the control client on loopback, more when a script must be replaced). A destructor sleeps 500 ms holding the GIL, so retired clients are
-disconnected on their worker thread (the sleep there does not hold the GIL) and parked in ``_RETIRED_CLIENTS``
-until the interpreter exits.
+(the calls of one client are serialised; the event loop never waits on them). One exception: ``servo_to`` reads the
+receive client's status words on the control thread, right before its servoL, in the same hop (one hop per command
+instead of two); those getters only copy the newest values under ur_rtde's state lock and never wait on the network.
+The constructors and destructors differ too: they hold the GIL. Before constructing, ``connect`` checks with asyncio
+that the RTDE stream flows and that the dashboard and script ports answer (``probe.py``), so a controller that is
+gone or stalled fails fast without freezing the loop; a successful construction still freezes the loop for its
+duration (about 5 ms for the receive client and 20-40 ms for the control client on loopback, more when a script must
+be replaced). A destructor sleeps 500 ms holding the GIL, so retired clients are disconnected on their worker thread
+(the sleep there does not hold the GIL) and parked in ``_RETIRED_CLIENTS`` until the interpreter exits.
 
 Safety behaviour:
 - ``connect`` arms the controller's watchdog (``setWatchdog(watchdog_min_hz)``): when no command reaches the
   controller for ``1 / watchdog_min_hz`` s (this process died or hangs) the script stops and so does the arm. While
   connected, a supervisor task kicks the watchdog whenever no other command went out within a quarter period.
-- ``servo_to`` reads the state first and never commands while the stream is stale, while the controller reports a
+- ``servo_to`` reads the state first (the status words, on the control thread, with no event-loop turn between
+  the read and the command) and never commands while the stream is stale, while the controller reports a
   stop of its own (any safety stop bit, a robot mode other than RUNNING, the program not playing: named in
   ``ArmState.controller_stop`` by ``safety_status.py``): it raises ``Stale`` or ``DeviceFault`` instead.
 - ``read_state`` raises ``Stale`` when the newest state is older than ``max_age_s``, its age estimated from the
@@ -42,6 +45,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -103,6 +107,7 @@ class URArm:
         self._control_calls_in_flight = 0
         self._last_command_ns = 0
         self._age = StreamAge()
+        self._age_lock = threading.Lock()  # read_state (event loop) and servo_to (control thread) both observe
         self._supervisor: asyncio.Task | None = None
         self._link_up = False
         self._link_since_ns = 0
@@ -144,7 +149,7 @@ class URArm:
             self._mark_link_lost("the RTDE stream closed")
             self.counters["not_connected"] += 1
             raise NotConnected(f"{self}: the RTDE stream from the controller closed; reconnecting")
-        age_s = self._age.observe(stamp_s, now_ns)
+        age_s = self._stream_age_s(stamp_s, now_ns)
         if age_s > self.config.max_age_s:
             self.counters["stale"] += 1
             raise Stale(
@@ -167,23 +172,54 @@ class URArm:
     async def servo_to(self, tcp_pose: np.ndarray) -> None:
         """Send one servoL toward ``tcp_pose (7,)`` [m, wxyz] in the base frame, for one servo period.
 
-        Raises ``ValueError`` for a malformed pose (shape, non-finite, quaternion not unit), ``NotConnected``,
-        ``Stale``, and ``DeviceFault`` when protectively/emergency stopped, when the script is not running or
-        when the controller does not accept the command. Nothing is sent in any of these cases but the last.
+        One hop to the control thread reads the controller's status words (``_read_guard``), judges them as
+        ``read_state`` does (link, age, any stop of the controller's own) and sends servoL only when they allow it:
+        the check reads the state right before the command, with no event-loop turn between them. Raises
+        ``ValueError`` for a malformed pose (shape, non-finite, quaternion not unit), ``NotConnected``, ``Stale``,
+        and ``DeviceFault`` when protectively/emergency stopped, when the script is not running or when the
+        controller does not accept the command. Nothing is sent in any of these cases but the last.
         """
         try:
             ur_pose = pose_to_ur(tcp_pose).tolist()
         except ValueError:
             self.counters["rejected_target"] += 1
             raise
-        state = await self.read_state()
-        self._require_commandable(state, "servoL")
+        receive = self._require_link()
+        control = self._control
+        if control is None:
+            self.counters["not_connected"] += 1
+            raise NotConnected(f"{self}: not connected")
         cfg = self.config
-        accepted = await self._control_call(
-            lambda c: c.servoL(ur_pose, cfg.servo_speed_m_s, cfg.servo_accel_m_s2, cfg.servo_period_s,
-                               cfg.servo_lookahead_s, cfg.servo_gain),
-            REALTIME_CALL_TIMEOUT_S,
-        )
+        guard = _ServoGuard()
+
+        def read_check_send() -> bool | None:
+            guard.started = True
+            connected, stamp_s, runtime_state, safety_bits, robot_mode = _read_guard(receive)
+            guard.read(connected, stamp_s, time.monotonic_ns())
+            if not connected:
+                return None
+            guard.age_s = self._stream_age_s(stamp_s, guard.read_ns)
+            guard.stop = controller_stop(safety_bits, robot_mode, runtime_state)
+            guard.flags = safety_flags(safety_bits)
+            if guard.age_s > cfg.max_age_s or guard.stop:
+                return None
+            if not guard.may_send():
+                return None
+            return control.servoL(ur_pose, cfg.servo_speed_m_s, cfg.servo_accel_m_s2, cfg.servo_period_s,
+                                  cfg.servo_lookahead_s, cfg.servo_gain)
+
+        accepted = await self._guarded_call(read_check_send, guard)
+        if not guard.connected:
+            self._mark_link_lost("the RTDE stream closed")
+            self.counters["not_connected"] += 1
+            raise NotConnected(f"{self}: the RTDE stream from the controller closed; reconnecting")
+        if guard.age_s > cfg.max_age_s:
+            self.counters["stale"] += 1
+            raise Stale(
+                f"{self}: newest controller state (timestamp {guard.stamp_s:.3f} s) is {guard.age_s:.3f} s old "
+                f"(max_age_s {cfg.max_age_s} s)"
+            )
+        self._require_commandable(guard.flags, guard.stop, "servoL")
         if not accepted:
             self.counters["command_rejected"] += 1
             raise DeviceFault(f"{self}: the controller did not accept servoL (script not ready)")
@@ -285,7 +321,8 @@ class URArm:
             raise NotConnected(f"{self}: RTDE control interface failed to start: {error_text(exc)}") from exc
         self._link_up = True
         self._link_since_ns = time.monotonic_ns()
-        self._age.reset()  # the controller may have restarted: its clock too
+        with self._age_lock:
+            self._age.reset()  # the controller may have restarted: its clock too
         try:
             await self._arm_watchdog()
         except (DeviceFault, NotConnected):
@@ -336,16 +373,22 @@ class URArm:
             raise NotConnected(f"{self}: not connected" + (" (closed)" if self._closed else ""))
         return receive
 
-    def _require_commandable(self, state: ArmState, command: str) -> None:
-        """Raise ``DeviceFault`` (counted) while the controller reports a safety stop, or any other stop of its own
-        (``controller_stop``: the program not playing, the arm not powered)."""
-        if state.safety_flags:
+    def _require_commandable(self, flags: tuple[str, ...], stop: str, command: str) -> None:
+        """Raise ``DeviceFault`` (counted) while the controller reports a safety stop (``flags``, as
+        ``ArmState.safety_flags``), or any other stop of its own (``stop``, as ``ArmState.controller_stop``: the
+        program not playing, the arm not powered)."""
+        if flags:
             self.counters["refused_safety_stop"] += 1
-            raise DeviceFault(f"{self}: {state.safety_flags[0]} active; {command} not sent")
-        if state.controller_stop:
+            raise DeviceFault(f"{self}: {flags[0]} active; {command} not sent")
+        if stop:
             self.counters["refused_script_not_running"] += 1
-            raise DeviceFault(f"{self}: the control script is not running ({state.controller_stop}); "
-                              f"{command} not sent")
+            raise DeviceFault(f"{self}: the control script is not running ({stop}); {command} not sent")
+
+    def _stream_age_s(self, stamp_s: float, now_ns: int) -> float:
+        """The age (s) of the controller state stamped ``stamp_s`` (controller clock, s) read at ``now_ns``
+        (``stream_age.py``); safe from the event loop and the control thread."""
+        with self._age_lock:
+            return self._age.observe(stamp_s, now_ns)
 
     async def _state_for_stop(self) -> ArmState | None:
         """State for ``stop``: None when only staleness prevents reading it (the stop is sent anyway)."""
@@ -413,14 +456,58 @@ class URArm:
         try:
             return await self._on_thread(self._control_thread, lambda: call(control), timeout_s)
         except asyncio.TimeoutError as exc:
-            self.counters["command_timeout"] += 1
-            raise DeviceFault(f"{self}: ur_rtde call did not return within {timeout_s} s") from exc
+            raise self._command_timeout(timeout_s) from exc
         except RuntimeError as exc:
             self.counters["command_rejected"] += 1
             raise DeviceFault(f"{self}: ur_rtde call failed: {exc}") from exc
         finally:
             self._control_calls_in_flight -= 1
             self._last_command_ns = time.monotonic_ns()
+
+    async def _guarded_call(self, call: Callable[[], T], guard: _ServoGuard) -> T:
+        """``call()`` (``servo_to``'s read-check-send) on the control thread, with the limits of the two calls it
+        replaces: the read must be done within ``REALTIME_CALL_TIMEOUT_S`` (else ``Stale``, and the call sends
+        nothing: ``guard.abandon``), servoL must return within ``REALTIME_CALL_TIMEOUT_S`` of its start (else
+        ``DeviceFault``, counted ``command_timeout``, as a call that never started because the control thread was
+        busy). ``DeviceFault`` (``command_rejected``) when servoL raises; a getter's error propagates as from
+        ``read_state``. Once the caller stops waiting (an error, a timeout, a cancellation), a call still reading
+        sends nothing. It counts as a control call in flight (no watchdog kick meanwhile) and as a command only
+        when servoL was sent."""
+        self._control_calls_in_flight += 1
+        try:
+            job = self._control_thread.submit(call)
+            try:
+                async with asyncio.timeout(REALTIME_CALL_TIMEOUT_S):
+                    return await asyncio.wrap_future(job)
+            except TimeoutError:
+                sent_ns = guard.abandon()
+                if job.done() and not job.cancelled():
+                    return job.result()
+                if sent_ns is None and guard.started:
+                    self.counters["stale"] += 1
+                    raise Stale(f"{self}: the receive client did not answer within {REALTIME_CALL_TIMEOUT_S} s") \
+                        from None
+                if sent_ns is None:
+                    raise self._command_timeout(REALTIME_CALL_TIMEOUT_S) from None
+            try:
+                async with asyncio.timeout_at(sent_ns * 1e-9 + REALTIME_CALL_TIMEOUT_S):
+                    return await asyncio.wrap_future(job)
+            except TimeoutError:
+                raise self._command_timeout(REALTIME_CALL_TIMEOUT_S) from None
+        except RuntimeError as exc:
+            if guard.sent_ns is None:
+                raise
+            self.counters["command_rejected"] += 1
+            raise DeviceFault(f"{self}: ur_rtde call failed: {exc}") from exc
+        finally:
+            self._control_calls_in_flight -= 1
+            if guard.abandon() is not None:  # cancelled or not: a call still reading sends nothing now
+                self._last_command_ns = time.monotonic_ns()
+
+    def _command_timeout(self, timeout_s: float) -> DeviceFault:
+        """The ``DeviceFault`` of a control call that did not return within ``timeout_s`` (s), counted."""
+        self.counters["command_timeout"] += 1
+        return DeviceFault(f"{self}: ur_rtde call did not return within {timeout_s} s")
 
     async def _on_thread(self, thread: ThreadPoolExecutor, call: Callable[[], T], timeout_s: float) -> T:
         """``call()`` on ``thread``; TimeoutError after ``timeout_s`` s (the call itself runs on). A cancellation
@@ -443,3 +530,54 @@ def _read_receive(receive: Any) -> tuple[bool, float, list[float], list[float], 
         receive.getRobotMode(),
     )
 
+
+def _read_guard(receive: Any) -> tuple[bool, float, int, int, int]:
+    """The status words ``servo_to`` checks before each command: link, controller timestamp (s), runtime state,
+    safety status bits, robot mode (not the pose and speed, which ``read_state`` converts)."""
+    return (
+        receive.isConnected(),
+        receive.getTimestamp(),
+        receive.getRuntimeState(),
+        receive.getSafetyStatusBits(),
+        receive.getRobotMode(),
+    )
+
+
+class _ServoGuard:
+    """How far one ``servo_to``'s read-check-send on the control thread got, shared with the event loop: what it
+    read (link, controller stamp in s, host read time in ns, age in s, safety flags, the controller's stop), when it
+    sent servoL (``sent_ns``) and whether the loop gave up waiting (``abandoned``: then it sends nothing)."""
+
+    __slots__ = ("lock", "started", "connected", "stamp_s", "read_ns", "age_s", "flags", "stop", "sent_ns",
+                 "abandoned")
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.started = False
+        self.connected = True
+        self.stamp_s = 0.0
+        self.read_ns = 0
+        self.age_s = 0.0
+        self.flags: tuple[str, ...] = ()
+        self.stop = ""
+        self.sent_ns: int | None = None
+        self.abandoned = False
+
+    def read(self, connected: bool, stamp_s: float, read_ns: int) -> None:
+        """Note the link and the controller's stamp as read at ``read_ns`` (monotonic ns)."""
+        self.connected, self.stamp_s, self.read_ns = connected, stamp_s, read_ns
+
+    def may_send(self) -> bool:
+        """On the control thread, right before servoL: whether the loop still waits (then note the send time)."""
+        with self.lock:
+            if self.abandoned:
+                return False
+            self.sent_ns = time.monotonic_ns()
+            return True
+
+    def abandon(self) -> int | None:
+        """On the event loop, when it stops waiting: nothing is sent from now on; returns when servoL was sent
+        (monotonic ns), or None when it was not."""
+        with self.lock:
+            self.abandoned = True
+            return self.sent_ns

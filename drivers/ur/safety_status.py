@@ -7,6 +7,7 @@ those of UR's RTDE guide for e-Series controllers (CB3 controllers report the sa
 
 from __future__ import annotations
 
+import functools
 from enum import IntEnum
 
 #: ``safety_status_bits``: bit number -> name (UR RTDE guide). Bit 0 (normal mode) and bit 1 (reduced mode) are
@@ -26,6 +27,9 @@ SAFETY_STATUS_BITS = {
 }
 #: The bits that are not stops.
 NOT_A_STOP = frozenset({0, 1})
+#: Status words whose names ``safety_flags`` and ``controller_stop`` keep: the controller reports the same few words
+#: at every servo tick, so each is named once; any other word is named as before, only not kept.
+NAMED_WORDS_KEPT = 256
 #: The order in which a stop cause is named when several bits are set: the most severe first.
 SEVERITY = (5, 6, 7, 9, 8, 4, 2, 3, 10)
 
@@ -56,6 +60,7 @@ class RuntimeState(IntEnum):
     RESUMING = 5
 
 
+@functools.lru_cache(maxsize=NAMED_WORDS_KEPT)
 def safety_flags(bits: int) -> tuple[str, ...]:
     """The names of the stop bits set in ``safety_status_bits`` (most severe first; normal/reduced mode left out).
     An unknown bit is named ``"safety bit N"``."""
@@ -73,6 +78,7 @@ def robot_mode_name(mode: int) -> str:
         return f"robot mode {mode}"
 
 
+@functools.lru_cache(maxsize=NAMED_WORDS_KEPT)
 def controller_stop(safety_bits: int, robot_mode: int, runtime_state: int) -> str:
     """The controller's reason for not running the stack's program, or "" when it runs it in normal operation.
 
