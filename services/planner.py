@@ -83,7 +83,7 @@ from hydrosoft.compilation import building_precompiled
 from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
 from hydrosoft.control import device_unavailable as control_device_unavailable
-from hydrosoft.control.worker_processes import SETTLE_AFTER, eager_parts
+from hydrosoft.control.worker_processes import eager_parts
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import State, with_object_update
@@ -246,7 +246,7 @@ class PlannerCore:
         settings = PlannerSettings(model=pc.model, spacing=pc.spacing, samples=pc.samples, elites=pc.elites,
                                    horizon=pc.horizon, grad_steps=pc.grad_steps, dtype=getattr(torch, pc.dtype),
                                    seed=pc.seed, sdf_solver_steps=pc.sdf_solver_steps, compile=pc.compile,
-                                   workers=pc.workers, object_update=pc.object_update)
+                                   workers=pc.workers, chunks=pc.chunks, object_update=pc.object_update)
         model, state, _ = compile_scene(planner_scene(task, config), dtype=settings.dtype)
         model = with_object_update(model.to(device=torch.device(pc.device)), pc.object_update)
         arms = {}
@@ -795,7 +795,7 @@ def worker_problem(config: StackConfig, goal_pose: torch.Tensor, object_pose: to
                    arm_poses: dict[str, torch.Tensor]) -> tuple:
     """What a solver worker process builds a goal's problem from (``core_problem``): ``config`` as one worker without
     processes of its own, and the goal and anchor ``PlannerCore.problem`` takes."""
-    alone = msgspec.structs.replace(config.planner, workers=1, worker_processes=False)
+    alone = msgspec.structs.replace(config.planner, workers=1, chunks=0, worker_processes=False)
     return msgspec.structs.replace(config, planner=alone), goal_pose, object_pose, arm_poses
 
 
@@ -810,42 +810,54 @@ def core_problem(problem: tuple) -> tuple[Callable, Callable, Callable]:
     return _WORKER_CORES[key].problem(goal_pose, object_pose, arm_poses)
 
 
-def compile_step(core: PlannerCore) -> float:
-    """Compile the planner's step for every input signature a solve uses, by ``SETTLE_AFTER`` solves of one solver
-    from the scene's initial state (the later ones warm-started, as a goal's; their results are dropped), then settle
-    the garbage collector (``garbage_collection.settle_garbage_collector``: the compiler's objects out of its way);
-    the seconds it took. With torch's compile cache warm this loads the compiled code instead (seconds, not minutes).
+WARM_UP_SOLVES = 2
+"""Solves of the planner's start-up (``compile_step``): the first compiles the step's graphs, the second (warm-started,
+as a goal's) those of the step from its own outputs."""
 
-    Why that many solves: a solver worker process settles its own collector after that many improves of a problem
-    (``worker_processes.SETTLE_AFTER``). The first settle walks the compiler's half a million objects (about 0.2 s on
-    2 cores); later ones walk only what came after. With one solve here, that first settle fell on the first goal's
-    second solve: 211 against 31-41 ms for every other solve (idle, the paper planner)."""
+
+def compile_step(core: PlannerCore) -> float:
+    """Compile the planner's step for every input signature a solve uses, by ``WARM_UP_SOLVES`` solves of one solver
+    from the scene's initial state (the later ones warm-started, as a goal's; their results are dropped), then settle
+    the garbage collector (``garbage_collection.settle_garbage_collector``: the compiler's objects out of its way) in
+    each solver worker process (``WorkerProcesses.settle``) and in this one; the seconds it took. With torch's compile
+    cache warm this loads the compiled code instead (seconds, not minutes).
+
+    Why the workers settle here: a worker's first settle walks the compiler's half a million objects (about 0.2 s on
+    2 cores); later ones walk only what came after. When each worker settled by itself after a count of its own
+    solves, with one solve here that first settle fell on the first goal's second solve: 211 against 31-41 ms for
+    every other solve (idle, the paper planner); with the samples cut into chunks a worker's count no longer followed
+    the solves."""
     started = time.monotonic()
     _, initial, _ = compile_scene(planner_scene(core.task, core.config), dtype=core.model.dtype)
     arm_poses = {name: initial.body_poses[0, index].double() for name, index in core.arms.items()}
     solver = core.solver(core.task.initial_pose(), initial.object_pose[0].double(), arm_poses)
-    for _ in range(SETTLE_AFTER):
+    for _ in range(WARM_UP_SOLVES):
         solver.solve(initial)
+    if core.processes is not None:
+        core.processes.settle()
     settle_garbage_collector()
     return time.monotonic() - started
 
 
-def share_sizes(samples: int, workers: int) -> list[int]:
-    """The batch sizes of the solver's shares, each once: ``samples`` split over ``workers`` as ``CemGd`` splits them
-    (``Tensor.tensor_split``: the first ``samples % workers`` shares one larger)."""
-    return sorted({samples // workers + (index < samples % workers) for index in range(workers)} - {0})
+def share_sizes(samples: int, workers: int, chunks: int = 0) -> list[int]:
+    """The batch sizes of the solver's shares, each once: ``samples`` cut into ``CemGdConfig(workers=workers,
+    chunks=chunks).pieces`` as ``CemGd`` cuts them (``Tensor.tensor_split``: the first ``samples % pieces`` shares one
+    larger)."""
+    pieces = 1 if workers == 1 else chunks or workers
+    return sorted({samples // pieces + (index < samples % pieces) for index in range(pieces)} - {0})
 
 
 def build_precompiled(config: StackConfig, directory: Path) -> None:
     """Build the planner's precompiled functions (step and costs, ``compilation.Precompiled``) into ``directory``, in
-    this process alone, for every input signature a solver worker's solve uses: per share size (``share_sizes``),
+    this process alone, for every input signature a solver worker's solve uses: per share size (``share_sizes``: the
+    chunks' sizes when the samples are cut into chunks),
     one solve of a one-worker core whose batch is that share, as a worker process (or thread) runs its share.
     Functions already there are loaded, not built again. A function that fails to build is left without a file:
     the processes that load the others compile it the usual way, and say so if that fails too (``compile_planner``).
     (Each worker process building its own copy took about 10 minutes per file under load, all of them building the
     same files.)"""
-    for size in share_sizes(config.planner.samples, config.planner.workers):
-        alone = msgspec.structs.replace(config.planner, workers=1, worker_processes=False, samples=size,
+    for size in share_sizes(config.planner.samples, config.planner.workers, config.planner.chunks):
+        alone = msgspec.structs.replace(config.planner, workers=1, chunks=0, worker_processes=False, samples=size,
                                         elites=min(config.planner.elites, size))
         with building_precompiled(directory):  # only this core's functions build
             core = PlannerCore.build(msgspec.structs.replace(config, planner=alone))

@@ -144,6 +144,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the --rate-workers shares run: threads of the planner's process, or processes "
                              "of their own (control.WorkerProcesses, each with its own copy of the step, compiled "
                              "there); one measurement each (default threads)")
+    parser.add_argument("--rate-chunks", type=_csv, default=["0"], metavar="C1,C2",
+                        help="with two --rate-workers or more: the pieces the samples are cut into, each taken by "
+                             "whichever worker is free (PlannerSettings.chunks; 0: one per worker, the default), "
+                             "one measurement each in the same run")
     parser.add_argument("--rate-activation-budgets", type=_csv, default=["0"], metavar="B1,B2",
                         help="with --compile: the compiled step's activation_memory_budget for the replanning rate "
                              "(0: the backward recomputes the forward's intermediates, the default; 1: torch's "
@@ -208,7 +212,7 @@ def _row(plant: str, task: str, model: str, loop: str, results: list) -> dict:
 def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
                     sdf_solver_steps: int | None = None, workers: int = 1,
                     activation_budget: float = 0.0, object_update: str = "explicit", compiled_costs: bool = True,
-                    worker_kind: str = "threads", device: str = "cpu", samples: int = 64) -> dict:
+                    worker_kind: str = "threads", device: str = "cpu", samples: int = 64, chunks: int = 0) -> dict:
     """Closed-loop planar pushing with the full planner (B = ``samples``, 64 by default, K = 10, G = 2, 216 surface
     points of which the
     132 that can touch a body are kept, each against its one body) in ``dtype``: the
@@ -221,13 +225,15 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
     sub-steps and the stability checks) and of the stage and terminal costs (``cost_forward_ms``) take, summed over
     the workers' threads; the backward passes through both are in ``backward_ms``. ``sdf_solver_steps``: the
     planner's bubble ellipsoid solve; ``workers``: the solver's threads, each rolling out a share of the samples
-    (both ``PlannerSettings``); ``activation_budget``: the compiled step's ``activation_memory_budget``;
+    (both ``PlannerSettings``); ``chunks``: the pieces the samples are cut into, each taken by whichever worker is free
+    (``PlannerSettings.chunks``; the result says how many a solve used: 1 with one worker); ``activation_budget``: the compiled step's ``activation_memory_budget``;
     ``object_update``: the planner model's (``PlannerSettings.object_update``); ``compiled_costs``: with ``compile``,
     the costs through the setup's compiled cost terms (as the planner runs them) or eager; ``preloaded``: the
     process's ``LD_PRELOAD`` (the allocator ``hydrosoft-stack`` preloads, ``hydrosoft.services.bus.allocator``), or None.
 
     After the warm-up solves the process's garbage collector is settled
-    (``garbage_collection.settle_garbage_collector``), as the stack's planner does once it has compiled. A timed
+    (``garbage_collection.settle_garbage_collector``), and its worker processes', as the stack's planner does once it
+    has compiled. A timed
     solve is one cycle of the closed loop, as ``evaluation.run_episode`` runs it: the state estimate from the
     plant's sensors and the planner's prediction of this instant (``observed_state``; ``estimate_ms``), the solve,
     and the prediction of the applied action for the next estimate (``predict_ms``: taken from the solve's own
@@ -253,7 +259,7 @@ def replanning_rate(solves: int, compile: bool = False, dtype: str = "float64",
         raise ValueError(f"worker processes compute on the CPU; --device {device} takes worker threads")
     settings = PlannerSettings(model="nh", spacing=FULL["spacing"], samples=samples, elites=8, horizon=10, grad_steps=2,
                                compile=compile, dtype=getattr(torch, dtype), sdf_solver_steps=sdf_solver_steps,
-                               workers=workers, object_update=object_update,
+                               workers=workers, chunks=chunks, object_update=object_update,
                                worker_processes=worker_kind == "processes")
     options = {"activation_memory_budget": activation_budget}
     setup = on_device(prepare(task, settings, compile_options=options), torch.device(device), options)
@@ -339,6 +345,8 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
         if k < warmups:
             warmup_s.append(wall)
             if k == warmups - 1:
+                if solver.processes is not None:
+                    solver.processes.settle()
                 settle_garbage_collector()
         else:
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
@@ -359,6 +367,7 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
         "solve_ms": 1e3 * mean["solve_s"], "rate_hz": 1.0 / mean["solve_s"], "rollout_ms": 1e3 * mean["rollout_s"],
         "backward_ms": 1e3 * mean["backward_s"], "cem_ms": 1e3 * mean["cem_s"], "threads": torch.get_num_threads(),
         "preloaded": os.environ.get("LD_PRELOAD") or None, "workers": workers, "worker_kind": kind,
+        "chunks": settings.config(settings.horizon, 1).pieces,
         "activation_budget": activation_budget if compile else None, "object_update": settings.object_update,
         "compiled_costs": compiled and compiled_costs,
         "step_forward_ms": None if settings.worker_processes or cuda else 1e3 * mean["step_s"],
@@ -504,6 +513,9 @@ def run(args: argparse.Namespace) -> int:
     if not all(text.isdigit() and int(text) >= 1 for text in args.rate_workers):
         _log(f"bench control: --rate-workers takes positive counts, got {','.join(args.rate_workers)!r}")
         return 2
+    if not all(text.isdigit() for text in args.rate_chunks):
+        _log(f"bench control: --rate-chunks takes counts (0: one per worker), got {','.join(args.rate_chunks)!r}")
+        return 2
     if not set(args.rate_worker_kinds) <= {"threads", "processes"}:
         _log(f"bench control: --rate-worker-kinds takes threads and processes, got "
              f"{','.join(args.rate_worker_kinds)!r}")
@@ -610,12 +622,12 @@ def run(args: argparse.Namespace) -> int:
                              f"{len(result.errors_mm) - 1} steps), {wall:.1f} s" + (" (logged)" if logged else ""))
                     rows.append({**_row(plant_name, name, model, loop, results), "episodes_wall_s": sum(walls)})
     replanning = [replanning_rate(rate_solves, args.compile, dtype, sdf, int(workers), budget, update,
-                                  costs == "compiled", kind, args.device, int(samples))
+                                  costs == "compiled", kind, args.device, int(samples), int(chunks))
                   for samples in args.rate_samples
                   for costs in (args.rate_costs if args.compile else ["eager"]) for update in rate_updates
                   for budget in (budgets if args.compile else budgets[:1]) for kind in args.rate_worker_kinds
-                  for workers in args.rate_workers for sdf in rate_sdf for dtype in args.rate_dtypes
-                  ] if rate_solves > 0 else None
+                  for workers in args.rate_workers for chunks in args.rate_chunks for sdf in rate_sdf
+                  for dtype in args.rate_dtypes] if rate_solves > 0 else None
     pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "goal_indices": indices, "quick": args.quick, "plant": args.plant,
                 "plants": args.plants, "same_models": same_models,
@@ -646,7 +658,8 @@ def run(args: argparse.Namespace) -> int:
                   f"G={r['grad_steps']}, {r['surface_points']} surface points ({r['points']} active, {r['pairs']} "
                   f"point-body pairs), {r['substeps']} sub-steps, bubble SDF {sdf}, {r['threads']} thread(s), "
                   f"{'LD_PRELOAD ' + r['preloaded'] if r['preloaded'] else 'system malloc'}, "
-                  f"{r['workers']} solver worker(s) ({r['worker_kind']}), {r['object_update']} object update, "
+                  f"{r['workers']} solver worker(s) ({r['worker_kind']}), the samples in {r['chunks']} chunk(s), "
+                  f"{r['object_update']} object update, "
                   f"{budget}{costs}"
                   f"{mode}: {r['rate_hz']:.2f} Hz ({r['solve_ms']:.0f} ms per solve, mean of {r['solves']}: rollout "
                   f"{r['rollout_ms']:.0f}{_call_split(r)}, backward {r['backward_ms']:.0f}, cem {r['cem_ms']:.1f}, "

@@ -22,7 +22,10 @@ suits actions that mix metres and radians. An axis with ``low == high`` is held 
 
 Workers. With ``workers = W > 1`` the ``B`` samples are split into ``W`` contiguous shares, and each share's
 gradient steps and final rollout run on a thread of its own, all at once (each sample's descent is its own, so
-the shares meet only at the refit); sampling and the refit stay on the calling thread. The rows do not interact,
+the shares meet only at the refit); sampling and the refit stay on the calling thread. With ``chunks = C > W`` the
+samples are cut into ``C`` contiguous chunks instead, and each worker takes the next chunk as it finishes one (work
+sharing): a worker that the machine delays takes fewer chunks, and the solve no longer waits for one fixed half. The
+plan does not depend on which worker ran which chunk (every chunk runs the same arithmetic on the same shape). The rows do not interact,
 so every sample's cost and gradient are what one rollout over all ``B`` gives, and so is the plan, to float
 rounding. It pays where the step's kernels are too small to keep a second core busy by themselves (torch's
 intra-op threads then mostly wait at each kernel's barrier): give each worker one intra-op thread
@@ -42,6 +45,7 @@ repeat. ``device_unavailable`` says why a device cannot be used here.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -85,12 +89,22 @@ class CemGdConfig:
     adam_eps: float = 1e-8  # in cost units, like the normalized gradient
     seed: int = 0  # seed of the solver's private generator
     workers: int = 1  # W <= B, threads that each roll out a share of the samples (module docstring)
+    chunks: int = 0  # C, W <= C <= B: pieces the samples are cut into, taken by whichever worker is free; 0: W
+
+    @property
+    def pieces(self) -> int:
+        """How many contiguous pieces a solve cuts the samples into: ``chunks`` (``workers`` when 0), 1 with one
+        worker (its batch is never cut)."""
+        return 1 if self.workers == 1 else self.chunks or self.workers
 
     def __post_init__(self) -> None:
         if not 1 <= self.elites <= self.samples:
             raise ValueError(f"need 1 <= elites <= samples, got elites={self.elites}, samples={self.samples}")
         if not 1 <= self.workers <= self.samples:
             raise ValueError(f"need 1 <= workers <= samples, got workers={self.workers}, samples={self.samples}")
+        if self.chunks and not self.workers <= self.chunks <= self.samples:
+            raise ValueError(f"need chunks = 0 or workers <= chunks <= samples, got chunks={self.chunks}, "
+                             f"workers={self.workers}, samples={self.samples}")
         if self.horizon < 1 or self.grad_steps < 0 or self.cem_iterations < 1:
             raise ValueError("need horizon >= 1, grad_steps >= 0 and cem_iterations >= 1")
         if self.lr < 0 or self.grad_clip <= 0 or self.init_std < 0 or self.min_std < 0:
@@ -104,7 +118,7 @@ class PlanResult(NamedTuple):
     plan: Tensor  # (K, *action_shape), the best sequence
     cost: float  # its cost J; inf when no sample had a finite cost
     status: str  # "ok" or "no_finite_sample" (then action and plan are the rest action)
-    timings: dict[str, float]  # wall s: rollout_s (forward), backward_s (gradients + Adam), cem_s; the slowest share's
+    timings: dict[str, float]  # wall s: rollout_s (forward), backward_s (gradients + Adam), cem_s; the busiest worker's
     states: list[State]  # x_1 .. x_K (batch 1) along plan, from the rollout that scored it; [] with no finite sample
 
 
@@ -124,9 +138,11 @@ class ShareProcesses(Protocol):
     worker module depends on the solver and not both ways."""
 
     workers: int
+    assignment: list[int]  # per share of the last ``improve``, the process that ran it
 
     def improve(self, x0: State, shares: list[Tensor]) -> list[ShareResult]:
-        """Each share ``(b_i, K, *action_shape)`` improved from ``x0`` (batch 1) by its process."""
+        """Each share ``(b_i, K, *action_shape)`` improved from ``x0`` (batch 1) by one of the processes, whichever
+        is free; the results in the shares' order."""
 
 
 class CemGd:
@@ -203,13 +219,14 @@ class CemGd:
             u = self._sample()
             timings["cem_s"] += self._clock() - tic
             if self.processes is None:
-                shares = self._map(self.improve, self._shares(x0, u))
+                shares, ran_on = self._map(self.improve, self._shares(x0, u))
             else:
-                shares = self.processes.improve(x0, list(u.tensor_split(cfg.workers)))
+                shares = self.processes.improve(x0, list(u.tensor_split(cfg.pieces)))
+                ran_on = self.processes.assignment
             u, cost = torch.cat([share.u for share in shares]), torch.cat([share.cost for share in shares])
-            slowest = max((share.timings for share in shares), key=lambda t: t["rollout_s"] + t["backward_s"])
-            timings["rollout_s"] += slowest["rollout_s"]
-            timings["backward_s"] += slowest["backward_s"]
+            busiest = _busiest_worker(shares, ran_on)
+            timings["rollout_s"] += busiest["rollout_s"]
+            timings["backward_s"] += busiest["backward_s"]
 
             tic = self._clock()
             cost = torch.where(torch.isfinite(cost), cost, math.inf)
@@ -285,20 +302,22 @@ class CemGd:
         return ShareResult(u, cost, best, best_states, timings)
 
     def _shares(self, x: State, u: Tensor) -> list[tuple[State, Tensor]]:
-        """The batch ``(x, u)`` as ``workers`` contiguous shares (one share, unsplit, with one worker)."""
-        workers = self.config.workers
-        if workers == 1:
+        """The batch ``(x, u)`` as ``config.pieces`` contiguous shares (one share, unsplit, with one worker)."""
+        pieces = self.config.pieces
+        if pieces == 1:
             return [(x, u)]
         leaves, spec = tree_flatten(x)
-        cut = [leaf.tensor_split(workers) if isinstance(leaf, Tensor) else [leaf] * workers for leaf in leaves]
-        return [(tree_unflatten([pieces[i] for pieces in cut], spec), piece)
-                for i, piece in enumerate(u.tensor_split(workers))]
+        cut = [leaf.tensor_split(pieces) if isinstance(leaf, Tensor) else [leaf] * pieces for leaf in leaves]
+        return [(tree_unflatten([parts[i] for parts in cut], spec), piece)
+                for i, piece in enumerate(u.tensor_split(pieces))]
 
-    def _map(self, fn: Callable[..., Any], items: list[tuple]) -> list:
-        """``fn(*item)`` for each item, on the worker threads when there are several; the results in order."""
+    def _map(self, fn: Callable[..., Any], items: list[tuple]) -> tuple[list, list[int]]:
+        """``fn(*item)`` for each item, on the worker threads when there are several (each takes the next item as it
+        finishes one); the results in order, and the identity of the thread that ran each."""
         if self._pool is None:
-            return [fn(*item) for item in items]
-        return list(self._pool.map(lambda item: fn(*item), items))
+            return [fn(*item) for item in items], [threading.get_ident()] * len(items)
+        ran = list(self._pool.map(lambda item: (fn(*item), threading.get_ident()), items))
+        return [result for result, _ in ran], [thread for _, thread in ran]
 
     def _descend(self, x0: State, u: Tensor, timings: dict[str, float]) -> Tensor:
         """``G`` Adam steps on each sample's own cost, in half-range-normalized coordinates, kept in bounds.
@@ -347,6 +366,17 @@ class CemGd:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         return time.perf_counter()
+
+
+def _busiest_worker(shares: list[ShareResult], ran_on: list[int]) -> dict[str, float]:
+    """The ``rollout_s`` and ``backward_s`` of the worker that computed longest, each summed over the shares it ran
+    (``ran_on``: the worker of each share): the solve waits for that one."""
+    per_worker: dict[int, dict[str, float]] = {}
+    for share, worker in zip(shares, ran_on, strict=True):
+        total = per_worker.setdefault(worker, {"rollout_s": 0.0, "backward_s": 0.0})
+        for key in total:
+            total[key] += share.timings[key]
+    return max(per_worker.values(), key=lambda t: t["rollout_s"] + t["backward_s"])
 
 
 def _winner_states(shares: list[ShareResult], index: int) -> list[State]:

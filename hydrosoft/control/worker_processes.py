@@ -18,9 +18,13 @@ programs as a program of its own, and its niceness can be set against theirs (a 
 counted only against their parent's threads. ``set_problem(problem)`` has each call ``build(problem) -> (dynamics,
 stage_cost, terminal_cost)`` and keep a ``CemGd`` of its own on it (one worker, the parent's bounds, dtype and
 settings), as for a new goal; ``build`` must be a module-level function and ``problem`` picklable, and ``build`` may
-keep what does not change between problems (the model and its compiled step). ``improve(x0, shares)`` sends the batch-1
-start state and one share of the sequences to each, whose solver's ``improve`` runs it, and returns their
-``ShareResult``s in order. The first ``improve`` compiles, in every process at once (or, with a precompiled directory
+keep what does not change between problems (the model and its compiled step). ``improve(x0, shares)`` shares the
+work: it sends the batch-1 start state and one share (a chunk) of the sequences to each process, whose solver's
+``improve`` runs it, then gives the next share to whichever process answers first, until every share is done, and
+returns their ``ShareResult``s in the shares' order. With more shares than processes, a process that the machine
+delays takes fewer of them, and the solve no longer ends with the later of two fixed halves. Which process ran which
+share (``assignment``) does not change a result: each runs the same compiled step on the same shape. The first
+``improve`` compiles, in every process at once (or, with a precompiled directory
 set in the parent's environment, which they inherit, loads the step and costs from their files:
 ``compilation.use_precompiled``). Messages are pickled with the standard pickler and sent as bytes through the sockets,
 the per-solve tensors as NumPy arrays (multiprocessing's own pickler would move each tensor through a shared-memory
@@ -33,12 +37,17 @@ answer also carries the worker's count of precompiled functions (``compilation.P
 instead), summed over the workers by ``precompiled()``, so that the parent can say whether its workers loaded their
 step and costs whole or traced them.
 
+``settle()`` has each process settle its garbage collector (``garbage_collection.settle_garbage_collector``): call it
+once the solves that compile are done (the planner's start-up does), so that the first settle, which walks the
+compiler's half a million objects, falls on no goal.
+
 A worker's error is raised in the parent as ``WorkerError`` with the worker's message; a worker that dies, or does
 not answer within ``timeout_s``, raises it too, and ``close`` (also on garbage collection and at exit) stops all
 of them. A worker exits by itself when its socket closes, so none outlives its parent, even one killed.
 """
 from __future__ import annotations
 
+import gc
 import pickle
 import socket
 import subprocess
@@ -48,7 +57,7 @@ import weakref
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import replace
-from multiprocessing.connection import Connection
+from multiprocessing.connection import Connection, wait
 from typing import Any
 
 import numpy as np
@@ -62,11 +71,6 @@ from hydrosoft.control.cem_gd import CemGd, CemGdConfig, ShareResult
 
 Problem = tuple[Callable, Callable, Callable]
 """``(dynamics, stage_cost, terminal_cost)`` as ``CemGd`` takes them."""
-
-
-SETTLE_AFTER = 2
-"""Improves of a new problem after which a worker settles its garbage collector (``compilation``): the first compiles
-the step's graphs, the second those of the step from its own outputs."""
 
 
 STDERR_FD = 2
@@ -108,11 +112,12 @@ class WorkerProcesses:
         self.timeout_s = timeout_s
         self.fallbacks: dict[int, str] = {}
         self._precompiled: dict[int, dict[str, int]] = {}  # worker index -> its PRECOMPILED at its last answer
+        self.assignment: list[int] = []  # per share of the last ``improve``, the index of the process that ran it
         self.on_fallback: Callable[[int, str], None] | None = None
         self._pipes: list[Connection] = []
         self._processes: list[subprocess.Popen] = []
         self._finalizer = weakref.finalize(self, _stop, self._pipes, self._processes)
-        solver = (build, low.cpu().numpy(), high.cpu().numpy(), replace(config, workers=1), dtype, threads,
+        solver = (build, low.cpu().numpy(), high.cpu().numpy(), replace(config, workers=1, chunks=0), dtype, threads,
                   str(device))
         for _ in range(workers):
             ours, theirs = socket.socketpair()
@@ -137,13 +142,35 @@ class WorkerProcesses:
         """Rebuild every process's problem from ``problem`` (``build(problem)``), as for a new goal."""
         self._broadcast("problem", [problem] * self.workers)
 
+    def settle(self) -> list[int]:
+        """Have each process settle its garbage collector (``settle_garbage_collector``): how many objects each one
+        froze (``gc.get_freeze_count``'s growth; the first settle freezes the compiler's objects, later ones little)."""
+        return self._broadcast("settle", [None] * self.workers)
+
     def improve(self, x0: Any, shares: list[Tensor]) -> list[ShareResult]:
-        """Each share ``(b_i, K, *A)`` improved from ``x0`` (batch 1) by its process: their ``ShareResult``s."""
-        if len(shares) != self.workers:
-            raise ValueError(f"{len(shares)} shares for {self.workers} worker processes")
+        """Each share ``(b_i, K, *A)`` improved from ``x0`` (batch 1) by whichever process is free (module
+        docstring): their ``ShareResult``s, in the shares' order. ``assignment`` then says which process ran each."""
         start = _to_numpy(x0)
-        results = self._broadcast("improve", [(start, share.cpu().numpy()) for share in shares])
-        for index, (*_, eager, precompiled) in enumerate(results):
+        results: list = [None] * len(shares)
+        assignment = [-1] * len(shares)
+        busy: dict[int, int] = {}  # worker index -> the share it runs
+        waiting = iter(range(len(shares)))
+
+        def give(index: int) -> None:
+            share = next(waiting, None)
+            if share is not None:
+                busy[index], assignment[share] = share, index
+                self._send(index, "improve", (start, shares[share].cpu().numpy()))
+
+        for index in range(min(self.workers, len(shares))):
+            give(index)
+        while busy:
+            index = self._first_answer(list(busy), "improve")
+            answer = self._answer(index, "improve")
+            results[busy.pop(index)] = answer
+            give(index)
+        self.assignment = assignment
+        for index, (*_, eager, precompiled) in zip(assignment, results):
             self._precompiled[index] = precompiled
             if eager and self.fallbacks.get(index) != eager:
                 self.fallbacks[index] = eager
@@ -160,23 +187,37 @@ class WorkerProcesses:
     def _broadcast(self, kind: str, payloads: list) -> list:
         """Send ``(kind, payload)`` to each process, then gather each one's answer, in order. Any error, death or
         timeout stops them all and raises ``WorkerError``."""
-        for i, (pipe, payload) in enumerate(zip(self._pipes, payloads)):
-            try:
-                pipe.send_bytes(pickle.dumps((kind, payload), protocol=pickle.HIGHEST_PROTOCOL))
-            except (BrokenPipeError, OSError) as err:
-                self._fail(i, kind, f"it died ({err})")
-        answers = []
-        for i, pipe in enumerate(self._pipes):
-            try:
-                ready = pipe.poll(self.timeout_s)
-                status, answer = pickle.loads(pipe.recv_bytes()) if ready else ("timeout", None)
-            except (EOFError, OSError):
-                status, answer = "died", None
-            if status != "ok":
-                self._fail(i, kind, {"timeout": f"no answer within {self.timeout_s:g} s",
+        for index, payload in enumerate(payloads):
+            self._send(index, kind, payload)
+        return [self._answer(index, kind) for index in range(self.workers)]
+
+    def _send(self, index: int, kind: str, payload: Any) -> None:
+        """Send ``(kind, payload)`` to process ``index`` (``WorkerError`` if it died)."""
+        try:
+            self._pipes[index].send_bytes(pickle.dumps((kind, payload), protocol=pickle.HIGHEST_PROTOCOL))
+        except (BrokenPipeError, OSError) as err:
+            self._fail(index, kind, f"it died ({err})")
+
+    def _first_answer(self, indices: list[int], kind: str) -> int:
+        """The first of processes ``indices`` with an answer ready, within ``timeout_s`` (else ``WorkerError``)."""
+        ready = wait([self._pipes[index] for index in indices], self.timeout_s)
+        if not ready:
+            self._fail(indices[0], kind, f"no answer within {self.timeout_s:g} s")
+        return next(index for index in indices if self._pipes[index] in ready)
+
+    def _answer(self, index: int, kind: str) -> Any:
+        """Process ``index``'s answer to its ``kind`` message, within ``timeout_s``; an error, its death or no
+        answer stops them all and raises ``WorkerError``."""
+        pipe = self._pipes[index]
+        try:
+            ready = pipe.poll(self.timeout_s)
+            status, answer = pickle.loads(pipe.recv_bytes()) if ready else ("timeout", None)
+        except (EOFError, OSError):
+            status, answer = "died", None
+        if status != "ok":
+            self._fail(index, kind, {"timeout": f"no answer within {self.timeout_s:g} s",
                                      "died": "it died"}.get(status, answer))
-            answers.append(answer)
-        return answers
+        return answer
 
     def _fail(self, index: int, kind: str, detail: str) -> None:
         """Stop every process, then raise ``WorkerError`` for process ``index``'s failure at message ``kind``."""
@@ -215,8 +256,8 @@ def _reply(pipe: Connection, message: tuple) -> None:
 
 
 def _serve(pipe: Connection) -> None:
-    """A worker process: take the ``start`` message, then answer ``problem`` and ``improve`` messages until the
-    socket closes."""
+    """A worker process: take the ``start`` message, then answer ``problem``, ``improve`` and ``settle`` messages until
+    the socket closes."""
     kind, (build, low, high, config, dtype, threads, device) = pickle.loads(pipe.recv_bytes())
     torch.set_num_threads(threads)
 
@@ -225,7 +266,7 @@ def _serve(pipe: Connection) -> None:
         return CemGd(*parts, torch.from_numpy(low), torch.from_numpy(high), config=config, dtype=dtype,
                      device=device), parts
 
-    cem, parts, unsettled = None, (), 0
+    cem, parts = None, ()
     _reply(pipe, ("ok", None) if kind == "start" else ("error", f"expected start, got {kind!r}"))
     while True:
         try:
@@ -235,18 +276,17 @@ def _serve(pipe: Connection) -> None:
         try:
             if kind == "problem":
                 cem, parts = make(payload)
-                unsettled = SETTLE_AFTER
                 _reply(pipe, ("ok", None))
+            elif kind == "settle":
+                frozen = gc.get_freeze_count()
+                settle_garbage_collector()
+                _reply(pipe, ("ok", gc.get_freeze_count() - frozen))
             elif kind == "improve" and cem is None:
                 _reply(pipe, ("error", "improve before any problem was set (set_problem)"))
             elif kind == "improve":
                 start, u = payload
                 u = torch.from_numpy(u).to(cem.device)
                 share = cem.improve(cem.expand_state(_to_torch(start, cem.device), u.shape[0]), u)
-                if unsettled:
-                    unsettled -= 1
-                    if not unsettled:
-                        settle_garbage_collector()
                 _reply(pipe, ("ok", (*_to_numpy((share.u, share.cost)), share.best, _to_numpy(share.best_states),
                                   share.timings, eager_parts(parts), dict(PRECOMPILED))))
             else:

@@ -66,6 +66,8 @@ class PlannerSettings:
     (a finer integration step ``dt / (substeps * factor)`` within each control step). lr, init_std, min_std: fractions of the
     action half-range (``CemGdConfig``). dtype: the planner's float type. seed: the solver's seed.
     workers: solver threads that each roll out a share of the B samples (``CemGdConfig.workers``; 1: none).
+    chunks: with two workers or more, the pieces the samples are cut into, each taken by whichever worker is free
+    (``CemGdConfig.chunks``; 0: one per worker).
     worker_processes: run the ``workers`` shares in processes of their own instead of threads
     (``control.WorkerProcesses``; each builds its own copy of the model, step and costs: ``build_problem``).
     sdf_solver_steps: None, or a fixed number of solver steps for the planner's iteratively solved body SDFs
@@ -99,6 +101,7 @@ class PlannerSettings:
     sdf_solver_steps: int | None = None
     compile: bool = False
     workers: int = 1
+    chunks: int = 0
     object_update: str = "explicit"
     worker_processes: bool = False
 
@@ -107,7 +110,7 @@ class PlannerSettings:
         return CemGdConfig(
             samples=self.samples, elites=min(self.elites, self.samples), horizon=horizon,
             grad_steps=self.grad_steps, cem_iterations=iterations, lr=self.lr, init_std=self.init_std,
-            min_std=self.min_std, seed=self.seed, workers=self.workers,
+            min_std=self.min_std, seed=self.seed, workers=self.workers, chunks=self.chunks,
         )
 
 
@@ -317,7 +320,7 @@ def build_problem(problem: SolverProblem) -> tuple[Callable, Callable, Callable]
     """``(dynamics, stage_cost, terminal_cost)`` of ``problem`` for ``control.WorkerProcesses``: in a worker
     process, its own planner model and step (one worker: ``planner.workers`` is the parent's count of processes)
     and the costs of the goal."""
-    planner = replace(problem.planner, workers=1, worker_processes=False)
+    planner = replace(problem.planner, workers=1, chunks=0, worker_processes=False)
     key = pickle.dumps((problem.task, planner, problem.compile_options))
     if key not in _WORKER_PLANNERS:
         model = planner_model(problem.task, planner)

@@ -318,7 +318,7 @@ class LimitsConfig(Strict):
 PLANNER_PRESETS: dict[str, dict[str, object]] = {
     "paper": {"model": "nh", "spacing": 0.0084, "samples": 64, "elites": 8, "horizon": 10, "grad_steps": 2,
               "dtype": "float32", "sdf_solver_steps": 2, "compile": True, "object_update": "linearly_implicit",
-              "threads": 1, "workers": 2, "worker_processes": True, "target_lead_s": 0.3, "nice": 10},
+              "threads": 1, "workers": 2, "chunks": 4, "worker_processes": True, "target_lead_s": 0.3, "nice": 10},
     "quick": {"model": "nh", "spacing": 0.0125, "samples": 16, "elites": 4, "horizon": 6, "grad_steps": 1,
               "dtype": "float32", "sdf_solver_steps": 3, "compile": False, "object_update": "linearly_implicit",
               "threads": 1, "workers": 1, "worker_processes": False, "target_lead_s": 1.0, "nice": 0},
@@ -355,7 +355,10 @@ class PlannerConfig(Strict):
     control --rate-workers 1,2 --threads 1`` measures it). worker_processes: the ``workers`` shares in processes of
     their own instead of threads (``hydrosoft.control.WorkerProcesses``; 0.86 of the threads' cycle in the
     benchmark, ``--rate-worker-kinds``), each with its own copy of the model and step: for a machine with a core per
-    worker to spare. object_update: the planner model's object update
+    worker to spare. chunks: with two workers or more, the samples are cut into this many equal chunks, and each
+    worker takes the next chunk as it finishes one (``CemGdConfig.chunks``), so that a worker the machine delays
+    takes fewer of them instead of holding up the solve with a fixed half; 0 (the default): one chunk per worker;
+    else from ``workers`` to ``samples`` (``hydrosoft-stack bench control --rate-chunks`` measures it). object_update: the planner model's object update
     (``hydrosoft.dynamics.Model.object_update``): ``explicit``, sub-stepped as the scene's contacts need, or
     ``linearly_implicit``, one sub-step per control step (NH and SNH planners; ``hydrosoft-stack bench control
     --rate-object-updates`` measures the rate of each). max_reapproaches: how often one goal may bring
@@ -391,6 +394,7 @@ class PlannerConfig(Strict):
     target_lead_s: float = 0.5
     threads: int = 1
     workers: int = 1
+    chunks: int = 0
     object_update: Literal["explicit", "linearly_implicit"] = "explicit"
     max_reapproaches: int = 3
     stall_s: float = 10.0
@@ -412,6 +416,9 @@ class PlannerConfig(Strict):
         _require(self.workers <= self.samples, "planner.workers",
                  f"must be at most planner.samples ({self.samples}): each worker rolls out a share of them, got "
                  f"{self.workers}")
+        _require(self.chunks == 0 or self.workers <= self.chunks <= self.samples, "planner.chunks",
+                 f"must be 0 (one per worker) or from planner.workers ({self.workers}) to planner.samples "
+                 f"({self.samples}), got {self.chunks}")
         for key, value in self.max_age_s.items():
             _require(value > 0, f"planner.max_age_s.{key}", f"must be > 0 s, got {value}")
         _require(self.object_update == "explicit" or self.model in ("nh", "snh", "nh_pressure_normal"),

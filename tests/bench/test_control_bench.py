@@ -81,9 +81,10 @@ def test_the_rate_is_measured_per_bubble_solve_setting_in_one_run(tmp_path, caps
 def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost_calls_timed(tmp_path, capsys):
     assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
                              "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-samples", "16",
-                             "--rate-dtypes", "float32", "--rate-workers", "1,2", "--json", "--out", str(tmp_path))) == 0
+                             "--rate-dtypes", "float32", "--rate-workers", "1,2", "--rate-chunks", "4", "--json",
+                             "--out", str(tmp_path))) == 0
     rates = json.loads(capsys.readouterr().out)["replanning"]
-    assert [(r["workers"], r["samples"]) for r in rates] == [(1, 16), (2, 16)]
+    assert [(r["workers"], r["samples"], r["chunks"]) for r in rates] == [(1, 16, 1), (2, 16, 4)]  # one: uncut
     assert [len(r["warmup_solves_ms"]) for r in rates] == [1, 2]  # two workers: a second, untimed warm-up solve
     for r in rates:
         assert 0 < r["step_forward_ms"] and 0 < r["cost_forward_ms"] and r["rate_hz"] > 0
@@ -91,6 +92,8 @@ def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost
     assert rates[0]["step_forward_ms"] + rates[0]["cost_forward_ms"] <= rates[0]["rollout_ms"]
     assert control.run(parse("--rate-workers", "0", "--out", str(tmp_path))) == 2
     assert "--rate-workers" in capsys.readouterr().err
+    assert control.run(parse("--rate-chunks", "four", "--out", str(tmp_path))) == 2
+    assert "--rate-chunks" in capsys.readouterr().err
     for bad in ("2", "half"):
         assert control.run(parse("--rate-activation-budgets", bad, "--out", str(tmp_path))) == 2
         assert "--rate-activation-budgets" in capsys.readouterr().err

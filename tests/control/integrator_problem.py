@@ -2,6 +2,8 @@
 worker processes import this module by name: the tests put its folder on their ``PYTHONPATH``)."""
 from __future__ import annotations
 
+import os
+import time
 from typing import NamedTuple
 
 import torch
@@ -54,3 +56,27 @@ def build_compiled(goal: tuple[float, float, float]):
     from hydrosoft.compilation import CompiledFunction
     _, stage, to_goal = build(goal)
     return CompiledFunction(integrator, options={}), stage, to_goal
+
+
+SLOW_STEP_S = 0.002
+"""How long the slow worker's step sleeps per call (``build_one_slow``)."""
+
+
+def build_one_slow(problem: tuple[tuple[float, float, float], str | None]):
+    """``build(goal)`` for ``problem = (goal, marker)``, in the one worker process that creates the file ``marker``
+    first with a step that sleeps ``SLOW_STEP_S`` per call (a worker the machine delays); the others, and all of
+    them when ``marker`` is None, as ``build``."""
+    goal, marker = problem
+    dynamics, stage, to_goal = build(goal)
+    if marker is None:
+        return dynamics, stage, to_goal
+    try:
+        os.close(os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return dynamics, stage, to_goal
+
+    def slow(state: State, u: torch.Tensor) -> State:
+        time.sleep(SLOW_STEP_S)
+        return dynamics(state, u)
+
+    return slow, stage, to_goal

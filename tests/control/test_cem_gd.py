@@ -321,6 +321,28 @@ def test_workers_split_the_batch_over_threads_and_plan_the_same(workers):
     assert recorder.batches == {len(share) for share in torch.arange(64).tensor_split(workers)}
 
 
+def test_threads_share_chunks_of_the_batch_and_plan_the_same():
+    """``chunks = 8`` over two worker threads: the 64 samples go out in chunks of 8, which both threads take, and
+    three solves give the single-thread solver's plans."""
+    recorder = ThreadRecorder(integrator)
+    alone, shared = make_solver(CemGdConfig(seed=3)), make_solver(CemGdConfig(seed=3, workers=2, chunks=8), recorder)
+    state = x0()
+    for _ in range(3):
+        expected, result = alone.solve(state), shared.solve(state)
+        torch.testing.assert_close(result.plan, expected.plan, rtol=0, atol=1e-12)
+        torch.testing.assert_close(shared.mean, alone.mean, rtol=0, atol=1e-12)
+        state = integrator(state, result.action.unsqueeze(0))
+    assert recorder.batches == {8} and threading.get_ident() not in recorder.threads
+
+
+def test_one_worker_never_cuts_its_batch_into_chunks():
+    recorder = ThreadRecorder(integrator)
+    make_solver(CemGdConfig(seed=3, chunks=4), recorder).solve(x0())
+    assert recorder.batches == {64} and recorder.threads == {threading.get_ident()}
+    assert CemGdConfig(chunks=4).pieces == 1 and CemGdConfig(workers=2).pieces == 2
+    assert CemGdConfig(workers=2, chunks=8).pieces == 8
+
+
 @pytest.mark.parametrize("workers, cem_iterations", [(1, 1), (1, 3), (3, 1), (3, 3)])
 def test_the_states_are_the_models_rollout_of_the_returned_plan(workers, cem_iterations):
     """``PlanResult.states`` is ``x_1 .. x_K`` of the returned plan from the solved state (each a batch-1 copy, the
@@ -344,6 +366,9 @@ def test_workers_are_validated():
         CemGdConfig(samples=4, elites=2, workers=5)
     with pytest.raises(ValueError, match="workers"):
         CemGdConfig(workers=0)
+    for chunks in (1, 65):
+        with pytest.raises(ValueError, match="chunks"):
+            CemGdConfig(workers=2, chunks=chunks)
 
 
 TENSOR_FACTORIES = {"tensor", "as_tensor", "zeros", "ones", "empty", "full", "arange", "linspace", "eye", "rand",

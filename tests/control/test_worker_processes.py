@@ -76,6 +76,89 @@ def test_processes_plan_what_threads_plan_and_follow_a_new_goal():
     assert_stopped(pids)
 
 
+def test_the_plan_does_not_depend_on_which_worker_ran_which_chunk(tmp_path):
+    """Work sharing: 64 samples in 8 chunks of 8 over two workers, each chunk to whichever worker is free. With one
+    worker slowed (its step sleeps), the other takes most chunks, so the assignment changes; the plans, costs, warm
+    starts and predicted states stay the same, bit for bit, over three receding-horizon solves."""
+    config = CemGdConfig(seed=3, workers=2, chunks=8)
+    workers = WorkerProcesses(problem.build_one_slow, 2, LOW, -LOW, config, torch.float64, timeout_s=60.0)
+    pids = workers.pids
+
+    def solves(marker: Path | None) -> tuple[list, list, list[list[int]]]:
+        workers.set_problem((GOAL, None if marker is None else str(marker)))
+        cem = solver(config, processes=workers)
+        results, means, assignments, state = [], [], [], x0()
+        for _ in range(3):
+            result = cem.solve(state)
+            results.append(result)
+            means.append(cem.mean.clone())
+            assignments.append(workers.assignment)
+            state = result.states[0]
+        return results, means, assignments
+
+    try:
+        even, even_means, even_assignments = solves(None)
+        skewed, skewed_means, skewed_assignments = solves(tmp_path / "slow")
+    finally:
+        workers.close()
+    assert_stopped(pids)
+    assert (tmp_path / "slow").exists()
+    assert all(sorted(set(a)) == [0, 1] for a in even_assignments)  # both workers ran chunks of each solve
+    assert all(max(Counter(a).values()) >= 6 for a in skewed_assignments)  # the fast one took most of them
+    assert skewed_assignments != even_assignments
+    for got, want, got_mean, want_mean in zip(skewed, even, skewed_means, even_means, strict=True):
+        assert torch.equal(got.plan, want.plan) and torch.equal(got.action, want.action)
+        assert got.cost == want.cost
+        assert torch.equal(got_mean, want_mean)
+        for got_state, want_state in zip(got.states, want.states, strict=True):
+            assert torch.equal(got_state.pos, want_state.pos) and torch.equal(got_state.steps, want_state.steps)
+
+
+def test_chunks_plan_what_the_threads_plan_on_the_same_chunks():
+    """Five chunks over two processes (13, 13, 13, 13, 12 samples) give the plans of two threads that share the same
+    chunks, and a chunk-per-worker solver's to float rounding."""
+    config = CemGdConfig(seed=1, workers=2, chunks=5)
+    workers = start(config)
+    pids = workers.pids
+    try:
+        workers.set_problem(GOAL)
+        processes, threads = solver(config, processes=workers), solver(config)
+        halves = solver(CemGdConfig(seed=1, workers=2))
+        state = x0()
+        for _ in range(3):
+            result, expected, by_halves = processes.solve(state), threads.solve(state), halves.solve(state)
+            assert len(workers.assignment) == 5
+            torch.testing.assert_close(result.plan, expected.plan, rtol=0, atol=1e-12)
+            torch.testing.assert_close(result.plan, by_halves.plan, rtol=0, atol=1e-12)
+            state = result.states[0]
+    finally:
+        workers.close()
+    assert_stopped(pids)
+
+
+def test_a_worker_settles_its_garbage_collector_when_told_and_not_before():
+    """Improves alone never settle a worker's collector, however many chunks it ran (a count of them no longer
+    follows the solves): the first ``settle`` freezes the worker's start-up objects (torch's imports among them),
+    a second one only what came after."""
+    config = CemGdConfig(seed=0, workers=2, chunks=4)
+    workers = start(config)
+    pids = workers.pids
+    try:
+        workers.set_problem(GOAL)
+        cem = solver(config, processes=workers)
+        for _ in range(3):
+            cem.solve(x0())
+        first = workers.settle()
+        cem.solve(x0())
+        second = workers.settle()
+    finally:
+        workers.close()
+    assert_stopped(pids)
+    assert len(first) == len(second) == 2
+    assert all(count > 50_000 for count in first), first
+    assert all(count < 5_000 for count in second), second
+
+
 def test_a_workers_step_that_falls_back_to_eager_is_reported_to_the_parent_once():
     """A worker's compiled step fails to compile and runs eager there: the parent's ``fallbacks`` names the worker,
     the part and the reason, and ``on_fallback`` hears it once, not at every solve."""

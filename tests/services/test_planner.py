@@ -157,12 +157,15 @@ def test_targets_leave_in_the_base_frame_of_a_turned_and_moved_task_frame(core, 
 
 
 def test_the_solver_gets_the_configured_workers(core, tmp_path):
-    """``planner.workers`` reaches the solver settings of every goal; one worker when the key is left out."""
+    """``planner.workers`` and ``planner.chunks`` reach the solver settings of every goal; one worker, its samples
+    uncut, when the keys are left out."""
     path = tmp_path / "workers.toml"
-    path.write_text(SIM_TEXT.replace("[planner]", "[planner]\nworkers = 2\n", 1))
+    path.write_text(SIM_TEXT.replace("[planner]", "[planner]\nworkers = 2\nchunks = 4\n", 1))
     two = PlannerCore.build(load_config(path))
     assert core.settings.config(core.settings.horizon, 1).workers == 1
+    assert core.settings.config(core.settings.horizon, 1).pieces == 1
     assert two.settings.config(two.settings.horizon, 1).workers == 2
+    assert two.settings.config(two.settings.horizon, 1).pieces == 4
 
 
 def test_the_planner_model_takes_the_configured_object_update(core, tmp_path):
@@ -177,9 +180,10 @@ def test_the_planner_model_takes_the_configured_object_update(core, tmp_path):
 
 
 def test_worker_processes_plan_what_threads_plan_and_stop_with_the_core(tmp_path):
-    """``planner.worker_processes``: two solves of a goal on two worker processes give the plans of two worker
-    threads (each process builds the config's core and the goal's costs itself); ``close`` stops the processes."""
-    text = SIM_TEXT.replace("[planner]", "[planner]\nworkers = 2\n", 1)
+    """``planner.worker_processes``: two solves of a goal on two worker processes, their samples in four chunks, give
+    the plans of two worker threads on the same chunks (each process builds the config's core and the goal's costs
+    itself); ``close`` stops the processes."""
+    text = SIM_TEXT.replace("[planner]", "[planner]\nworkers = 2\nchunks = 4\n", 1)
     (tmp_path / "threads.toml").write_text(text)
     (tmp_path / "processes.toml").write_text(text.replace("[planner]", "[planner]\nworker_processes = true\n", 1))
     threads = PlannerCore.build(load_config(tmp_path / "threads.toml"))

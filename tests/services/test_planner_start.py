@@ -38,6 +38,17 @@ def test_the_share_sizes_are_the_batches_the_workers_solve(samples, workers, siz
     assert planner.share_sizes(samples, workers) == sizes
 
 
+@pytest.mark.parametrize("samples, workers, chunks, sizes", [
+    (64, 2, 4, [16]),  # work sharing: four chunks of 16, one batch shape per function
+    (64, 2, 8, [8]),
+    (64, 2, 5, [12, 13]),  # 13, 13, 13, 13, 12
+    (64, 1, 4, [64]),  # one worker never cuts its batch
+    (64, 2, 0, [32]),  # 0: one chunk per worker
+])
+def test_the_share_sizes_are_the_chunks_when_the_samples_are_cut_into_chunks(samples, workers, chunks, sizes):
+    assert planner.share_sizes(samples, workers, chunks) == sizes
+
+
 def test_one_process_builds_one_core_per_share_size_as_a_lone_worker_then_stops_building(tmp_path, monkeypatch):
     """``build_precompiled`` makes, per share size, a core of one worker without processes whose solve batch is
     that share (what each worker process runs), with building on while its compiled functions are made, and solves
@@ -56,27 +67,40 @@ def test_one_process_builds_one_core_per_share_size_as_a_lone_worker_then_stops_
         compilation.use_precompiled(None)
     assert len(made) == len(solved) == 1
     (alone, setting), = made
-    assert (alone.samples, alone.workers, alone.worker_processes, alone.elites) == (32, 1, False, 8)
+    chunk = config.planner.samples // config.planner.chunks  # the paper planner's chunks, each a worker's batch
+    assert (alone.samples, alone.workers, alone.chunks, alone.worker_processes, alone.elites) == (chunk, 1, 0, False, 8)
     assert (alone.spacing, alone.horizon, alone.dtype) == (config.planner.spacing, config.planner.horizon, "float32")
     assert setting == compilation.Precompiling(tmp_path / "planner", build=True)
     assert after == compilation.Precompiling(tmp_path, build=False)
 
 
 def test_the_start_up_solves_as_often_as_a_worker_takes_to_settle_so_no_goal_pays_for_it(tmp_path, monkeypatch):
-    """``compile_step`` solves one solver ``SETTLE_AFTER`` times (warm-started after the first, as a goal's solves),
-    so each solver worker process has made its first, costly garbage-collector settle before the planner is ready,
-    and only then settles the planner's own collector. With one solve, the first goal's second solve paid for the
-    workers' settle (211 against 31-41 ms)."""
+    """``compile_step`` solves one solver ``WARM_UP_SOLVES`` times (warm-started after the first, as a goal's solves),
+    then tells each solver worker process to settle its garbage collector (``WorkerProcesses.settle``: its first,
+    costly settle happens before the planner is ready), and only then settles the planner's own collector. With
+    one solve, the first goal's second solve paid for the workers' settle (211 against 31-41 ms); with the samples
+    in chunks, a worker's own count of improves no longer followed the solves."""
     (tmp_path / "sim.toml").write_text(quick_planner(SIM_TOML.read_text()))
     core = planner.PlannerCore.build(load_config(tmp_path / "sim.toml"))  # eager, no worker processes: seconds
     events = []
     make_solver = core.solver
+
+    class Workers:
+        """The worker processes as ``compile_step`` sees them once its solver is made."""
+
+        def settle(self) -> list[int]:
+            events.append("settle workers")
+            return [0, 0]
+
+        def close(self) -> None:
+            pass
 
     def counting_solver(*args):
         solver = make_solver(*args)
         events.append("solver")
         solve = solver.solve
         monkeypatch.setattr(solver, "solve", lambda x0: events.append("solve") or solve(x0))
+        monkeypatch.setattr(core, "processes", Workers())
         return solver
 
     monkeypatch.setattr(core, "solver", counting_solver)
@@ -85,8 +109,8 @@ def test_the_start_up_solves_as_often_as_a_worker_takes_to_settle_so_no_goal_pay
         planner.compile_step(core)
     finally:
         core.close()
-    assert planner.SETTLE_AFTER == 2
-    assert events == ["solver", *["solve"] * planner.SETTLE_AFTER, "settle"]
+    assert planner.WARM_UP_SOLVES == 2
+    assert events == ["solver", *["solve"] * planner.WARM_UP_SOLVES, "settle workers", "settle"]
 
 
 def test_the_functions_without_gradients_build_from_a_solve_without_gradient_steps(tmp_path, monkeypatch):
@@ -100,7 +124,8 @@ def test_the_functions_without_gradients_build_from_a_solve_without_gradient_ste
     monkeypatch.setattr(planner, "compile_step", lambda core: None)
     planner.build_precompiled_rollouts(config, tmp_path / "planner")
     (alone, setting), = made
-    assert (alone.grad_steps, alone.samples, alone.workers, alone.horizon) == (0, 32, 1, config.planner.horizon)
+    chunk = config.planner.samples // config.planner.chunks
+    assert (alone.grad_steps, alone.samples, alone.workers, alone.horizon) == (0, chunk, 1, config.planner.horizon)
     assert config.planner.grad_steps == 2 and setting == compilation.Precompiling(tmp_path / "planner", build=True)
 
 

@@ -220,6 +220,17 @@ def test_a_fitted_material_pasted_below_an_arm_reaches_the_planners_and_the_plan
     plain, _ = plant_model(load_config(DEPLOY / "sim.toml"))
     assert float(plain.material.E[plain.body_names.index("bubble")]) == 3e5
 
+def test_the_planner_cuts_its_samples_into_chunks_from_its_workers_to_its_samples():
+    """``planner.chunks``: the paper preset shares its 64 samples out in chunks; 0 (the default) is one chunk per
+    worker; a count below the workers or above the samples is refused by name."""
+    assert parse_config(ONE_ARM + '[planner]\npreset = "paper"\n').planner.chunks == PLANNER_PRESETS["paper"]["chunks"]
+    assert PlannerConfig().chunks == 0
+    assert parse_config(ONE_ARM + '[planner]\nworkers = 2\nchunks = 16\n').planner.chunks == 16
+    for chunks in (1, 17):
+        with pytest.raises(ConfigError, match="planner.chunks: must be 0 .* or from planner.workers"):
+            parse_config(ONE_ARM + f'[planner]\nworkers = 2\nchunks = {chunks}\n', "test.toml")
+
+
 def test_a_planner_preset_fills_the_planner_and_its_own_keys_override_it():
     paper = parse_config(ONE_ARM + '[planner]\npreset = "paper"\n').planner
     assert (paper.samples, paper.horizon, paper.grad_steps, paper.dtype, paper.compile) == (64, 10, 2, "float32", True)
