@@ -160,7 +160,8 @@ def test_a_busy_thread_of_this_process_shows_among_the_others():
         done.set()
         worker.join()
     split = thread_split(pid, before, after, time.monotonic() - tic)
-    assert split["others"] and split["others"][0] > 20 > split["main"]
+    # On a loaded machine the spinning thread may get far less than a core; it still gets far more than the sleeper.
+    assert split["others"] and split["others"][0] > max(2.0, 10 * split["main"])
 
 
 def test_resident_memory_of_this_process():
