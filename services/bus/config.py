@@ -313,12 +313,13 @@ class LimitsConfig(Strict):
 #: Named planner settings (``planner.preset``): a ``[planner]`` table with ``preset = NAME`` starts from these values
 #: and its own keys override them. ``paper``: the paper's planner (B = 64, K = 10, G = 2, 216 surface points),
 #: float32, compiled (ready after minutes with a cold compile cache), its samples rolled out by two worker processes;
-#: its targets live at least 0.3 s and longer as its measured cycle asks (``planner.target_lead``). ``quick``: B = 16,
-#: K = 6, G = 1, 96 points, eager, one process: ready in seconds, replans at a few Hz on 2 cores.
+#: its targets live at least 0.3 s and longer as its measured cycle asks (``planner.target_lead``); one chunk of
+#: samples per worker (``chunks = 0``: 4 chunks of 16 took 79 against 56 ms a solve alone, docs/benchmarks.md).
+#: ``quick``: B = 16, K = 6, G = 1, 96 points, eager, one process: ready in seconds, replans at a few Hz on 2 cores.
 PLANNER_PRESETS: dict[str, dict[str, object]] = {
     "paper": {"model": "nh", "spacing": 0.0084, "samples": 64, "elites": 8, "horizon": 10, "grad_steps": 2,
               "dtype": "float32", "sdf_solver_steps": 2, "compile": True, "object_update": "linearly_implicit",
-              "threads": 1, "workers": 2, "chunks": 4, "worker_processes": True, "target_lead_s": 0.3, "nice": 10},
+              "threads": 1, "workers": 2, "chunks": 0, "worker_processes": True, "target_lead_s": 0.3, "nice": 10},
     "quick": {"model": "nh", "spacing": 0.0125, "samples": 16, "elites": 4, "horizon": 6, "grad_steps": 1,
               "dtype": "float32", "sdf_solver_steps": 3, "compile": False, "object_update": "linearly_implicit",
               "threads": 1, "workers": 1, "worker_processes": False, "target_lead_s": 1.0, "nice": 0},
@@ -358,7 +359,8 @@ class PlannerConfig(Strict):
     worker to spare. chunks: with two workers or more, the samples are cut into this many equal chunks, and each
     worker takes the next chunk as it finishes one (``CemGdConfig.chunks``), so that a worker the machine delays
     takes fewer of them instead of holding up the solve with a fixed half; 0 (the default): one chunk per worker;
-    else from ``workers`` to ``samples`` (``hydrosoft-stack bench control --rate-chunks`` measures it). object_update: the planner model's object update
+    else from ``workers`` to ``samples`` (``hydrosoft-stack bench control --rate-chunks`` measures it; a smaller
+    chunk costs the compiled step's fixed time per call more often). object_update: the planner model's object update
     (``hydrosoft.dynamics.Model.object_update``): ``explicit``, sub-stepped as the scene's contacts need, or
     ``linearly_implicit``, one sub-step per control step (NH and SNH planners; ``hydrosoft-stack bench control
     --rate-object-updates`` measures the rate of each). max_reapproaches: how often one goal may bring

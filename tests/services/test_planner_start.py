@@ -67,7 +67,7 @@ def test_one_process_builds_one_core_per_share_size_as_a_lone_worker_then_stops_
         compilation.use_precompiled(None)
     assert len(made) == len(solved) == 1
     (alone, setting), = made
-    chunk = config.planner.samples // config.planner.chunks  # the paper planner's chunks, each a worker's batch
+    (chunk,) = planner.share_sizes(config.planner.samples, config.planner.workers, config.planner.chunks)
     assert (alone.samples, alone.workers, alone.chunks, alone.worker_processes, alone.elites) == (chunk, 1, 0, False, 8)
     assert (alone.spacing, alone.horizon, alone.dtype) == (config.planner.spacing, config.planner.horizon, "float32")
     assert setting == compilation.Precompiling(tmp_path / "planner", build=True)
@@ -124,7 +124,7 @@ def test_the_functions_without_gradients_build_from_a_solve_without_gradient_ste
     monkeypatch.setattr(planner, "compile_step", lambda core: None)
     planner.build_precompiled_rollouts(config, tmp_path / "planner")
     (alone, setting), = made
-    chunk = config.planner.samples // config.planner.chunks
+    (chunk,) = planner.share_sizes(config.planner.samples, config.planner.workers, config.planner.chunks)
     assert (alone.grad_steps, alone.samples, alone.workers, alone.horizon) == (0, chunk, 1, config.planner.horizon)
     assert config.planner.grad_steps == 2 and setting == compilation.Precompiling(tmp_path / "planner", build=True)
 
