@@ -200,6 +200,7 @@ def test_compile_option_runs_the_planner_and_the_rate_through_compiled_steps(tmp
     out = capsys.readouterr().out
     assert "float32" in out and "sub-steps, bubble SDF in 3 solver steps, 1 thread(s), " in out
     assert "replanning rate on cpu, closed-loop planar pushing" in out
-    assert "1 solver worker(s) (threads), explicit object update, activation budget 0, compiled costs, compiled:" in out
+    assert ("1 solver worker(s) (threads), the samples in 1 chunk(s), explicit object update, activation budget 0, "
+            "compiled costs, compiled:") in out
     assert "explicit object update, activation budget 0, compiled:" in out  # --rate-costs eager
     assert "compiling the step" in out
