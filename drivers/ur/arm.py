@@ -138,24 +138,14 @@ class URArm:
         older than ``max_age_s`` (judged from the controller's timestamp, see ``stream_age.py``)."""
         receive = self._require_link()
         try:
-            connected, stamp_s, ur_pose, speed, runtime_state, safety_bits, robot_mode = await self._on_thread(
+            connected, stamp_s, runtime_state, safety_bits, robot_mode, ur_pose, speed = await self._on_thread(
                 self._receive_thread, lambda: _read_receive(receive), REALTIME_CALL_TIMEOUT_S
             )
         except asyncio.TimeoutError as exc:
             self.counters["stale"] += 1
             raise Stale(f"{self}: the receive client did not answer within {REALTIME_CALL_TIMEOUT_S} s") from exc
         now_ns = time.monotonic_ns()
-        if not connected:
-            self._mark_link_lost("the RTDE stream closed")
-            self.counters["not_connected"] += 1
-            raise NotConnected(f"{self}: the RTDE stream from the controller closed; reconnecting")
-        age_s = self._stream_age_s(stamp_s, now_ns)
-        if age_s > self.config.max_age_s:
-            self.counters["stale"] += 1
-            raise Stale(
-                f"{self}: newest controller state (timestamp {stamp_s:.3f} s) is {age_s:.3f} s old "
-                f"(max_age_s {self.config.max_age_s} s)"
-            )
+        self._require_fresh(connected, stamp_s, self._stream_age_s(stamp_s, now_ns) if connected else 0.0)
         return ArmState(
             tcp_pose=ur_to_pose(ur_pose),
             tcp_speed=np.asarray(speed, dtype=np.float64),
@@ -209,16 +199,7 @@ class URArm:
                                   cfg.servo_lookahead_s, cfg.servo_gain)
 
         accepted = await self._guarded_call(read_check_send, guard)
-        if not guard.connected:
-            self._mark_link_lost("the RTDE stream closed")
-            self.counters["not_connected"] += 1
-            raise NotConnected(f"{self}: the RTDE stream from the controller closed; reconnecting")
-        if guard.age_s > cfg.max_age_s:
-            self.counters["stale"] += 1
-            raise Stale(
-                f"{self}: newest controller state (timestamp {guard.stamp_s:.3f} s) is {guard.age_s:.3f} s old "
-                f"(max_age_s {cfg.max_age_s} s)"
-            )
+        self._require_fresh(guard.connected, guard.stamp_s, guard.age_s)
         self._require_commandable(guard.flags, guard.stop, "servoL")
         if not accepted:
             self.counters["command_rejected"] += 1
@@ -373,6 +354,20 @@ class URArm:
             raise NotConnected(f"{self}: not connected" + (" (closed)" if self._closed else ""))
         return receive
 
+    def _require_fresh(self, connected: bool, stamp_s: float, age_s: float) -> None:
+        """Raise ``NotConnected`` (counted; the link marked lost) when the RTDE stream closed, ``Stale`` (counted)
+        when the state stamped ``stamp_s`` (controller clock, s) is ``age_s`` old, over ``max_age_s``."""
+        if not connected:
+            self._mark_link_lost("the RTDE stream closed")
+            self.counters["not_connected"] += 1
+            raise NotConnected(f"{self}: the RTDE stream from the controller closed; reconnecting")
+        if age_s > self.config.max_age_s:
+            self.counters["stale"] += 1
+            raise Stale(
+                f"{self}: newest controller state (timestamp {stamp_s:.3f} s) is {age_s:.3f} s old "
+                f"(max_age_s {self.config.max_age_s} s)"
+            )
+
     def _require_commandable(self, flags: tuple[str, ...], stop: str, command: str) -> None:
         """Raise ``DeviceFault`` (counted) while the controller reports a safety stop (``flags``, as
         ``ArmState.safety_flags``), or any other stop of its own (``stop``, as ``ArmState.controller_stop``: the
@@ -518,17 +513,10 @@ class URArm:
             return await loop.run_in_executor(thread, call)
 
 
-def _read_receive(receive: Any) -> tuple[bool, float, list[float], list[float], int, int, int]:
-    """One consistent-enough read of the receive client (each getter locks ur_rtde's state separately)."""
-    return (
-        receive.isConnected(),
-        receive.getTimestamp(),
-        receive.getActualTCPPose(),
-        receive.getActualTCPSpeed(),
-        receive.getRuntimeState(),
-        receive.getSafetyStatusBits(),
-        receive.getRobotMode(),
-    )
+def _read_receive(receive: Any) -> tuple[bool, float, int, int, int, list[float], list[float]]:
+    """One consistent-enough read of the receive client (each getter locks ur_rtde's state separately): the status
+    words of ``_read_guard``, then the TCP pose and speed."""
+    return (*_read_guard(receive), receive.getActualTCPPose(), receive.getActualTCPSpeed())
 
 
 def _read_guard(receive: Any) -> tuple[bool, float, int, int, int]:
