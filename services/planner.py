@@ -83,6 +83,7 @@ from hydrosoft.compilation import building_precompiled
 from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
 from hydrosoft.control import device_unavailable as control_device_unavailable
+from hydrosoft.control.cem_gd import pieces
 from hydrosoft.control.worker_processes import eager_parts
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
@@ -840,11 +841,10 @@ def compile_step(core: PlannerCore) -> float:
 
 
 def share_sizes(samples: int, workers: int, chunks: int = 0) -> list[int]:
-    """The batch sizes of the solver's shares, each once: ``samples`` cut into ``CemGdConfig(workers=workers,
-    chunks=chunks).pieces`` as ``CemGd`` cuts them (``Tensor.tensor_split``: the first ``samples % pieces`` shares one
-    larger)."""
-    pieces = 1 if workers == 1 else chunks or workers
-    return sorted({samples // pieces + (index < samples % pieces) for index in range(pieces)} - {0})
+    """The batch sizes of the solver's shares, each once: ``samples`` cut into ``cem_gd.pieces(workers, chunks)``
+    as ``CemGd`` cuts them (``Tensor.tensor_split``: the first ``samples % cut`` shares one larger)."""
+    cut = pieces(workers, chunks)
+    return sorted({samples // cut + (index < samples % cut) for index in range(cut)} - {0})
 
 
 def build_precompiled(config: StackConfig, directory: Path) -> None:

@@ -72,6 +72,12 @@ def device_unavailable(device: torch.device | str) -> str | None:
     return None
 
 
+def pieces(workers: int, chunks: int) -> int:
+    """How many contiguous pieces a solve of ``workers`` workers cuts its samples into: ``chunks`` (``workers`` when 0),
+    1 with one worker (its batch is never cut)."""
+    return 1 if workers == 1 else chunks or workers
+
+
 @dataclass(frozen=True)
 class CemGdConfig:
     """Solver settings. ``lr``, ``init_std`` and ``min_std`` are fractions of the action half-range."""
@@ -93,9 +99,8 @@ class CemGdConfig:
 
     @property
     def pieces(self) -> int:
-        """How many contiguous pieces a solve cuts the samples into: ``chunks`` (``workers`` when 0), 1 with one
-        worker (its batch is never cut)."""
-        return 1 if self.workers == 1 else self.chunks or self.workers
+        """How many contiguous pieces a solve cuts the samples into (``pieces``)."""
+        return pieces(self.workers, self.chunks)
 
     def __post_init__(self) -> None:
         if not 1 <= self.elites <= self.samples:
