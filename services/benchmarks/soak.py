@@ -260,11 +260,16 @@ async def _sample(pids: dict[str, int], samples: Samples, t0_s: float, until_s: 
         await asyncio.sleep(SAMPLE_PERIOD_S)
 
 
+def _subscriber(bus: Bus, endpoints: list[str], prefix: bytes) -> zmq.asyncio.Socket:
+    """A SUB socket on ``endpoints`` for the topics that start with ``prefix``, queueing up to 1000 messages."""
+    return bus.socket(zmq.SUB, endpoints, bind=False,
+                      options=[(zmq.RCVHWM, 1000), (zmq.MAXMSGSIZE, msg.MAX_FRAME_BYTES), (zmq.SUBSCRIBE, prefix)])
+
+
 async def _read_plans(config: StackConfig, samples: Samples, t0_s: float, until_s: float) -> None:
     """Keep every plan the planner publishes until ``until_s`` (monotonic; inf: until cancelled)."""
     with Bus() as bus:
-        sock = bus.socket(zmq.SUB, config.endpoint("planner"), bind=False,
-                          options=[(zmq.RCVHWM, 1000), (zmq.MAXMSGSIZE, msg.MAX_FRAME_BYTES), (zmq.SUBSCRIBE, b"plan/")])
+        sock = _subscriber(bus, [config.endpoint("planner")], b"plan/")
         while (left_s := until_s - time.monotonic()) > 0:
             if not await sock.poll(max(1, int(min(left_s, 1.0) * 1000))):
                 continue
@@ -276,11 +281,7 @@ async def _read_plans(config: StackConfig, samples: Samples, t0_s: float, until_
 async def _read_arm_states(config: StackConfig, samples: Samples) -> None:
     """Keep every state each arm commander publishes until cancelled."""
     with Bus() as bus:
-        sock = bus.socket(zmq.SUB, config.endpoint(f"arm_commander-{config.arms[0].name}"), bind=False,
-                          options=[(zmq.RCVHWM, 1000), (zmq.MAXMSGSIZE, msg.MAX_FRAME_BYTES),
-                                   (zmq.SUBSCRIBE, b"arm_state/")])
-        for arm in config.arms[1:]:
-            sock.connect(config.endpoint(f"arm_commander-{arm.name}"))
+        sock = _subscriber(bus, [config.endpoint(f"arm_commander-{arm.name}") for arm in config.arms], b"arm_state/")
         while True:
             _, state = msg.decode(await sock.recv_multipart(copy=False))
             if isinstance(state, msg.ArmState):
