@@ -230,7 +230,17 @@ def test_renice_lowers_the_priority_of_every_thread_of_the_worker_processes():
             process.wait()
 
 
-@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="the kernel groups no sessions (autogroup)")
+def _scheduled_in_an_autogroup() -> bool:
+    """Whether the kernel schedules this process's session as one group: ``/proc/self/autogroup`` names the group
+    only then. It is missing where the kernel has no autogroup, and empty for a process in a CPU cgroup of its own (a
+    container's, or a systemd unit's with CPU accounting), where a niceness counts across the whole cgroup."""
+    try:
+        return bool(open("/proc/self/autogroup").read().strip())
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _scheduled_in_an_autogroup(), reason="the kernel schedules no session of ours as a group")
 def test_renice_sets_the_scheduling_group_of_a_process_that_leads_its_session_and_no_other():
     """Where the kernel schedules each session as one group, a process's niceness counts only within its group: a
     worker process that leads its own session gets its group's niceness set too, so that against the other programs
