@@ -35,6 +35,12 @@ ROTATION_STEPS = 24
 #: 28.2-31.2 mm behind (seed 0 after all 56 steps: closed 3.77, open 34.22 mm, 30.5 mm behind).
 PUSHING_STEPS = 40
 
+#: control steps of the frictionless (PFF) pushing check, of the goal-sized 56. Goal 0, planner seed 0 (2026-11-28,
+#: docs/benchmarks.md, "The test suite"): PFF stays within 78.5-78.7 mm of its 78.5 mm start for 16 steps (77.9 mm
+#: after all 56), where NH, which has shear, has pushed the cube 20.5 mm closer (10.6 mm by step 10): a model that
+#: could push fails the 10 % bound well before this cut.
+PFF_STEPS = 16
+
 
 def episode(name: str, model: str, loop: str, steps: int | None = None):
     task = make_task(name)
@@ -42,8 +48,9 @@ def episode(name: str, model: str, loop: str, steps: int | None = None):
 
 
 def test_pff_cannot_move_the_object_in_planar_pushing():
-    """No shear in the model: the planner finds no action that helps, the error stays at its start (~78 mm)."""
-    result = episode("pushing", "pff", "closed")
+    """No shear in the model: the planner finds no action that helps, the error stays at its start (~78 mm) for
+    ``PFF_STEPS`` (16) steps, in which NH's closed loop gets 20.5 mm closer."""
+    result = episode("pushing", "pff", "closed", PFF_STEPS)
     assert result.initial_error_mm > 30
     assert abs(result.error_mm - result.initial_error_mm) < 0.1 * result.initial_error_mm
 
