@@ -12,7 +12,7 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from hydrosoft.contact.cone import split_normal
-from hydrosoft.dynamics import UnstableStepError, press_in, step
+from hydrosoft.dynamics import UnstableStepError, largest_turn, press_in, step
 from hydrosoft.geometry import se3
 from hydrosoft.scene import SceneError, compile_scene
 from hydrosoft.tasks.scenes import task_scene
@@ -116,3 +116,30 @@ def test_a_twist_needing_more_than_max_substeps_is_refused_naming_the_turn():
     u[0, :2, 3] = 2 * math.pi
     with pytest.raises(UnstableStepError, match=r"turns 6\.28 rad in one step: that needs 63 sub-steps"):
         step(replace(model, max_substeps=16), state, u)
+
+
+def test_the_largest_turn_is_over_the_actuated_bodies_only_whichever_way_they_are_indexed():
+    """``largest_turn`` (the sub-step count's turn, asked once per step) reads the actuated bodies' rotation vectors
+    only, through ``Model.actuated_bodies``: a slice where the actuated bodies are consecutive, indices where not.
+    An unactuated body's turn never counts; a NaN turn of an actuated body is NaN; no actuated body or no sample
+    gives 0."""
+    model, _, _ = coarse_in_hand()  # two actuated bubbles, bodies 0 and 1
+    assert model.actuated_bodies == slice(0, 2)
+    u = torch.zeros(3, model.n_bodies, 6, dtype=torch.float64)
+    u[1, 1, 3:] = torch.tensor([0.03, 0.0, 0.04], dtype=torch.float64)  # 0.05 rad
+    u[2, 0, 3:5] = 0.02
+    assert largest_turn(model, u) == pytest.approx(0.05, rel=1e-15)
+    scattered = replace(model, actuated=torch.tensor([1.0, 0.0], dtype=torch.float64))
+    assert scattered.actuated_bodies == slice(0, 1)
+    assert largest_turn(scattered, u) == pytest.approx(math.hypot(0.02, 0.02), rel=1e-15)  # body 1 is not moved
+    wide = replace(model, actuated=torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64))  # not consecutive: indices
+    assert torch.equal(wide.actuated_bodies, torch.tensor([0, 2]))
+    three = torch.cat([u, torch.zeros(3, 1, 6, dtype=torch.float64)], 1)
+    three[0, 1, 3] = 5.0  # the unactuated middle body's turn is ignored
+    three[0, 2, 5] = -0.07
+    assert largest_turn(wide, three) == pytest.approx(0.07, rel=1e-15)
+    three[2, 2, 4] = math.nan
+    assert math.isnan(largest_turn(wide, three))
+    held = replace(model, actuated=torch.zeros(2, dtype=torch.float64))
+    assert largest_turn(held, u) == 0.0
+    assert largest_turn(model, u[:0]) == 0.0
