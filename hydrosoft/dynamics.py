@@ -134,8 +134,8 @@ class Model:
     actuated_bodies: slice | Tensor = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "point_sets", tuple(_point_set(index) for index in self.touchable))
-        object.__setattr__(self, "actuated_bodies", _point_set(self.actuated.nonzero().squeeze(-1)))
+        object.__setattr__(self, "point_sets", tuple(_slice_if_consecutive(index) for index in self.touchable))
+        object.__setattr__(self, "actuated_bodies", _slice_if_consecutive(self.actuated.nonzero().squeeze(-1)))
         for name in ("points", "normals"):
             object.__setattr__(self, name, _coordinate_major(getattr(self, name)))
         if self.object_update not in OBJECT_UPDATES:
@@ -201,9 +201,10 @@ STABLE_RATIO = 1.8
 """Largest ``(h/epsilon)(h/n) lambda_max(M^-1 K_c)`` a sub-step may take: 0.9 of the explicit update's limit 2."""
 
 
-def _point_set(index: Tensor) -> slice | Tensor:
-    """A body's touchable point indices ``(N_m,)`` as the slice they span when they are consecutive, else as they are
-    (``Model.point_sets``; ``compile_scene`` orders the points so that the first two bodies' sets are consecutive)."""
+def _slice_if_consecutive(index: Tensor) -> slice | Tensor:
+    """Indices ``(N,)`` as the slice they span when they are consecutive, else as they are: a body's touchable points
+    (``Model.point_sets``; ``compile_scene`` orders the points so that the first two bodies' sets are consecutive) or
+    the actuated bodies (``Model.actuated_bodies``)."""
     values = index.tolist()
     if values and values == list(range(values[0], values[-1] + 1)):
         return slice(values[0], values[-1] + 1)
