@@ -80,11 +80,10 @@ import numpy as np
 import torch
 
 from hydrosoft.compilation import building_precompiled
-from hydrosoft.garbage_collection import settle_garbage_collector
 from hydrosoft.control import CemGd, PlanResult, WorkerProcesses
 from hydrosoft.control import device_unavailable as control_device_unavailable
 from hydrosoft.control.cem_gd import pieces
-from hydrosoft.control.worker_processes import eager_parts
+from hydrosoft.control.worker_processes import eager_parts, settle_after_compiling
 from hydrosoft.drivers.bubble.deformation import penetration_from_deformation
 from hydrosoft.drivers.bubble.render import PinholeDepth
 from hydrosoft.dynamics import State, with_object_update
@@ -834,9 +833,7 @@ def compile_step(core: PlannerCore) -> float:
     solver = core.solver(core.task.initial_pose(), initial.object_pose[0].double(), arm_poses)
     for _ in range(WARM_UP_SOLVES):
         solver.solve(initial)
-    if core.processes is not None:
-        core.processes.settle()
-    settle_garbage_collector()
+    settle_after_compiling(core.processes)
     return time.monotonic() - started
 
 

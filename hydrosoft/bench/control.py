@@ -303,8 +303,8 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
     import msgspec
     import torch
 
-    from hydrosoft.garbage_collection import settle_garbage_collector
     from hydrosoft.control import CemGd
+    from hydrosoft.control.worker_processes import settle_after_compiling
     from hydrosoft.dynamics import pair_counts
     from hydrosoft.scene import build_surface
     from hydrosoft.tactile import carry_over
@@ -345,9 +345,7 @@ def _timed_solves(setup, solves: int, compile: bool, dtype: str, sdf_solver_step
         if k < warmups:
             warmup_s.append(wall)
             if k == warmups - 1:
-                if solver.processes is not None:
-                    solver.processes.settle()
-                settle_garbage_collector()
+                settle_after_compiling(solver.processes)
         else:
             times.append({**result.timings, "solve_s": wall, "step_s": step_calls.seconds,
                           "cost_s": stage_calls.seconds + terminal_calls.seconds, "estimate_s": estimated - tic,

@@ -251,6 +251,15 @@ def eager_parts(parts: Problem) -> str:
                      if getattr(part, "fallback_reason", None) is not None)
 
 
+def settle_after_compiling(processes: WorkerProcesses | None) -> None:
+    """Settle the garbage collector of each solver worker process in ``processes`` (``WorkerProcesses.settle``; None:
+    a solver without processes) and then of this process (``settle_garbage_collector``): once the solves that compile
+    are done, as the planner's start-up and ``bench control``'s warm-up do."""
+    if processes is not None:
+        processes.settle()
+    settle_garbage_collector()
+
+
 def _reply(pipe: Connection, message: tuple) -> None:
     pipe.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
 

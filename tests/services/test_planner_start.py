@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from hydrosoft import compilation
+from hydrosoft.control import worker_processes
 from hydrosoft.services import planner
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import load_config
@@ -104,7 +105,7 @@ def test_the_start_up_solves_as_often_as_a_worker_takes_to_settle_so_no_goal_pay
         return solver
 
     monkeypatch.setattr(core, "solver", counting_solver)
-    monkeypatch.setattr(planner, "settle_garbage_collector", lambda: events.append("settle"))
+    monkeypatch.setattr(worker_processes, "settle_garbage_collector", lambda: events.append("settle"))
     try:
         planner.compile_step(core)
     finally:
