@@ -700,14 +700,16 @@ def _line_minimum(kinetic: Tensor, limit: Tensor, s: Tensor, ds: Tensor, slip_to
     a = s.square().sum(-1) + slip_tolerance**2
     b, c = (s * ds).sum(-1), ds.square().sum(-1)
     curving = c * a - b * b  # |s|^2 |ds|^2 - (s . ds)^2 + tol^2 |ds|^2 >= 0; a point's phi'' is limit curving / q^3
+    limit_curving, two_b = limit * curving, 2 * b  # the loop's terms that do not change with alpha, made once
     lo, hi = torch.zeros_like(k1), torch.full_like(k1, LONGEST_STEP)
     alpha = torch.ones_like(k1)
     for _ in range(LINE_SEARCH_STEPS):
         at = alpha.view(-1, 1, 1)
-        q2 = a + at * (2 * b + at * c)
+        atc = at * c
+        q2 = a + at * (two_b + atc)
         q = torch.sqrt(q2)
-        slope = k1 + alpha * k2 + (limit * (b + at * c) / q).sum((1, 2))
-        bend = k2 + (limit * curving / (q2 * q)).sum((1, 2))
+        slope = k1 + alpha * k2 + (limit * (b + atc) / q).sum((1, 2))
+        bend = k2 + (limit_curving / (q2 * q)).sum((1, 2))
         below = slope < 0
         lo, hi = torch.where(below, alpha, lo), torch.where(below, hi, alpha)
         newton = alpha - slope / bend
@@ -814,7 +816,21 @@ def _implicit_friction_motion(model: Model, state: State, body_poses: Tensor, w:
     The normal forces ``f_n`` are those of ``state.forces``; a point without normal force carries no friction.
     """
     system = _friction_system(model, state, body_poses, w, dt_sub, slip_tolerance)
-    return _friction_motion(model, system, _minimise_friction_energy(_newton_move, system))
+    return _friction_motion(model, system, _minimise_friction_energy(_newton_move, _frictional_pairs(system)))
+
+
+def _frictional_pairs(system: FrictionSystem) -> FrictionSystem:
+    """``system`` over its frictional (body, point) pairs alone, as one body of ``P`` pairs: ``PJ (B, P, 3, d)``,
+    ``carried (B, 1, P, 3)``, ``limit (B, 1, P)``, the pairs whose friction limit is not 0 in some sample (a NaN
+    limit is kept, so a non-finite state stays non-finite).
+
+    The same energy: a pair with no friction limit adds exactly 0 to it, to its gradient and to its Hessian, but in
+    a contact scene it is most of them (the rolling planner's sub-steps: 28 of 2 x 132). Its shape changes with the
+    contacts, so only the eager Newton loop runs on it; a compiled step keeps the full system, whose shape is
+    fixed."""
+    body, point = (system.limit != 0).any(0).nonzero(as_tuple=True)
+    return system._replace(PJ=system.PJ[:, point], carried=system.carried[:, body, point].unsqueeze(1),
+                           limit=system.limit[:, body, point].unsqueeze(1))
 
 
 def _friction_system(model: Model, state: State, body_poses: Tensor, w: Tensor, dt_sub: Tensor,

@@ -1,5 +1,6 @@
 """PF's implicit friction solve: the exact line search along a Newton direction, Newton's convergence within its
-step cap on every task scene, and the compiled step's friction loop (one compiled Newton step, early stop)."""
+step cap on every task scene, the eager loop on the frictional pairs alone, and the compiled step's friction loop
+(one compiled Newton step, early stop)."""
 
 from __future__ import annotations
 
@@ -101,6 +102,29 @@ def test_the_friction_solve_converges_within_its_newton_cap(task_name, monkeypat
                 converged = dynamics._implicit_friction_motion(*args)
             assert float(converged.abs().max()) > 1e-5  # the object does move
             assert torch.allclose(capped, converged, rtol=0, atol=1e-12), (capped - converged).abs().max()
+
+
+@pytest.mark.parametrize("task_name", ["pushing", "in_hand"])
+def test_the_eager_newton_loop_on_the_frictional_pairs_alone_ends_where_the_full_system_ends(task_name):
+    """``_frictional_pairs`` drops the (body, point) pairs without friction (most of them) and keeps the minimiser:
+    the eager loop on the full system and on the pairs end within 1e-12 m (rad) on every solve of the planner
+    scenes (planar pushing; in-hand rotation, spatial, two bubbles); a NaN limit is kept, so NaN stays NaN."""
+    calls = planner_batches(task_name)
+    with torch.no_grad():
+        for model, state, body_poses, w, dt_sub, tolerance in calls:
+            system = dynamics._friction_system(model, state, body_poses, w, dt_sub, tolerance)
+            pairs = dynamics._frictional_pairs(system)
+            kept = pairs.limit.shape[-1]
+            assert 0 < kept < system.limit[0].numel() // 2
+            nonzero = [(limits[limits != 0]).sort().values for limits in (pairs.limit, system.limit)]
+            assert torch.equal(*nonzero)  # every non-zero limit kept
+            full = dynamics._minimise_friction_energy(dynamics._newton_move, system)
+            on_pairs = dynamics._minimise_friction_energy(dynamics._newton_move, pairs)
+            assert float(full.abs().max()) > 1e-5  # the object does move
+            assert torch.allclose(on_pairs, full, rtol=0, atol=1e-12), (on_pairs - full).abs().max()
+        broken = system._replace(limit=torch.where(system.limit > 0, system.limit, torch.nan))
+        assert bool(dynamics._minimise_friction_energy(dynamics._newton_move, dynamics._frictional_pairs(broken)
+                                                       ).isnan().all())
 
 
 def test_a_compiled_pf_step_runs_one_compiled_newton_step_per_iteration_and_stops_when_converged(monkeypatch):
