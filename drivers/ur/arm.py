@@ -86,10 +86,12 @@ SETUP_CALL_TIMEOUT_S = 5.0  # setWatchdog, reuploadScript, stopScript
 STOP_MARGIN_S = 1.0  # stop() waits the longest configured stop plus this
 DISCONNECT_TIMEOUT_S = 3.0  # disconnect() sleeps 500 ms by itself
 SUPERVISOR_FRACTION = 0.25  # the supervisor wakes every quarter watchdog period
-#: The receive client's polling thread sleeps with a timer slack of this fraction of the state period (125 Hz: 1 ms,
-#: a state seen at most that much later; ``timer_slack.py``): 1.6-2.0 % of a core instead of 8.2-8.6 %. The control
-#: client keeps the default: its sends wait, spinning, for the script's readiness that its thread reports.
-RECEIVE_SLACK_FRACTION = 0.125
+#: Each ur_rtde client's polling thread sleeps with a timer slack of this fraction of its stream's period (125 Hz:
+#: 1 ms; ``timer_slack.py``): a package is seen at most that much later. Both clients, since the kernel ends a
+#: slack sleep early at another thread's wake-up: with the receive client's slack alone, the control client's
+#: polling woke it as often as before. A servoL or watchdog kick is sent without waiting for the script (the
+#: script is ready for it in steady state); a stop's confirmation may take up to the slack longer.
+POLL_SLACK_FRACTION = 0.125
 
 # Retired ur_rtde clients, kept alive so their GIL-holding 500 ms destructors never run on the event loop's watch.
 _RETIRED_CLIENTS: list[Any] = []
@@ -286,7 +288,7 @@ class URArm:
         try:
             self._receive = await self._on_thread(
                 self._receive_thread,
-                lambda: started_with_slack(RECEIVE_SLACK_FRACTION / cfg.state_rate_hz, lambda: (
+                lambda: started_with_slack(POLL_SLACK_FRACTION / cfg.state_rate_hz, lambda: (
                     rtde_receive.RTDEReceiveInterface(
                         cfg.host, cfg.state_rate_hz, RECEIVE_VARIABLES, False, cfg.upper_range_registers
                     ))),
@@ -300,7 +302,9 @@ class URArm:
         try:
             self._control = await self._on_thread(
                 self._control_thread,
-                lambda: rtde_control.RTDEControlInterface(cfg.host, cfg.control_rate_hz, flags),
+                lambda: started_with_slack(POLL_SLACK_FRACTION / cfg.control_rate_hz,
+                                           lambda: rtde_control.RTDEControlInterface(cfg.host, cfg.control_rate_hz,
+                                                                                     flags)),
                 SETUP_CALL_TIMEOUT_S,
             )
         except (RuntimeError, asyncio.TimeoutError) as exc:
