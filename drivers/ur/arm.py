@@ -89,8 +89,9 @@ SUPERVISOR_FRACTION = 0.25  # the supervisor wakes every quarter watchdog period
 #: Each ur_rtde client's polling thread sleeps with a timer slack of this fraction of its stream's period (125 Hz:
 #: 1 ms; ``timer_slack.py``): a package is seen at most that much later. Both clients, since the kernel ends a
 #: slack sleep early at another thread's wake-up: with the receive client's slack alone, the control client's
-#: polling woke it as often as before. A servoL or watchdog kick is sent without waiting for the script (the
-#: script is ready for it in steady state); a stop's confirmation may take up to the slack longer.
+#: polling woke it as often as before. A servoL or watchdog kick is sent without waiting for the script's
+#: confirmation (ur_rtde waits only for it to be ready, as it is in steady state); a stop's confirmation may take
+#: up to the slack longer.
 POLL_SLACK_FRACTION = 0.125
 
 # Retired ur_rtde clients, kept alive so their GIL-holding 500 ms destructors never run on the event loop's watch.

@@ -8,7 +8,8 @@ the calling thread with its slack raised, so that only the threads the client st
 With 1 ms the receive client took 1.6-2.0 % of a core, with 2 ms 0.6-0.7 % (3 runs each, alternated, 2026-11-28).
 
 The cost: a package is seen up to the slack later. Threads at a real-time priority have no slack (Linux ignores it
-for them), and on a system without ``prctl`` (not Linux) the client is built as it is.
+for them), and on a system without ``prctl`` (not Linux) the client is built as it is. Measured in the stack:
+docs/benchmarks.md, "The services' CPU beside the paper planner".
 """
 
 from __future__ import annotations
