@@ -87,6 +87,16 @@ class RenderOptions:
             raise ValueError(f"RenderOptions.supersample: expected a positive integer, got {self.supersample!r}")
 
 
+def quantise(image: np.ndarray, noise: np.ndarray | None = None) -> np.ndarray:
+    """Grey levels ``(H, W)`` uint8 of a float32 image ``(H, W)`` plus ``noise`` (``(H, W)`` float32, or none):
+    ``np.clip(np.rint(image + noise), 0, 255).astype(np.uint8)``, bit for bit (the float32 sum, rounded half to
+    even, saturated), in one OpenCV pass instead of numpy's four (640 x 480: 0.19 against 1.33 ms). For finite sums
+    within +-2**31 (grey levels and their noise are; OpenCV's rounding to int overflows beyond)."""
+    if noise is None:
+        return cv2.add(image, 0.0, dtype=cv2.CV_8U)
+    return cv2.add(image, noise, dtype=cv2.CV_8U)
+
+
 class Renderer:
     """Renders images of one camera (``intrinsics``) in one look (``options``).
 
@@ -338,13 +348,16 @@ class Renderer:
         return image
 
     def _expose(self, image: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
-        """A noise-free image ``(H, W)`` float32 with the sensor's noise, as the camera's ``(H, W, 3)`` uint8 BGR."""
+        """A noise-free image ``(H, W)`` float32 with the sensor's noise, as the camera's ``(H, W, 3)`` uint8 BGR.
+
+        The sum, its rounding (half to even) and its saturation to 0-255 in one OpenCV pass (``quantise``): the
+        grey levels of ``np.clip(np.rint(image + noise), 0, 255)``, bit for bit, in a seventh of numpy's time."""
+        noise = None
         if self.options.noise_std > 0:
             if rng is None:
                 raise ValueError("Renderer: options.noise_std > 0 needs an rng (numpy.random.Generator)")
-            image = image + self._noise(rng)
-        grey = np.clip(np.rint(image), 0, 255).astype(np.uint8)
-        return cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+            noise = self._noise(rng)
+        return cv2.cvtColor(quantise(image, noise), cv2.COLOR_GRAY2BGR)
 
     def _noise(self, rng: np.random.Generator) -> np.ndarray:
         """Noise ``(H, W)`` float32 with ``options.noise_std``: a window of the noise field at an offset from ``rng``

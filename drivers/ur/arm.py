@@ -60,6 +60,7 @@ from hydrosoft.drivers.ur.pose import pose_to_ur, ur_to_pose
 from hydrosoft.drivers.ur.probe import error_text, probe_port, probe_rtde_stream
 from hydrosoft.drivers.ur.safety_status import RuntimeState, controller_stop, safety_flags
 from hydrosoft.drivers.ur.stream_age import StreamAge
+from hydrosoft.drivers.ur.timer_slack import started_with_slack
 
 try:
     import rtde_control
@@ -85,6 +86,13 @@ SETUP_CALL_TIMEOUT_S = 5.0  # setWatchdog, reuploadScript, stopScript
 STOP_MARGIN_S = 1.0  # stop() waits the longest configured stop plus this
 DISCONNECT_TIMEOUT_S = 3.0  # disconnect() sleeps 500 ms by itself
 SUPERVISOR_FRACTION = 0.25  # the supervisor wakes every quarter watchdog period
+#: Each ur_rtde client's polling thread sleeps with a timer slack of this fraction of its stream's period (125 Hz:
+#: 1 ms; ``timer_slack.py``): a package is seen at most that much later. Both clients, since the kernel ends a
+#: slack sleep early at another thread's wake-up: with the receive client's slack alone, the control client's
+#: polling woke it as often as before. A servoL or watchdog kick is sent without waiting for the script's
+#: confirmation (ur_rtde waits only for it to be ready, as it is in steady state); a stop's confirmation may take
+#: up to the slack longer.
+POLL_SLACK_FRACTION = 0.125
 
 # Retired ur_rtde clients, kept alive so their GIL-holding 500 ms destructors never run on the event loop's watch.
 _RETIRED_CLIENTS: list[Any] = []
@@ -281,9 +289,10 @@ class URArm:
         try:
             self._receive = await self._on_thread(
                 self._receive_thread,
-                lambda: rtde_receive.RTDEReceiveInterface(
-                    cfg.host, cfg.state_rate_hz, RECEIVE_VARIABLES, False, cfg.upper_range_registers
-                ),
+                lambda: started_with_slack(POLL_SLACK_FRACTION / cfg.state_rate_hz, lambda: (
+                    rtde_receive.RTDEReceiveInterface(
+                        cfg.host, cfg.state_rate_hz, RECEIVE_VARIABLES, False, cfg.upper_range_registers
+                    ))),
                 SETUP_CALL_TIMEOUT_S,
             )
         except (RuntimeError, asyncio.TimeoutError) as exc:
@@ -294,7 +303,9 @@ class URArm:
         try:
             self._control = await self._on_thread(
                 self._control_thread,
-                lambda: rtde_control.RTDEControlInterface(cfg.host, cfg.control_rate_hz, flags),
+                lambda: started_with_slack(POLL_SLACK_FRACTION / cfg.control_rate_hz,
+                                           lambda: rtde_control.RTDEControlInterface(cfg.host, cfg.control_rate_hz,
+                                                                                     flags)),
                 SETUP_CALL_TIMEOUT_S,
             )
         except (RuntimeError, asyncio.TimeoutError) as exc:

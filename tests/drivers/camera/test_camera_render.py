@@ -138,3 +138,22 @@ def test_an_object_on_a_table_that_fills_the_view_is_drawn_in_a_window_and_gives
         image = windowed.render(T_camera_object, layout, None, T_camera_table)
         np.testing.assert_array_equal(image, whole.render(T_camera_object, layout, None, T_camera_table))
         assert np.any(image != image[0, 0])  # the object is in the image
+
+
+@pytest.mark.parametrize("with_noise", [True, False])
+def test_quantise_gives_numpys_rounded_and_clipped_grey_levels_bit_for_bit(with_noise):
+    from hydrosoft.drivers.camera.render import quantise
+
+    rng = np.random.default_rng(3)
+    image = (rng.random((48, 64), dtype=np.float32) * 400.0 - 70.0).astype(np.float32)
+    image[0, :6] = np.array([0.5, 1.5, 2.5, 254.5, 255.5, -0.5], dtype=np.float32)  # ties round half to even
+    image[1, :4] = np.array([-1000.0, 1000.0, 255.49, 0.49], dtype=np.float32)  # saturated on both sides
+    noise = rng.standard_normal((48, 64), dtype=np.float32) * np.float32(3.0) if with_noise else None
+    if noise is not None:
+        noise[:2] = 0.0
+    total = image if noise is None else image + noise
+    expected = np.clip(np.rint(total), 0, 255).astype(np.uint8)
+    got = quantise(image, noise)
+    assert got.dtype == np.uint8 and got.shape == image.shape
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(got[0, :6], [0, 2, 2, 254, 255, 0])

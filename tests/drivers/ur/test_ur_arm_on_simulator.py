@@ -9,6 +9,9 @@ four times longer.
 from __future__ import annotations
 
 import asyncio
+import os
+import sys
+import threading
 import time
 
 import numpy as np
@@ -17,7 +20,7 @@ import rtde_control
 import rtde_receive
 
 from hydrosoft.drivers.errors import DeviceFault, NotConnected, Stale
-from hydrosoft.drivers.ur.arm import URArm
+from hydrosoft.drivers.ur.arm import POLL_SLACK_FRACTION, URArm
 from hydrosoft.drivers.ur.config import URArmConfig
 from hydrosoft.drivers.ur.probe import probe_rtde_stream
 from hydrosoft.drivers.ur.pose import quat_conjugate, quat_from_rotvec, quat_multiply, rotvec_from_quat, ur_to_pose
@@ -138,6 +141,23 @@ def test_arm_state_matches_the_simulator_and_inputs_are_owned(sim, arm, loop_thr
     assert sim.state()["watchdog_period_s"] == pytest.approx(0.25)
     with pytest.raises(RuntimeError, match="already in use"):
         rtde_control.RTDEControlInterface(sim.host)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="timer slack is a Linux prctl")
+def test_the_clients_polling_threads_sleep_with_the_timer_slack_and_the_python_threads_keep_theirs(arm):
+    def slack_ns(tid: int) -> int:
+        with open(f"/proc/{tid}/timerslack_ns") as file:
+            return int(file.read())
+
+    default_ns = slack_ns(threading.main_thread().native_id)
+    expected_ns = round(1e9 * POLL_SLACK_FRACTION / arm.config.state_rate_hz)
+    assert arm.config.control_rate_hz == arm.config.state_rate_hz and expected_ns != default_ns
+    python_ids = {thread.native_id for thread in threading.enumerate()}
+    slack = {int(tid): slack_ns(int(tid)) for tid in os.listdir("/proc/self/task")}
+    slacked = [tid for tid, ns in slack.items() if ns == expected_ns]
+    assert len(slacked) >= 2  # the receive client's and the control client's polling threads (and any they made)
+    assert not python_ids & set(slacked)
+    assert all(slack[tid] == default_ns for tid in python_ids if tid in slack)  # the constructing threads restored
 
 
 def test_the_state_streams_at_the_configured_rate_not_the_controllers_fastest(sim, arm, loop_thread):
