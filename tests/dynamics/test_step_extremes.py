@@ -129,9 +129,9 @@ def test_the_largest_turn_is_over_the_actuated_bodies_only_whichever_way_they_ar
     u[1, 1, 3:] = torch.tensor([0.03, 0.0, 0.04], dtype=torch.float64)  # 0.05 rad
     u[2, 0, 3:5] = 0.02
     assert largest_turn(model, u) == pytest.approx(0.05, rel=1e-15)
-    scattered = replace(model, actuated=torch.tensor([1.0, 0.0], dtype=torch.float64))
-    assert scattered.actuated_bodies == slice(0, 1)
-    assert largest_turn(scattered, u) == pytest.approx(math.hypot(0.02, 0.02), rel=1e-15)  # body 1 is not moved
+    first_only = replace(model, actuated=torch.tensor([1.0, 0.0], dtype=torch.float64))
+    assert first_only.actuated_bodies == slice(0, 1)
+    assert largest_turn(first_only, u) == pytest.approx(math.hypot(0.02, 0.02), rel=1e-15)  # body 1 is not moved
     wide = replace(model, actuated=torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64))  # not consecutive: indices
     assert torch.equal(wide.actuated_bodies, torch.tensor([0, 2]))
     three = torch.cat([u, torch.zeros(3, 1, 6, dtype=torch.float64)], 1)
