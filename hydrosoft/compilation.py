@@ -48,7 +48,13 @@ from torch import Tensor
 T = TypeVar("T")
 
 DEFAULT_OPTIONS = {"cpp_wrapper": True, "assert_indirect_indexing": False, "cpp.enable_loop_tail_vec": False}
-"""Inductor's options when a caller gives none (``dynamics.CompiledStep``'s docstring says why each is set)."""
+"""Inductor's options on the CPU when a caller gives none (``dynamics.CompiledStep``'s docstring says why each is
+set)."""
+
+GPU_DEFAULT_OPTIONS = {"assert_indirect_indexing": False}
+"""Inductor's options on a GPU when a caller gives none: no bounds check on each indirect index (as on the CPU), and
+the Python wrapper. Inductor's C++ wrapper for GPU kernels is a C++ build of its own per graph: the planner's first
+compiled solve on a GPU had not ended after 325 s with it (2026-11-28, docs/benchmarks.md "On a GPU")."""
 
 
 PRECOMPILED_ENV = "HYDROSOFT_PRECOMPILED_DIR"
@@ -204,11 +210,13 @@ class Precompiled:
         return built
 
 
-def with_default_options(options: dict) -> dict:
-    """``torch.compile`` keyword arguments ``options`` with ``DEFAULT_OPTIONS`` as inductor's options when the
-    backend is inductor and neither ``mode`` nor ``options`` is given."""
+def with_default_options(options: dict, device: torch.device | str = "cpu") -> dict:
+    """``torch.compile`` keyword arguments ``options`` with inductor's default options for graphs on ``device``
+    (``DEFAULT_OPTIONS`` on the CPU, ``GPU_DEFAULT_OPTIONS`` on any other) when the backend is inductor and neither
+    ``mode`` nor ``options`` is given."""
     if options.get("backend", "inductor") == "inductor" and not {"mode", "options"} & options.keys():
-        return {**options, "options": dict(DEFAULT_OPTIONS)}
+        defaults = DEFAULT_OPTIONS if torch.device(device).type == "cpu" else GPU_DEFAULT_OPTIONS
+        return {**options, "options": dict(defaults)}
     return dict(options)
 
 
@@ -406,7 +414,8 @@ class CompiledFunction(FallsBack):
 
     ``fn`` is a pure function of tensors and hashable constants, in tuples, named tuples and lists; each new
     ``signature`` of its arguments compiles once (constants are baked into the graph). ``options`` go to
-    ``torch.compile``, with ``DEFAULT_OPTIONS`` for inductor when none are given (``with_default_options``);
+    ``torch.compile``, with ``DEFAULT_OPTIONS`` for inductor when none are given (``with_default_options``: a
+    function of tensors on a GPU is given ``with_default_options(options, device)`` by its caller);
     ``activation_memory_budget`` is AOT autograd's; ``workers`` the calls that may run at once (``CompiledCopies``).
     Its copies are ``Precompiled`` when a precompiled directory was set when it was made (``use_precompiled``).
     """

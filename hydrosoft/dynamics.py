@@ -1125,7 +1125,7 @@ class CompiledStep(FallsBack):
     graphs of the steps after it. ``options`` go to ``torch.compile`` (e.g. ``dynamic=True`` to compile once for all
     batch sizes).
     With the default inductor backend and no ``mode``/``options`` given, the options are
-    ``compilation.DEFAULT_OPTIONS``:
+    ``compilation.DEFAULT_OPTIONS`` on the CPU (a model on a GPU: ``compilation.GPU_DEFAULT_OPTIONS``):
     inductor's C++ wrapper, which launches the kernels from C++ instead of Python and halves a batch-1 step
     (0.27 -> 0.14 ms measured on the pushing scene) for a few more seconds of compilation; and no bounds check on
     each indirect index. The step's indices are the model's own point subsets (``touchable_points``), arg-minima
@@ -1161,7 +1161,7 @@ class CompiledStep(FallsBack):
 
     def __init__(self, model: Model, activation_memory_budget: float = 0.0, workers: int = 1, **options) -> None:
         self.model = model
-        options = with_default_options(options)
+        options = with_default_options(options, model.device)
         implicit_friction = getattr(model.contact, "implicit_friction", False)
 
         setting = precompiling()

@@ -44,6 +44,20 @@ def test_the_signature_tells_apart_what_compiles_apart():
         assert key != signature(x, pair, 2.0)
 
 
+def test_default_options_are_chosen_per_device_and_given_options_are_kept():
+    """The CPU's graphs get inductor's C++ wrapper; a GPU's do not (its C++ wrapper is a build of its own per graph),
+    and neither gets bounds checks; a caller's mode, options or other backend are left as given."""
+    cpu = compilation.with_default_options({"dynamic": False})
+    assert cpu == {"dynamic": False, "options": compilation.DEFAULT_OPTIONS} and cpu["options"]["cpp_wrapper"]
+    assert compilation.with_default_options({}, torch.device("cpu")) == {"options": compilation.DEFAULT_OPTIONS}
+    for device in ("cuda", "cuda:1", torch.device("cuda", 0)):
+        gpu = compilation.with_default_options({"dynamic": False}, device)["options"]
+        assert "cpp_wrapper" not in gpu and not gpu["assert_indirect_indexing"]
+        assert not any(key.startswith("cpp.") for key in gpu)
+    for given in ({"mode": "reduce-overhead"}, {"options": {"cpp_wrapper": False}}, {"backend": "eager"}):
+        assert compilation.with_default_options(given, "cuda") == given
+
+
 def test_calls_at_once_from_threads_each_run_a_copy_of_their_own_and_agree_with_eager(fresh_dynamo):
     fast = CompiledFunction(scaled_norm, backend="eager")
     x, pair = torch.randn(5, 3), (torch.randn(3), torch.randn(3))

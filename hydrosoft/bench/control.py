@@ -45,7 +45,9 @@ tasks as separate processes (``--tasks pushing`` ...) to use both cores.
 GPU. ``--device cuda`` (or ``cuda:N``) measures the replanning rate with the planner's model, step, costs and solver
 on that GPU (the plant and its observation stay on the CPU; the state estimate moves to the GPU once per solve, the
 action back), ``--rate-samples 64,1024`` with the paper's B = 64 samples and 16 times more in the same run: the
-measurement a lab with a GPU runs (docs/lab-setup.md). The episodes stay on the CPU; on CUDA the rows give the most
+measurement a lab with a GPU runs (docs/lab-setup.md). The episodes stay on the CPU, and with ``--compile`` their
+planner compiles for the CPU before the rate's compiles for the GPU: ``--rate-only`` runs no episodes (no table rows,
+no figures), only the rate. On CUDA the rows give the most
 GPU memory the solves held (``gpu_memory_mib``), and no ``step_forward_ms``/``cost_forward_ms`` (a call returns
 before its kernels end). Worker processes take no ``--device``.
 
@@ -127,6 +129,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compile", action="store_true",
                         help="planner step through torch.compile (PlannerSettings.compile): the first solve of "
                              "each task and model compiles, about a minute per signature pair on a CPU")
+    parser.add_argument("--rate-only", action="store_true",
+                        help="measure only the replanning rate: no episodes, no table rows, no figures (the GPU "
+                             "measurement: --device cuda --compile --rate-only compiles on the GPU alone)")
     parser.add_argument("--rate-solves", type=int, default=None,
                         help="closed-loop pushing solves timed for the replanning rate with the full planner "
                              "(default 5, quick 3; 0 skips it)")
@@ -563,7 +568,8 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     rows = []
     same_models = args.models if args.same_models is None else args.same_models
-    runs = [(plant, model) for model in args.models for plant in args.plants if plant != "same" or model in same_models]
+    runs = [] if args.rate_only else [(plant, model) for model in args.models for plant in args.plants
+                                      if plant != "same" or model in same_models]
     noise = {"pose_noise_m": args.pose_noise_mm / 1e3, "pose_noise_rad": math.radians(args.pose_noise_deg),
              "deformation_noise_m": args.deformation_noise_mm / 1e3}
     planner_keys = ("spacing", "samples", "elites", "horizon", "grad_steps", "open_loop_iterations")
@@ -580,7 +586,7 @@ def run(args: argparse.Namespace) -> int:
                 if log.other_settings or log.malformed else ""))
     total = len(runs) * len(args.tasks) * len(args.loops) * len(indices)
     done = reused = 0
-    for name in args.tasks:
+    for name in [] if args.rate_only else args.tasks:
         task = make_task(name, args.steps)
         for model in args.models:
             planner = PlannerSettings(model=model, compile=args.compile, sdf_solver_steps=args.sdf_solver_steps,
@@ -626,7 +632,7 @@ def run(args: argparse.Namespace) -> int:
                   for budget in (budgets if args.compile else budgets[:1]) for kind in args.rate_worker_kinds
                   for workers in args.rate_workers for chunks in args.rate_chunks for sdf in rate_sdf
                   for dtype in args.rate_dtypes] if rate_solves > 0 else None
-    pngs = [str(_plot(rows, name, args.out)) for name in args.tasks]
+    pngs = [] if args.rate_only else [str(_plot(rows, name, args.out)) for name in args.tasks]
     settings = {**preset, "goals": goals, "goal_indices": indices, "quick": args.quick, "plant": args.plant,
                 "plants": args.plants, "same_models": same_models,
                 "threads": args.threads,
@@ -644,7 +650,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"rows": rows, "replanning": replanning, "settings": settings}))
     else:
-        print(_table(rows, args.models))
+        if not args.rate_only:
+            print(_table(rows, args.models))
         for r in replanning or []:
             mode = "compiled" if r["compiled"] else "eager"
             compiling = ", compiling the step unless a planner of the same shapes did before" if r["compiled"] else ""

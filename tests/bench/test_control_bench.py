@@ -101,12 +101,13 @@ def test_the_rate_is_measured_per_worker_count_in_one_run_with_the_step_and_cost
 
 def test_the_rate_is_measured_per_sample_count_on_the_named_device_in_one_run(tmp_path, capsys):
     """``--rate-samples`` gives one replanning row per sample count, ``--device cpu`` (the default) names the CPU in
-    each; a device that is not a torch device, worker processes with a GPU, and fewer samples than elites are
-    refused (exit 2) before anything runs."""
-    assert control.run(parse("--tasks", "pushing", "--models", "nh", "--loops", "closed", "--plants", "same",
-                             "--quick", "--steps", "1", "--goals", "1", "--rate-solves", "1", "--rate-dtypes", "float32",
+    each, and ``--rate-only`` runs no episode (no rows, no figures); a device that is not a torch device, worker
+    processes with a GPU, and fewer samples than elites are refused (exit 2) before anything runs."""
+    assert control.run(parse("--rate-only", "--rate-solves", "1", "--rate-dtypes", "float32",
                              "--rate-samples", "16,32", "--device", "cpu", "--json", "--out", str(tmp_path))) == 0
-    rates = json.loads(capsys.readouterr().out)["replanning"]
+    document = json.loads(capsys.readouterr().out)
+    assert document["rows"] == [] and document["settings"]["pngs"] == [] and not any(tmp_path.iterdir())
+    rates = document["replanning"]
     assert [(r["samples"], r["device"], r["gpu_memory_mib"]) for r in rates] == [(16, "cpu", None), (32, "cpu", None)]
     assert all(r["rate_hz"] > 0 and r["step_forward_ms"] > 0 for r in rates)
     for argv, text in ((("--device", "tpu"), "not a torch device"), (("--rate-samples", "4"), "--rate-samples"),
