@@ -51,10 +51,13 @@ DEFAULT_OPTIONS = {"cpp_wrapper": True, "assert_indirect_indexing": False, "cpp.
 """Inductor's options on the CPU when a caller gives none (``dynamics.CompiledStep``'s docstring says why each is
 set)."""
 
-GPU_DEFAULT_OPTIONS = {"assert_indirect_indexing": False}
-"""Inductor's options on a GPU when a caller gives none: no bounds check on each indirect index (as on the CPU), and
-the Python wrapper. Inductor's C++ wrapper for GPU kernels is a C++ build of its own per graph: the planner's first
-compiled solve on a GPU had not ended after 325 s with it (2026-11-28, docs/benchmarks.md "On a GPU")."""
+GPU_DEFAULT_OPTIONS = {"assert_indirect_indexing": False, "triton.cudagraphs": True}
+"""Inductor's options on a GPU when a caller gives none: no bounds check on each indirect index (as on the CPU);
+the Python wrapper (inductor's C++ wrapper for GPU kernels is a C++ build of its own per graph: the planner's first
+compiled solve had not ended after 325 s with it); and CUDA graphs, each graph's kernels launched as one (the
+planner's solve is bound by launching many small kernels: 0.19 of the time without them on an H200, 2026-11-28,
+docs/benchmarks.md "On a GPU"). With CUDA graphs a call's outputs are copied out of the graphs' memory
+(``out_of_graph_memory``)."""
 
 
 PRECOMPILED_ENV = "HYDROSOFT_PRECOMPILED_DIR"
@@ -210,6 +213,17 @@ class Precompiled:
         return built
 
 
+def uses_cuda_graphs(options: dict) -> bool:
+    """Whether ``torch.compile``'s keyword arguments ``options`` have inductor run its graphs as CUDA graphs (its
+    option ``triton.cudagraphs``, the mode ``reduce-overhead``, or the process's inductor setting, e.g.
+    ``TORCHINDUCTOR_CUDAGRAPHS=1``)."""
+    if options.get("backend", "inductor") != "inductor":
+        return False
+    if options.get("mode") in ("reduce-overhead", "max-autotune"):
+        return True
+    return bool(options.get("options", {}).get("triton.cudagraphs", torch._inductor.config.triton.cudagraphs))
+
+
 def with_default_options(options: dict, device: torch.device | str = "cpu") -> dict:
     """``torch.compile`` keyword arguments ``options`` with inductor's default options for graphs on ``device``
     (``DEFAULT_OPTIONS`` on the CPU, ``GPU_DEFAULT_OPTIONS`` on any other) when the backend is inductor and neither
@@ -281,11 +295,16 @@ class CompiledCopies:
     missed before it is returned. Before, a copy was made the first time two calls ran at once and compiled each
     signature the first time it met it: the two solver workers' short cost calls first overlapped in the third solve,
     after two warm-up solves, and that solve stalled while a copy compiled (0.5 s for a cost, 19 s for the step).
+
+    ``copy_outputs`` (set when the copies run CUDA graphs, ``uses_cuda_graphs``): each compiled call's tensors are
+    returned as copies (``out_of_graph_memory``).
     """
 
     def __init__(self, build: Callable[[], Callable], warm: Callable[..., Any], activation_memory_budget: float = 0.0,
-                 passthrough: tuple[type[BaseException], ...] = (), workers: int = 1) -> None:
+                 passthrough: tuple[type[BaseException], ...] = (), workers: int = 1,
+                 copy_outputs: bool = False) -> None:
         self.activation_memory_budget = activation_memory_budget
+        self._copy_outputs = copy_outputs
         self.fallback_reason: str | None = None
         self._build = build
         self._warm = warm
@@ -318,7 +337,7 @@ class CompiledCopies:
                 if len(copy.warm) < len(self._examples):  # a signature appeared while this copy ran
                     with self._compiling():
                         self._catch_up(copy)
-                return out
+                return out_of_graph_memory(out) if self._copy_outputs else out
             except self._passthrough:
                 raise
             except Exception as err:  # noqa: BLE001 - a compiler failure; a genuine error recurs in the eager call
@@ -377,6 +396,20 @@ class CompiledCopies:
             return copy
 
 
+def out_of_graph_memory(out: Any) -> Any:
+    """``out`` (tensors in tuples, named tuples and lists) with each tensor copied (``clone``, gradients flow), for
+    inductor's CUDA graphs (``TORCHINDUCTOR_CUDAGRAPHS=1``): a graph's outputs live in its memory pool, which its next
+    replay overwrites, and callers keep outputs across calls (a start state's signed distances, a rollout's states).
+    Within one call (a step's sub-steps) outputs feed the next replay directly."""
+    if isinstance(out, Tensor):
+        return out.clone()
+    if isinstance(out, tuple) and hasattr(out, "_fields"):
+        return type(out)(*map(out_of_graph_memory, out))
+    if isinstance(out, (tuple, list)):
+        return type(out)(map(out_of_graph_memory, out))
+    return out
+
+
 def _detached(arg: Any) -> Any:
     """``arg`` (as ``signature`` takes it) with each tensor detached from autograd's graph, its ``requires_grad``
     kept: the same signature, without holding a rollout's graph alive."""
@@ -425,6 +458,7 @@ class CompiledFunction(FallsBack):
         options = with_default_options(options)
         setting = precompiling()
         self._copies = CompiledCopies(lambda: compiled_copy(fn, options, setting), _call, activation_memory_budget,
+                                      copy_outputs=uses_cuda_graphs(options),
                                       workers=workers)
 
     def __call__(self, *args: Any) -> Any:

@@ -41,7 +41,7 @@ import torch
 from torch import Tensor
 
 from hydrosoft.compilation import (CompiledCopies, CompiledFunction, FallsBack, compiled_copy, precompiling,
-                                  private_copy, with_default_options)
+                                  private_copy, uses_cuda_graphs, with_default_options)
 from hydrosoft.contact import ContactModel, ContactStep, Material, PressureFieldFrictionless, wrench
 from hydrosoft.geometry import se3
 
@@ -1176,6 +1176,7 @@ class CompiledStep(FallsBack):
             return _checked_step(model, state, u, substep)[0]
 
         self._copies = CompiledCopies(build, warm, activation_memory_budget, passthrough=(UnstableStepError,),
+                                      copy_outputs=uses_cuda_graphs(options),
                                       workers=workers)
         # a start state's signed distances (``stepped_form``): a small forward graph, where eager took 2.5-5 ms
         self._distances = CompiledFunction(_bound_distances(model), workers=workers, **options)

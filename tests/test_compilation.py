@@ -52,10 +52,29 @@ def test_default_options_are_chosen_per_device_and_given_options_are_kept():
     assert compilation.with_default_options({}, torch.device("cpu")) == {"options": compilation.DEFAULT_OPTIONS}
     for device in ("cuda", "cuda:1", torch.device("cuda", 0)):
         gpu = compilation.with_default_options({"dynamic": False}, device)["options"]
-        assert "cpp_wrapper" not in gpu and not gpu["assert_indirect_indexing"]
+        assert "cpp_wrapper" not in gpu and not gpu["assert_indirect_indexing"] and gpu["triton.cudagraphs"]
         assert not any(key.startswith("cpp.") for key in gpu)
     for given in ({"mode": "reduce-overhead"}, {"options": {"cpp_wrapper": False}}, {"backend": "eager"}):
         assert compilation.with_default_options(given, "cuda") == given
+
+
+def test_with_cuda_graphs_each_output_is_copied_out_of_the_graphs_memory(monkeypatch):
+    """Copies that run CUDA graphs return copies of their tensors (a graph's next replay overwrites its outputs);
+    others return the compiled function's own. (An identity function shows which: its output is its input.) A GPU's
+    default options run CUDA graphs, as do reduce-overhead and the process's inductor setting; the CPU's do not."""
+    x = torch.randn(3)
+    identity = lambda t, pair: (t, [pair[0]])  # noqa: E731
+    plain = compilation.CompiledCopies(lambda: identity, compilation._call)
+    assert plain.run((x, (x,)), compilation._call, identity)[0].data_ptr() == x.data_ptr()
+    copying = compilation.CompiledCopies(lambda: identity, compilation._call, copy_outputs=True)
+    same, [other] = copying.run((x, (x,)), compilation._call, identity)
+    assert same.data_ptr() != x.data_ptr() and other.data_ptr() != x.data_ptr()
+    assert torch.equal(same, x) and torch.equal(other, x)
+    uses = compilation.uses_cuda_graphs
+    assert uses(compilation.with_default_options({}, "cuda")) and uses({"mode": "reduce-overhead"})
+    assert not uses(compilation.with_default_options({}, "cpu")) and not uses({"backend": "eager"})
+    monkeypatch.setattr(torch._inductor.config.triton, "cudagraphs", True)
+    assert uses(compilation.with_default_options({}, "cpu")) and not uses({"backend": "eager"})
 
 
 def test_calls_at_once_from_threads_each_run_a_copy_of_their_own_and_agree_with_eager(fresh_dynamo):
