@@ -268,7 +268,8 @@ def prepare(
 
     ``compile_options`` go to ``CompiledStep`` (``torch.compile`` options, e.g. ``backend="eager"``) when
     ``planner.compile`` is set, on top of ``dynamic=False``: the planner's shapes are fixed per setup, and static
-    kernels are the fast ones (inductor with its C++ wrapper by default). They go to the compiled cost terms
+    kernels are the fast ones (inductor with its C++ wrapper by default on the CPU, CUDA graphs on a GPU:
+    ``compilation.with_default_options``). They go to the compiled cost terms
     (``compiled_cost_terms``) too, where dynamo's automatic dynamic shapes stay on: an open-loop plan's horizon
     is each episode's length. With ``planner.worker_processes`` it starts the solver's worker processes, which build
     their own step with the same options (``build_problem``; ``Setup.close`` stops them).
