@@ -61,7 +61,8 @@ class RenderOptions:
     noise_std: Gaussian noise in grey levels, independent per pixel within an image; each image takes a random
     window of a field ``NOISE_FIELD_SCALE`` times its size per axis, drawn once per renderer, so that an image's
     noise costs a slice (drawing 640x480 normals took 3 ms). blur_sigma_px: Gaussian blur in pixels (0 = none).
-    supersample: canvas pixels per image pixel along each axis (anti-aliasing).
+    supersample: canvas pixels per image pixel along each axis (anti-aliasing). grey: images ``(H, W)`` uint8 grey
+    (a monochrome camera) instead of ``(H, W, 3)`` BGR: the same grey levels (the scene is grey), a third of the bytes.
     """
 
     background: float = 40.0
@@ -73,6 +74,7 @@ class RenderOptions:
     noise_std: float = 0.0
     blur_sigma_px: float = 0.0
     supersample: int = 3
+    grey: bool = False
 
     def __post_init__(self) -> None:
         for name in ("background", "table_grey", "face_grey", "black_level", "white_level"):
@@ -130,7 +132,8 @@ class Renderer:
         rng: np.random.Generator | None = None,
         T_camera_table: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Image ``(H, W, 3)`` uint8 BGR of the object with pose ``T_camera_object (7,)`` (m, wxyz, camera frame).
+        """Image ``(H, W, 3)`` uint8 BGR (``(H, W)`` grey with ``options.grey``) of the object with pose
+        ``T_camera_object (7,)`` (m, wxyz, camera frame).
 
         Args:
             layout: the object's tags and faces (faces may be empty: tags then float in the air).
@@ -271,7 +274,8 @@ class Renderer:
         size_m: tuple[float, float],
         rng: np.random.Generator | None = None,
     ) -> np.ndarray:
-        """Image ``(H, W, 3)`` uint8 BGR of a flat printed target (a calibration board) on the background.
+        """Image ``(H, W, 3)`` uint8 BGR (``(H, W)`` grey with ``options.grey``) of a flat printed target (a
+        calibration board) on the background.
 
         Args:
             texture: ``(h, w)`` uint8 grey picture of the target; its pixel ``(0, 0)`` corner is the plane frame's
@@ -380,7 +384,8 @@ class Renderer:
         return image
 
     def _expose(self, image: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
-        """A noise-free image ``(H, W)`` float32 with the sensor's noise, as the camera's ``(H, W, 3)`` uint8 BGR.
+        """A noise-free image ``(H, W)`` float32 with the sensor's noise, as the camera's ``(H, W, 3)`` uint8 BGR
+        (``(H, W)`` grey with ``options.grey``).
 
         The sum, its rounding (half to even) and its saturation to 0-255 in one OpenCV pass (``quantise``): the
         grey levels of ``np.clip(np.rint(image + noise), 0, 255)``, bit for bit, in a seventh of numpy's time."""
@@ -389,7 +394,8 @@ class Renderer:
             if rng is None:
                 raise ValueError("Renderer: options.noise_std > 0 needs an rng (numpy.random.Generator)")
             noise = self._noise(rng)
-        return cv2.cvtColor(quantise(image, noise), cv2.COLOR_GRAY2BGR)
+        grey = quantise(image, noise)
+        return grey if self.options.grey else cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
 
     def _noise(self, rng: np.random.Generator) -> np.ndarray:
         """Noise ``(H, W)`` float32 with ``options.noise_std``: a window of the noise field at an offset from ``rng``

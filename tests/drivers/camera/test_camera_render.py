@@ -176,3 +176,19 @@ def test_the_blur_of_a_window_is_the_whole_images_blur_bit_for_bit(sigma_px):
         whole[y:y + height, x:x + width] = window
         got = renderer._blur_of_window(window, (int(x), int(y)), grey)
         np.testing.assert_array_equal(got, cv2.GaussianBlur(whole, (0, 0), sigma_px))
+
+
+def test_a_grey_camera_gives_the_grey_levels_of_the_colour_cameras_bgr_image():
+    intrinsics = CameraIntrinsics(320, 240, 300.0, 300.0, 159.5, 119.5)
+    layout = box_layout((0.05,) * 3, 0.032)
+    T_camera_base = inverse(look_at([0.25, -0.35, 0.33], [0.0, 0.0, 0.02], [0.0, 0.0, 1.0]))
+    T_camera_table = compose(T_camera_base, np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
+    T_camera_object = compose(T_camera_base, np.array([0.01, 0.0, 0.025, 1.0, 0.0, 0.0, 0.0]))
+    colour = Renderer(intrinsics, RenderOptions(noise_std=2.0))
+    grey = Renderer(intrinsics, RenderOptions(noise_std=2.0, grey=True))
+    bgr = colour.render(T_camera_object, layout, np.random.default_rng(7), T_camera_table)
+    image = grey.render(T_camera_object, layout, np.random.default_rng(7), T_camera_table)
+    assert image.shape == (240, 320) and image.dtype == np.uint8 and bgr.shape == (240, 320, 3)
+    for channel in range(3):
+        np.testing.assert_array_equal(bgr[:, :, channel], image)
+    assert np.any(image != image[0, 0])  # the object is in the image
