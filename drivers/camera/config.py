@@ -226,6 +226,7 @@ class SimCameraConfig:
     noise_std: Gaussian pixel noise, grey levels (0-255). blur_sigma_px: Gaussian blur, pixels (0 = none).
     seed: seed of the noise generator (the same seed and poses give the same images).
     table_height_m: height of the table top in the base frame (m; drawn as a grey plane), ``None`` for no table.
+    grey: a monochrome camera: frames ``(H, W)`` uint8 grey instead of ``(H, W, 3)`` BGR (the same grey levels).
     """
 
     fps: float = 30.0
@@ -233,6 +234,7 @@ class SimCameraConfig:
     blur_sigma_px: float = 0.6
     seed: int = 0
     table_height_m: float | None = 0.0
+    grey: bool = False
 
     def __post_init__(self) -> None:
         if not _is_number(self.fps) or self.fps <= 0:

@@ -17,7 +17,8 @@ Pipeline of ``Renderer.render`` (one grey float32 canvas, BGR only at the end):
    ``cv2.undistortPoints`` puts it (a homography of distorted corners would leave the tag's edges straight where
    the lens bends them). Resampling an area-averaged edge keeps its area position (measured: within 0.01 px with
    k1 = -0.25); remapping the supersampled canvas instead gave the same accuracy at twice the render time;
-4. Gaussian blur, then Gaussian noise from the caller's seeded ``numpy.random.Generator``, then round to uint8.
+4. Gaussian blur (with the window drawn and no lens distortion, only in a patch around the window: the same image,
+   bit for bit), then Gaussian noise from the caller's seeded ``numpy.random.Generator``, then round to uint8.
 
 Grey levels are 0-255 floats until step 4.
 """
@@ -45,6 +46,9 @@ NOISE_FIELD_SCALE = 2
 #: Canvas pixels to spare around the object's drawing window (``Renderer._object_window``): a quad's warp reads 1-2
 #: pixels past its corners, and the table must cover the canvas by more than this to be a uniform background.
 WINDOW_MARGIN_PX = 8
+#: Image pixels per vector lane group of OpenCV's float row filter (a multiple of AVX-512's 16 floats): a patch blurred
+#: on its own starts and ends on these, so its pixels are rounded as the whole image's are (``_blur_of_window``).
+BLUR_LANE_PX = 16
 
 
 @dataclass(frozen=True)
@@ -57,7 +61,8 @@ class RenderOptions:
     noise_std: Gaussian noise in grey levels, independent per pixel within an image; each image takes a random
     window of a field ``NOISE_FIELD_SCALE`` times its size per axis, drawn once per renderer, so that an image's
     noise costs a slice (drawing 640x480 normals took 3 ms). blur_sigma_px: Gaussian blur in pixels (0 = none).
-    supersample: canvas pixels per image pixel along each axis (anti-aliasing).
+    supersample: canvas pixels per image pixel along each axis (anti-aliasing). grey: images ``(H, W)`` uint8 grey
+    (a monochrome camera) instead of ``(H, W, 3)`` BGR: the same grey levels (the scene is grey), a third of the bytes.
     """
 
     background: float = 40.0
@@ -69,6 +74,7 @@ class RenderOptions:
     noise_std: float = 0.0
     blur_sigma_px: float = 0.0
     supersample: int = 3
+    grey: bool = False
 
     def __post_init__(self) -> None:
         for name in ("background", "table_grey", "face_grey", "black_level", "white_level"):
@@ -126,7 +132,8 @@ class Renderer:
         rng: np.random.Generator | None = None,
         T_camera_table: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Image ``(H, W, 3)`` uint8 BGR of the object with pose ``T_camera_object (7,)`` (m, wxyz, camera frame).
+        """Image ``(H, W, 3)`` uint8 BGR (``(H, W)`` grey with ``options.grey``) of the object with pose
+        ``T_camera_object (7,)`` (m, wxyz, camera frame).
 
         Args:
             layout: the object's tags and faces (faces may be empty: tags then float in the air).
@@ -155,9 +162,10 @@ class Renderer:
             normal, centre = _normal(polygon), polygon.mean(axis=0)
             if _faces_camera(normal, centre):
                 table = (polygon, self.options.table_grey * self._shade(normal, centre))
+        placed = _PlacedObject.of(T_camera_object, layout)
         window = None
         if table is not None and self._table_covers_canvas(table[0]):
-            window = self._object_window(T_camera_object, layout)
+            window = self._object_window(placed)
         if window is None:
             canvas, offset = self._blank_canvas(), np.zeros(2)
             if table is not None:
@@ -165,15 +173,11 @@ class Renderer:
         else:
             x0, y0, x1, y1 = window
             canvas, offset = np.full((y1 - y0, x1 - x0), table[1], dtype=np.float32), np.array([x0, y0], dtype=float)
-        for face in layout.faces:
-            polygon = transform_points(T_camera_object, face)
+        for polygon in placed.faces:
             normal, centre = _normal(polygon), polygon.mean(axis=0)
             if _faces_camera(normal, centre):
                 self._fill_polygon(canvas, polygon, self.options.face_grey * self._shade(normal, centre), offset)
-        quiet_scale = (MARKER_CELLS + 2 * QUIET_ZONE_CELLS) / MARKER_CELLS
-        for tag in layout.tags:
-            T_camera_tag = compose(T_camera_object, tag.T_object_tag)
-            printed = transform_points(T_camera_tag, tag_corners(tag.size_m * quiet_scale))
+        for tag, T_camera_tag, printed in zip(layout.tags, placed.tag_poses, placed.printed_tags):
             normal = quat_to_matrix(T_camera_tag[3:])[:, 2]
             if not _faces_camera(normal, T_camera_tag[:3]) or np.any(printed[:, 2] < NEAR_PLANE_M):
                 continue
@@ -196,14 +200,11 @@ class Renderer:
         return all(cv2.pointPolygonTest(polygon, (float(x), float(y)), True) > WINDOW_MARGIN_PX
                    for x in (-0.5, width - 0.5) for y in (-0.5, height - 0.5))
 
-    def _object_window(self, T_camera_object: np.ndarray, layout: TagLayout) -> tuple[int, int, int, int] | None:
+    def _object_window(self, placed: _PlacedObject) -> tuple[int, int, int, int] | None:
         """The canvas window ``(x0, y0, x1, y1)`` (slice bounds, canvas px, multiples of ``supersample``) that holds
-        every face and tag of the object with ``WINDOW_MARGIN_PX`` to spare, cut at the canvas's border; ``None``
-        when some of the object is not in front of the camera (then the whole canvas is drawn)."""
-        quiet_scale = (MARKER_CELLS + 2 * QUIET_ZONE_CELLS) / MARKER_CELLS
-        points = [transform_points(T_camera_object, face) for face in layout.faces]
-        points += [transform_points(compose(T_camera_object, tag.T_object_tag), tag_corners(tag.size_m * quiet_scale))
-                   for tag in layout.tags]
+        every face and tag of the ``placed`` object with ``WINDOW_MARGIN_PX`` to spare, cut at the canvas's border;
+        ``None`` when some of the object is not in front of the camera (then the whole canvas is drawn)."""
+        points = [*placed.faces, *placed.printed_tags]
         if not points:
             return 0, 0, 0, 0
         points_camera = np.concatenate(points)
@@ -221,16 +222,50 @@ class Renderer:
     def _optics_of_window(self, window_canvas: np.ndarray, window: tuple[int, int, int, int],
                           table_grey: float) -> np.ndarray:
         """``_optics`` of a canvas that is ``table_grey`` everywhere but in ``window`` (canvas px), whose pixels are
-        ``window_canvas``: only the window is shrunk."""
+        ``window_canvas``: only the window is shrunk and, without lens distortion, only the pixels the window's blur
+        reaches are blurred (``_blur_of_window``); the rest is the blur of the uniform grey."""
         s = self.options.supersample
         width, height = self._canvas_size
         uniform = cv2.resize(np.full((s, s), table_grey, dtype=np.float32), (1, 1), interpolation=cv2.INTER_AREA)
-        image = np.full((height, width), uniform[0, 0], dtype=np.float32)
-        x0, y0, x1, y1 = window
+        x0, y0, x1, y1 = (bound // s for bound in window)
+        shrunk = None
         if x1 > x0 and y1 > y0:
-            image[y0 // s:y1 // s, x0 // s:x1 // s] = cv2.resize(window_canvas, ((x1 - x0) // s, (y1 - y0) // s),
-                                                                 interpolation=cv2.INTER_AREA)
+            shrunk = cv2.resize(window_canvas, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+        if shrunk is not None and self._distortion_map is None and self.options.blur_sigma_px > 0:
+            return self._blur_of_window(shrunk, (x0, y0), uniform[0, 0])
+        image = np.full((height, width), uniform[0, 0], dtype=np.float32)
+        if shrunk is not None:
+            image[y0:y1, x0:x1] = shrunk
         return self._lens(image)
+
+    def _blur_of_window(self, shrunk: np.ndarray, corner: tuple[int, int], grey: np.float32) -> np.ndarray:
+        """The blurred image ``(H, W)`` float32 of an undistorted image that is ``grey`` everywhere but in the window
+        ``shrunk (h, w)`` whose top left pixel is ``corner (x, y)``: ``cv2.GaussianBlur`` of the whole image, bit for
+        bit, from a patch around the window (deploy/sim.toml: about 1/25 of the pixels).
+
+        The blur of a pixel reads only pixels within the kernel's radius, so the pixels further than that from the
+        window are the blur of a uniform image (one row of it: all its rows are the same), and the patch (the window and twice the radius around it, in the
+        image's border) gives the rest: its own border pixels, reflected, are the uniform grey as well. OpenCV's row
+        filter rounds differently in a row's last, unvectorised, pixels, so the patch's columns start and end where
+        the image's vector lanes do (``BLUR_LANE_PX``), or at the image's right edge."""
+        sigma = self.options.blur_sigma_px
+        radius = math.ceil(4.0 * sigma) + 1  # OpenCV's float kernel: round(8 sigma + 1) | 1 taps, radius <= this
+        width, height = self._canvas_size
+        x0, y0 = corner
+        x1, y1 = x0 + shrunk.shape[1], y0 + shrunk.shape[0]
+        px0 = max(x0 - 2 * radius, 0) // BLUR_LANE_PX * BLUR_LANE_PX
+        px1 = min(-(-(x1 + 2 * radius) // BLUR_LANE_PX) * BLUR_LANE_PX, width)
+        py0, py1 = max(y0 - 2 * radius, 0), min(y1 + 2 * radius, height)
+        patch = np.full((py1 - py0, px1 - px0), grey, dtype=np.float32)
+        patch[y0 - py0:y1 - py0, x0 - px0:x1 - px0] = shrunk
+        patch = cv2.GaussianBlur(patch, (0, 0), sigma)
+        far = cv2.GaussianBlur(np.full((2 * radius + 1, width), grey, dtype=np.float32), (0, 0), sigma)
+        image = np.empty((height, width), dtype=np.float32)
+        image[:] = far[radius]  # a row's unvectorised last pixels may differ from the rest by a rounding
+        ex0, ey0 = max(x0 - radius, 0), max(y0 - radius, 0)
+        ex1, ey1 = min(x1 + radius, width), min(y1 + radius, height)
+        image[ey0:ey1, ex0:ex1] = patch[ey0 - py0:ey1 - py0, ex0 - px0:ex1 - px0]
+        return image
 
     def render_plane(
         self,
@@ -239,7 +274,8 @@ class Renderer:
         size_m: tuple[float, float],
         rng: np.random.Generator | None = None,
     ) -> np.ndarray:
-        """Image ``(H, W, 3)`` uint8 BGR of a flat printed target (a calibration board) on the background.
+        """Image ``(H, W, 3)`` uint8 BGR (``(H, W)`` grey with ``options.grey``) of a flat printed target (a
+        calibration board) on the background.
 
         Args:
             texture: ``(h, w)`` uint8 grey picture of the target; its pixel ``(0, 0)`` corner is the plane frame's
@@ -348,7 +384,8 @@ class Renderer:
         return image
 
     def _expose(self, image: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
-        """A noise-free image ``(H, W)`` float32 with the sensor's noise, as the camera's ``(H, W, 3)`` uint8 BGR.
+        """A noise-free image ``(H, W)`` float32 with the sensor's noise, as the camera's ``(H, W, 3)`` uint8 BGR
+        (``(H, W)`` grey with ``options.grey``).
 
         The sum, its rounding (half to even) and its saturation to 0-255 in one OpenCV pass (``quantise``): the
         grey levels of ``np.clip(np.rint(image + noise), 0, 255)``, bit for bit, in a seventh of numpy's time."""
@@ -357,7 +394,8 @@ class Renderer:
             if rng is None:
                 raise ValueError("Renderer: options.noise_std > 0 needs an rng (numpy.random.Generator)")
             noise = self._noise(rng)
-        return cv2.cvtColor(quantise(image, noise), cv2.COLOR_GRAY2BGR)
+        grey = quantise(image, noise)
+        return grey if self.options.grey else cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
 
     def _noise(self, rng: np.random.Generator) -> np.ndarray:
         """Noise ``(H, W)`` float32 with ``options.noise_std``: a window of the noise field at an offset from ``rng``
@@ -384,6 +422,26 @@ class Renderer:
         self._canvas_size = (int(far[0] - self._origin[0]), int(far[1] - self._origin[1]))
         local = (ideal - self._origin).astype(np.float32)
         self._distortion_map = (local[:, 0].reshape(K.height, K.width), local[:, 1].reshape(K.height, K.width))
+
+
+@dataclass(frozen=True)
+class _PlacedObject:
+    """An object's layout in the camera frame, computed once per drawn image. faces: each face's polygon ``(K, 3)``.
+    tag_poses: each tag's ``T_camera_tag (7,)``. printed_tags: each tag's printed square with its quiet zone
+    ``(4, 3)`` (TL, TR, BR, BL). All in ``layout``'s order, m."""
+
+    faces: tuple[np.ndarray, ...]
+    tag_poses: tuple[np.ndarray, ...]
+    printed_tags: tuple[np.ndarray, ...]
+
+    @classmethod
+    def of(cls, T_camera_object: np.ndarray, layout: TagLayout) -> _PlacedObject:
+        """``layout`` placed at ``T_camera_object (7,)`` (m, wxyz)."""
+        quiet_scale = (MARKER_CELLS + 2 * QUIET_ZONE_CELLS) / MARKER_CELLS
+        tag_poses = tuple(compose(T_camera_object, tag.T_object_tag) for tag in layout.tags)
+        return cls(tuple(transform_points(T_camera_object, face) for face in layout.faces), tag_poses,
+                   tuple(transform_points(T_camera_tag, tag_corners(tag.size_m * quiet_scale))
+                         for tag, T_camera_tag in zip(layout.tags, tag_poses)))
 
 
 def _normal(polygon: np.ndarray) -> np.ndarray:

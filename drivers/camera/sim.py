@@ -50,7 +50,7 @@ class SimCamera:
         self.layout = layout
         self.object_pose_source = object_pose_source
         self._renderer = Renderer(intrinsics, RenderOptions(noise_std=config.noise_std,
-                                                            blur_sigma_px=config.blur_sigma_px))
+                                                            blur_sigma_px=config.blur_sigma_px, grey=config.grey))
         self._rng = np.random.default_rng(config.seed)
         self._period_ns = round(1e9 / config.fps)
         self._start_ns: int | None = None
@@ -68,8 +68,9 @@ class SimCamera:
         """Wait for the next scheduled frame and render it.
 
         Returns:
-            ``ImageFrame`` with ``image (H, W, 3)`` uint8 BGR, ``stamp_ns`` when rendering finished and
-            ``hw_stamp_ns`` the frame's scheduled exposure time (both ``time.monotonic_ns``).
+            ``ImageFrame`` with ``image (H, W, 3)`` uint8 BGR (``(H, W)`` grey with ``config.grey``), ``stamp_ns``
+            when rendering finished and ``hw_stamp_ns`` the frame's scheduled exposure time (both
+            ``time.monotonic_ns``).
 
         Raises:
             NotConnected: before ``connect`` or after ``close``.
@@ -96,7 +97,8 @@ class SimCamera:
         return ImageFrame(image=image, stamp_ns=time.monotonic_ns(), hw_stamp_ns=due_ns)
 
     def render(self, T_base_object: np.ndarray) -> np.ndarray:
-        """The image ``(H, W, 3)`` uint8 BGR of the object at ``T_base_object (7,)``, with the table if configured."""
+        """The image ``(H, W, 3)`` uint8 BGR (``(H, W)`` grey with ``config.grey``) of the object at
+        ``T_base_object (7,)``, with the table if configured."""
         T_camera_table = None
         if self.config.table_height_m is not None:
             T_base_table = np.array([0.0, 0.0, self.config.table_height_m, 1.0, 0.0, 0.0, 0.0])

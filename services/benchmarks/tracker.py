@@ -33,11 +33,12 @@ trackers' poses (``null`` when none). ``sequence_cpu_ms`` sums up all sequences:
 
 Pieces (``pieces``): the tracker's time per image split into its steps, on deploy/sim.toml's tag camera (640 x 480,
 the sim's noise and blur: what the stack's tracker sees) while the scene's object (the pushing cube) slides ``SEQUENCE_SPEED_M_S``
-and turns: ``receive`` (decoding the ``CameraImage`` message), ``grey`` (BGR to grey), ``detect`` (OpenCV's ArUco
-detector, in the region the tracker searched or the whole image), ``corners`` (``subpixel_corners`` and
-``refine_corners`` of each tag), ``pose`` (``solve_tag`` of each tag and ``object_pose_from_tags``) and ``track``
-(``TagTracker.track`` itself, all but ``receive``): CPU ms per image, ``mean`` and ``p95``, over
-``pieces_images`` images (each timed on its own, the steps after the tracker's own ``track`` of the image).
+and turns: ``receive`` (decoding the ``CameraImage`` message), ``grey`` (to grey: nothing to do for the sim
+camera's grey images, BGR to grey for a colour camera's), ``detect`` (OpenCV's ArUco detector, in the region the
+tracker searched or the whole image), ``corners`` (``subpixel_corners`` and ``refine_corners`` of each tag), ``pose``
+(``solve_tag`` of each tag and ``object_pose_from_tags``) and ``track`` (``TagTracker.track`` itself, all but
+``receive``): CPU ms per image, ``mean`` and ``p95``, over ``pieces_images`` images (each timed on its own, the steps
+after the tracker's own ``track`` of the image).
 
 ``--json`` prints ``{"config": {...}, "rows": [...], "track_cpu_ms": {...}, "sequences": [...],
 "sequence_cpu_ms": {...}, "pieces": {...}}``; otherwise a table, a line with ``track_cpu_ms``, lines with the

@@ -2,7 +2,7 @@
 
 - The tag camera: ``drivers.camera.sim.SimCamera`` (AprilTags of ``tag_tracker.object_layout`` on the object's
   faces, the table plane at the task frame's height), with the calibration the tracker uses
-  (``camera_calibration``) and sim's image noise and blur, at ``camera.fps``.
+  (``camera_calibration``) and sim's image noise and blur, at ``camera.fps``: grey images, as a monochrome camera's.
 - Each bubble's depth camera: ``drivers.bubble.render.render_depth`` of the nominal membrane (the bubble's scene
   ellipsoid) pushed in by the object (its exact signed distance, ``object_sdf``), seen from
   ``T_bubble_camera = arm.depth.camera_in_bubble()``, with Gaussian depth noise ``sim.depth_noise_m`` on every
@@ -37,11 +37,14 @@ DEPTH_SEED = 1  # seed of the depth noise (one generator per bubble, offset by i
 def tag_camera(config: StackConfig, object_pose_source: Callable[[], np.ndarray]) -> SimCamera:
     """The simulated tag camera of ``config``: it renders the object at ``object_pose_source()`` (base frame) at
     ``camera.fps`` with ``sim.image_noise`` (grey levels) and ``sim.image_blur_px``, over the table top (every task
-    scene's half-space z <= 0) at the task frame's height (``scene.task_frame``: level)."""
+    scene's half-space z <= 0) at the task frame's height (``scene.task_frame``: level). Its images are grey
+    ``(H, W)``, as a monochrome camera's: the scene is grey, and the tracker reads the same grey levels from them
+    as from their BGR copy, whose three times the bytes cost the renderer, the bus and the tracker about 1.3 ms of
+    CPU per image more (docs/benchmarks.md)."""
     calibration = camera_calibration(config)
     settings = SimCameraConfig(fps=config.camera.fps, noise_std=config.sim.image_noise,
                                blur_sigma_px=config.sim.image_blur_px, seed=IMAGE_SEED,
-                               table_height_m=config.scene.task_frame[2])
+                               table_height_m=config.scene.task_frame[2], grey=True)
     return SimCamera(settings, calibration.intrinsics, calibration.T_base_camera,
                      config_layout(config, calibration.T_base_camera), object_pose_source)
 

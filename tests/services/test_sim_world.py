@@ -378,7 +378,9 @@ def test_sim_world_publishes_images_depth_and_truth_at_their_rates(world):
     assert rate_hz(poses) == pytest.approx(10.0, rel=0.3), process.log()
     assert rate_hz(depths) == pytest.approx(DEPTH_FPS, rel=0.5), process.log()
     image = images[-1]
-    assert image.camera == "tag_camera" and image.image.shape == (480, 640, 3) and image.image.dtype == np.uint8
+    # a monochrome camera's grey image (one channel: a third of a BGR image's bytes)
+    assert image.camera == "tag_camera" and image.image.shape == (480, 640, 1) and image.image.dtype == np.uint8
+    assert image.frame.shape == (480, 640)
     assert image.hw_stamp_ns <= image.stamp_ns
     assert 50 < float(image.image.mean()) < 200  # a lit scene, not a blank frame
     np.testing.assert_allclose(poses[-1].pose, CUBE_POSE, atol=1e-4)

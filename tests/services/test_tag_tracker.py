@@ -156,6 +156,24 @@ def test_searching_around_the_last_tags_tracks_as_the_whole_image_does():
     assert (region.full_frame_searches, region.region_searches) == (3, 4)
 
 
+
+def test_the_sim_cameras_grey_images_are_tracked_as_their_bgr_copies_bit_for_bit():
+    """sim_world's tag camera gives grey images (a third of the bytes): the tracker reads the same grey levels from
+    them as from the BGR image a colour camera of the same scene gives, so the same tags, corners and poses."""
+    config = pushing_config()
+    grey_tracker, bgr_tracker = TagTracker.from_config(config), TagTracker.from_config(config)
+    camera = tag_camera(config, lambda: POSE_A)
+    for pose in (POSE_A, POSE_B, POSE_A):
+        grey = camera.render(pose)
+        assert grey.shape == (480, 640) and grey.dtype == np.uint8
+        found, expected = grey_tracker.track(grey), bgr_tracker.track(np.repeat(grey[:, :, None], 3, axis=2))
+        np.testing.assert_array_equal(found.result.T_base_object, expected.result.T_base_object)
+        assert found.result.reprojection_rms_px == expected.result.reprojection_rms_px
+        found_message, expected_message = (detections_message(t, "tag_camera", 1) for t in (found, expected))
+        np.testing.assert_array_equal(found_message.ids, expected_message.ids)
+        np.testing.assert_array_equal(found_message.corners_px, expected_message.corners_px)
+        assert_near(found.result.T_base_object, pose, mm=1.5, deg=1.0)
+
 @pytest.mark.parametrize("task", SIM_TASKS)
 def test_the_sim_camera_sees_every_tag_of_each_task_object_within_the_trackers_limits(task):
     """deploy/sim.toml's one tag camera, rendering each task's scene at its start pose: every tag of the object's

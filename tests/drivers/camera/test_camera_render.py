@@ -1,12 +1,13 @@
 """The renderer puts tag edges where the camera model projects them (distortion included), and only tags that face
 the camera; noise is seeded."""
 
+import cv2
 import numpy as np
 import pytest
 
 from hydrosoft.drivers.camera.config import CameraIntrinsics
 from hydrosoft.drivers.poses import compose, inverse, look_at, rvec_tvec_from_pose
-from hydrosoft.drivers.camera.render import Renderer, RenderOptions
+from hydrosoft.drivers.camera.render import Renderer, RenderOptions, _PlacedObject
 from hydrosoft.drivers.camera.tags import Tag, TagLayout, box_layout
 
 FACING_CAMERA = np.array([0.0, 1.0, 0.0, 0.0])  # 180 deg about x: the tag's z points back at the camera
@@ -133,7 +134,7 @@ def test_an_object_on_a_table_that_fills_the_view_is_drawn_in_a_window_and_gives
         yaw = rng.uniform(-np.pi, np.pi)
         T_base_object = np.array([*rng.uniform(-0.05, 0.05, 2), 0.025, np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
         T_camera_object = compose(T_camera_base, T_base_object)
-        window = windowed._object_window(T_camera_object, layout)
+        window = windowed._object_window(_PlacedObject.of(T_camera_object, layout))
         assert window is not None and (window[2] - window[0]) * (window[3] - window[1]) < 0.2 * 960 * 720
         image = windowed.render(T_camera_object, layout, None, T_camera_table)
         np.testing.assert_array_equal(image, whole.render(T_camera_object, layout, None, T_camera_table))
@@ -157,3 +158,37 @@ def test_quantise_gives_numpys_rounded_and_clipped_grey_levels_bit_for_bit(with_
     assert got.dtype == np.uint8 and got.shape == image.shape
     np.testing.assert_array_equal(got, expected)
     np.testing.assert_array_equal(got[0, :6], [0, 2, 2, 254, 255, 0])
+
+
+@pytest.mark.parametrize("sigma_px", [0.6, 1.0, 2.3])
+def test_the_blur_of_a_window_is_the_whole_images_blur_bit_for_bit(sigma_px):
+    """Windows anywhere, at the image's edges and corners too, of any width (the patch's lanes, BLUR_LANE_PX)."""
+    intrinsics = CameraIntrinsics(330, 250, 300.0, 300.0, 164.5, 124.5)  # a width no lane count divides
+    renderer = Renderer(intrinsics, RenderOptions(blur_sigma_px=sigma_px))
+    rng = np.random.default_rng(4)
+    corners = [(0, 0), (330 - 40, 250 - 30), (0, 250 - 30), (330 - 40, 0)]
+    for index in range(40):
+        grey = np.float32(rng.uniform(30.0, 200.0))
+        height, width = (30, 40) if index < len(corners) else rng.integers(1, 120, 2)
+        x, y = corners[index] if index < len(corners) else (rng.integers(0, 330 - width), rng.integers(0, 250 - height))
+        window = rng.uniform(0.0, 255.0, (height, width)).astype(np.float32)
+        whole = np.full((250, 330), grey, dtype=np.float32)
+        whole[y:y + height, x:x + width] = window
+        got = renderer._blur_of_window(window, (int(x), int(y)), grey)
+        np.testing.assert_array_equal(got, cv2.GaussianBlur(whole, (0, 0), sigma_px))
+
+
+def test_a_grey_camera_gives_the_grey_levels_of_the_colour_cameras_bgr_image():
+    intrinsics = CameraIntrinsics(320, 240, 300.0, 300.0, 159.5, 119.5)
+    layout = box_layout((0.05,) * 3, 0.032)
+    T_camera_base = inverse(look_at([0.25, -0.35, 0.33], [0.0, 0.0, 0.02], [0.0, 0.0, 1.0]))
+    T_camera_table = compose(T_camera_base, np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
+    T_camera_object = compose(T_camera_base, np.array([0.01, 0.0, 0.025, 1.0, 0.0, 0.0, 0.0]))
+    colour = Renderer(intrinsics, RenderOptions(noise_std=2.0))
+    grey = Renderer(intrinsics, RenderOptions(noise_std=2.0, grey=True))
+    bgr = colour.render(T_camera_object, layout, np.random.default_rng(7), T_camera_table)
+    image = grey.render(T_camera_object, layout, np.random.default_rng(7), T_camera_table)
+    assert image.shape == (240, 320) and image.dtype == np.uint8 and bgr.shape == (240, 320, 3)
+    for channel in range(3):
+        np.testing.assert_array_equal(bgr[:, :, channel], image)
+    assert np.any(image != image[0, 0])  # the object is in the image
