@@ -447,15 +447,16 @@ class CompiledFunction(FallsBack):
 
     ``fn`` is a pure function of tensors and hashable constants, in tuples, named tuples and lists; each new
     ``signature`` of its arguments compiles once (constants are baked into the graph). ``options`` go to
-    ``torch.compile``, with ``DEFAULT_OPTIONS`` for inductor when none are given (``with_default_options``: a
-    function of tensors on a GPU is given ``with_default_options(options, device)`` by its caller);
+    ``torch.compile``, with inductor's default options for ``device`` (where the tensors are) when none are given
+    (``with_default_options``);
     ``activation_memory_budget`` is AOT autograd's; ``workers`` the calls that may run at once (``CompiledCopies``).
     Its copies are ``Precompiled`` when a precompiled directory was set when it was made (``use_precompiled``).
     """
 
-    def __init__(self, fn: Callable, activation_memory_budget: float = 0.0, workers: int = 1, **options) -> None:
+    def __init__(self, fn: Callable, activation_memory_budget: float = 0.0, workers: int = 1,
+                 device: torch.device | str = "cpu", **options) -> None:
         self.fn = fn
-        options = with_default_options(options)
+        options = with_default_options(options, device)
         setting = precompiling()
         self._copies = CompiledCopies(lambda: compiled_copy(fn, options, setting), _call, activation_memory_budget,
                                       copy_outputs=uses_cuda_graphs(options),

@@ -70,6 +70,8 @@ def test_with_cuda_graphs_each_output_is_copied_out_of_the_graphs_memory(monkeyp
     same, [other] = copying.run((x, (x,)), compilation._call, identity)
     assert same.data_ptr() != x.data_ptr() and other.data_ptr() != x.data_ptr()
     assert torch.equal(same, x) and torch.equal(other, x)
+    assert CompiledFunction(identity, device="cuda")._copies._copy_outputs  # a GPU's defaults: CUDA graphs
+    assert not CompiledFunction(identity)._copies._copy_outputs
     uses = compilation.uses_cuda_graphs
     assert uses(compilation.with_default_options({}, "cuda")) and uses({"mode": "reduce-overhead"})
     assert not uses(compilation.with_default_options({}, "cpu")) and not uses({"backend": "eager"})

@@ -171,17 +171,19 @@ class CostTerms(NamedTuple):
 EAGER_COST_TERMS = CostTerms(stage_terms, terminal_terms)
 
 
-def compiled_cost_terms(activation_memory_budget: float = 0.0, workers: int = 1, **options) -> CostTerms:
+def compiled_cost_terms(activation_memory_budget: float = 0.0, workers: int = 1,
+                        device: torch.device | str = "cpu", **options) -> CostTerms:
     """``stage_terms`` and ``terminal_terms`` compiled (``compilation.CompiledFunction``; ``options`` go to
-    ``torch.compile``; ``workers``: the solver's, ``CompiledCopies``), for the planner to keep across goals.
+    ``torch.compile``; ``workers``: the solver's, ``CompiledCopies``; ``device``: where the planner's tensors are),
+    for the planner to keep across goals.
 
     Eager, the costs were dozens of small operations per rollout, forward and backward, each paying the interpreter
     and, with two solver workers, waiting for it. Compiled, a call of both took 0.49 of the eager time forward and
     backward, and the two-worker planning cycle 0.95 (docs/decisions.md, "the task costs"). The second rollout length
     compiles once more, and with dynamo's default ``dynamic=None`` that graph is symbolic in the length and serves
     all others (open-loop plans of each episode's length)."""
-    return CostTerms(CompiledFunction(stage_terms, activation_memory_budget, workers, **options),
-                     CompiledFunction(terminal_terms, activation_memory_budget, workers, **options))
+    return CostTerms(CompiledFunction(stage_terms, activation_memory_budget, workers, device, **options),
+                     CompiledFunction(terminal_terms, activation_memory_budget, workers, device, **options))
 
 
 @dataclass(frozen=True)

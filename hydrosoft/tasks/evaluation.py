@@ -44,7 +44,6 @@ import msgspec
 import torch
 from torch import Tensor
 
-from hydrosoft.compilation import with_default_options
 from hydrosoft.control import CemGd, CemGdConfig, WorkerProcesses
 from hydrosoft.control.costs import orientation_error, position_error
 from hydrosoft.dynamics import CompiledStep, Model, State, step, with_object_update
@@ -350,9 +349,9 @@ def planner_calls(model: Model, planner: PlannerSettings, compile_options: dict 
     ``compile_options``, as ``prepare`` says), else the eager ``step`` and ``EAGER_COST_TERMS``."""
     if not planner.compile:
         return functools.partial(step, model), EAGER_COST_TERMS
-    options = with_default_options(compile_options or {}, model.device)  # the costs' graphs: on the model's device
+    options = compile_options or {}
     return (CompiledStep(model, workers=planner.workers, **{"dynamic": False, **options}),
-            compiled_cost_terms(workers=planner.workers, **options))
+            compiled_cost_terms(workers=planner.workers, device=model.device, **options))
 
 
 def observed_state(setup: Setup, prediction: State | None = None) -> State:
