@@ -401,24 +401,24 @@ def out_of_graph_memory(out: Any) -> Any:
     inductor's CUDA graphs (``TORCHINDUCTOR_CUDAGRAPHS=1``): a graph's outputs live in its memory pool, which its next
     replay overwrites, and callers keep outputs across calls (a start state's signed distances, a rollout's states).
     Within one call (a step's sub-steps) outputs feed the next replay directly."""
-    if isinstance(out, Tensor):
-        return out.clone()
-    if isinstance(out, tuple) and hasattr(out, "_fields"):
-        return type(out)(*map(out_of_graph_memory, out))
-    if isinstance(out, (tuple, list)):
-        return type(out)(map(out_of_graph_memory, out))
-    return out
+    return _map_tensors(Tensor.clone, out)
 
 
 def _detached(arg: Any) -> Any:
     """``arg`` (as ``signature`` takes it) with each tensor detached from autograd's graph, its ``requires_grad``
     kept: the same signature, without holding a rollout's graph alive."""
+    return _map_tensors(lambda tensor: tensor.detach().requires_grad_(tensor.requires_grad), arg)
+
+
+def _map_tensors(fn: Callable[[Tensor], Tensor], arg: Any) -> Any:
+    """``arg`` (tensors and constants in tuples, named tuples and lists) with each tensor replaced by ``fn(tensor)``,
+    its containers rebuilt with their types."""
     if isinstance(arg, Tensor):
-        return arg.detach().requires_grad_(arg.requires_grad)
+        return fn(arg)
     if isinstance(arg, tuple) and hasattr(arg, "_fields"):
-        return type(arg)(*map(_detached, arg))
+        return type(arg)(*(_map_tensors(fn, item) for item in arg))
     if isinstance(arg, (tuple, list)):
-        return type(arg)(map(_detached, arg))
+        return type(arg)(_map_tensors(fn, item) for item in arg)
     return arg
 
 

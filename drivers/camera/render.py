@@ -244,10 +244,11 @@ class Renderer:
         bit, from a patch around the window (deploy/sim.toml: about 1/25 of the pixels).
 
         The blur of a pixel reads only pixels within the kernel's radius, so the pixels further than that from the
-        window are the blur of a uniform image (one row of it: all its rows are the same), and the patch (the window and twice the radius around it, in the
-        image's border) gives the rest: its own border pixels, reflected, are the uniform grey as well. OpenCV's row
-        filter rounds differently in a row's last, unvectorised, pixels, so the patch's columns start and end where
-        the image's vector lanes do (``BLUR_LANE_PX``), or at the image's right edge."""
+        window are the blur of a uniform image (one row of it: all its rows are the same), and the patch (the window
+        and twice the radius around it, in the image's border) gives the rest: its own border pixels, reflected, are
+        the uniform grey as well. OpenCV's row filter rounds differently in a row's last, unvectorised, pixels, so the
+        patch's columns start and end where the image's vector lanes do (``BLUR_LANE_PX``), or at the image's right
+        edge."""
         sigma = self.options.blur_sigma_px
         radius = math.ceil(4.0 * sigma) + 1  # OpenCV's float kernel: round(8 sigma + 1) | 1 taps, radius <= this
         width, height = self._canvas_size

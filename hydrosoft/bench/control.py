@@ -586,7 +586,7 @@ def run(args: argparse.Namespace) -> int:
                 if log.other_settings or log.malformed else ""))
     total = len(runs) * len(args.tasks) * len(args.loops) * len(indices)
     done = reused = 0
-    for name in [] if args.rate_only else args.tasks:
+    for name in args.tasks:
         task = make_task(name, args.steps)
         for model in args.models:
             planner = PlannerSettings(model=model, compile=args.compile, sdf_solver_steps=args.sdf_solver_steps,
