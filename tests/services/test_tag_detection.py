@@ -365,6 +365,22 @@ def test_refined_corners_and_poses_match_the_straightforward_computation(rendere
     assert fitted >= 3
 
 
+@pytest.mark.parametrize("intrinsics", [None, INTRINSICS], ids=["pinhole", "distorted"])
+def test_sides_of_unequal_profiles_are_refined_as_each_side_alone(renderer, intrinsics):
+    """An oblique view gives each side of a tag its own number of profiles and profile width: ``refine_corners``
+    samples the four sides together, padded to the longest, and must still give each side's points as the
+    one-side-at-a-time computation does, bit for bit (the pose fit turns 1e-13 px into 1e-8 m)."""
+    image, _ = scene(renderer, CUBE, yawed([0.1, -0.05, 0.025], 0.9), 0.35, 62, 1.2, 5)
+    grey, quads = raw_quads(image)
+    unequal = 0
+    for _, quad in quads:
+        sides = np.linalg.norm(np.roll(quad, -1, axis=0) - quad, axis=1)
+        unequal += len(set(np.clip(sides / 2.0, *tracking.EDGE_SAMPLES_RANGE).astype(int))) > 1
+        np.testing.assert_allclose(refine_corners(grey, quad, intrinsics),
+                                   reference_refine_corners(grey, quad, intrinsics), rtol=0, atol=0)
+    assert unequal >= 1
+
+
 @pytest.mark.parametrize("x_px", [-30.0, 1.0, 3.0, 1240.0, 2000.0])
 def test_refinement_at_the_image_border_matches_the_straightforward_computation(x_px):
     image, _ = edge_tag_image(min(max(x_px, 1.0), 1205.0))
