@@ -8,6 +8,8 @@ Quaternions returned here have ``qw >= 0``. Camera frames are OpenCV's: x right,
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -35,7 +37,7 @@ def check_pose(pose: np.ndarray, name: str = "pose") -> np.ndarray:
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix ``(3, 3)`` of a unit quaternion ``q (4,)`` wxyz."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    w, x, y, z = (np.asarray(q, dtype=np.float64) / _norm(q)).tolist()  # Python floats: the same IEEE doubles
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -54,7 +56,7 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
 def rvec_to_quat(rvec: np.ndarray) -> np.ndarray:
     """Unit quaternion ``(4,)`` wxyz with ``qw >= 0`` of a rotation vector ``rvec (3,)`` (rad, OpenCV's rvec)."""
     rvec = np.asarray(rvec, dtype=np.float64).reshape(3)
-    angle = float(np.linalg.norm(rvec))
+    angle = _norm(rvec)
     if angle < 1e-12:
         return np.array([1.0, 0.0, 0.0, 0.0])
     q = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * rvec / angle])
@@ -63,10 +65,10 @@ def rvec_to_quat(rvec: np.ndarray) -> np.ndarray:
 
 def quat_to_rvec(q: np.ndarray) -> np.ndarray:
     """Rotation vector ``(3,)`` (rad, norm in [0, pi]) of a unit quaternion ``q (4,)`` wxyz."""
-    q = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    q = np.asarray(q, dtype=np.float64) / _norm(q)
     if q[0] < 0:
         q = -q
-    sin_half = float(np.linalg.norm(q[1:]))
+    sin_half = _norm(q[1:])
     if sin_half < 1e-12:
         return 2.0 * q[1:]
     return 2.0 * np.arctan2(sin_half, q[0]) * q[1:] / sin_half
@@ -108,7 +110,7 @@ def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
 
 def rotation_angle_rad(q_a: np.ndarray, q_b: np.ndarray) -> float:
     """Angle (rad, in [0, pi]) of the rotation taking unit quaternion ``q_a (4,)`` to ``q_b (4,)``."""
-    dot = abs(float(np.dot(q_a, q_b)) / (np.linalg.norm(q_a) * np.linalg.norm(q_b)))
+    dot = abs(float(np.dot(q_a, q_b)) / (_norm(q_a) * _norm(q_b)))
     return 2.0 * float(np.arccos(min(1.0, dot)))
 
 
@@ -133,3 +135,14 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return pose_from_rt(np.column_stack([x, y, z]), eye)
+
+
+def _norm(vector: np.ndarray) -> float:
+    """``np.linalg.norm`` of a float64 vector, bit for bit (the square root of its dot with itself), without its
+    dispatch: the pose helpers take several per call, the tag tracker hundreds per image. Other dtypes go to
+    ``np.linalg.norm`` itself."""
+    vector = np.asarray(vector)
+    if vector.dtype != np.float64 or vector.ndim != 1:
+        return float(np.linalg.norm(vector))
+    vector = vector.ravel(order="K")  # as np.linalg.norm does: a strided vector is copied, the dot is the same
+    return math.sqrt(float(vector.dot(vector)))

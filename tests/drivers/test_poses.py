@@ -63,3 +63,24 @@ def test_look_at_points_z_at_target_and_up_to_image_top():
 def test_check_pose_names_the_problem(bad, message):
     with pytest.raises(ValueError, match=f"T_x.*{message}"):
         poses.check_pose(bad, "T_x")
+
+
+def test_norm_is_numpys_bit_for_bit():
+    """The helpers' quick norm gives ``np.linalg.norm``'s value exactly: float64 vectors (contiguous or a matrix's
+    column), float32 ones (their own precision) and Python lists."""
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        vector = rng.normal(size=int(rng.integers(1, 8))) * 10.0 ** int(rng.integers(-8, 9))
+        column = rng.normal(size=(4, 4))[:, 1]
+        for value in (vector, column, vector.astype(np.float32), vector.tolist()):
+            assert poses._norm(value) == float(np.linalg.norm(value))
+
+
+def test_rotation_helpers_of_a_non_unit_quaternion_normalise_it():
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        q = rng.normal(size=4)
+        unit = q / np.linalg.norm(q)
+        np.testing.assert_allclose(poses.quat_to_matrix(3.0 * q), poses.quat_to_matrix(unit), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(poses.quat_to_rvec(0.5 * q), poses.quat_to_rvec(unit), rtol=0, atol=1e-15)
+        assert abs(poses.rotation_angle_rad(2.0 * q, unit)) < 1e-7
