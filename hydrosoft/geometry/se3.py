@@ -13,6 +13,8 @@ rotation (and near a half turn for the logarithms).
 """
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 
@@ -142,21 +144,20 @@ _ROTATION_PRODUCTS_B = (15, 3, 2, 3, 15, 1, 2, 1, 10)
 _ROTATION_INNER_SIGNS = (1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0)
 _ROTATION_OUTER_SIGNS = (-1.0, 1.0, 1.0, 1.0, -1.0, 1.0, 1.0, 1.0, -1.0)
 _ROTATION_BASE = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-_rotation_constants: dict[tuple[torch.device, torch.dtype], tuple[Tensor, ...]] = {}
 
 
+@functools.lru_cache(maxsize=None)
 def _rotation_tables(device: torch.device, dtype: torch.dtype) -> tuple[Tensor, ...]:
-    """The index and sign tables of ``quat_to_matrix``'s eager form on ``device``, made once per device and dtype."""
-    tables = _rotation_constants.get((device, dtype))
-    if tables is None:
-        tables = (
+    """The index and sign tables of ``quat_to_matrix``'s eager form, made once per device and dtype. Made outside
+    inference mode, so that they are ordinary tensors whatever mode the first call ran in (a product with them that
+    needs gradients saves them)."""
+    with torch.inference_mode(False):
+        return (
             torch.tensor(_ROTATION_PRODUCTS_A, device=device),
             torch.tensor(_ROTATION_PRODUCTS_B, device=device),
             *(torch.tensor(t, dtype=dtype, device=device)
               for t in (_ROTATION_INNER_SIGNS, _ROTATION_OUTER_SIGNS, _ROTATION_BASE)),
         )
-        _rotation_constants[(device, dtype)] = tables
-    return tables
 
 
 def quat_to_matrix(q: Tensor) -> Tensor:

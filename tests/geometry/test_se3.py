@@ -338,3 +338,15 @@ def test_the_traced_rotation_matrix_equals_the_eager_one_bit_for_bit_with_gradie
         (grad_traced,) = torch.autograd.grad((traced * weights).sum(), q)
         (grad_eager,) = torch.autograd.grad((eager * weights).sum(), q)
         torch.testing.assert_close(grad_eager, grad_traced, rtol=0, atol=20 * torch.finfo(dtype).eps * grad_traced.abs().max().item())
+
+
+def test_a_rotation_matrix_first_made_in_inference_mode_still_takes_gradients_after_it():
+    """The eager form's tables are made once, on the first call; made in inference mode they would be inference
+    tensors, which a product that needs gradients cannot save (a planner's first call may run in inference mode)."""
+    se3._rotation_tables.cache_clear()
+    q = random_poses(3, 6)[:, 3:]
+    with torch.inference_mode():
+        first = se3.quat_to_matrix(q)
+    leaf = q.clone().requires_grad_()
+    (grad,) = torch.autograd.grad(se3.quat_to_matrix(leaf).sum(), leaf)
+    assert torch.equal(se3.quat_to_matrix(q), first) and torch.isfinite(grad).all()
