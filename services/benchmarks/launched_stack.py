@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from hydrosoft.services.client import ClientError, StackClient
+from hydrosoft.services.commands.launch import die_with_parent
 from hydrosoft.services.bus.config import load_config
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "sim.toml"
@@ -101,12 +102,14 @@ def resident_mb(pid: int) -> float:
 
 class Child:
     """A process in its own session, its output to a file; ``wait_for`` a line, ``stop`` by pid (SIGINT, then
-    SIGKILL of its group)."""
+    SIGKILL of its group). It gets SIGTERM when this process dies (``die_with_parent``): a benchmark killed by a
+    signal that skips its ``finally`` leaves no stack running."""
 
     def __init__(self, command: list[str], log: Path) -> None:
         self.log = log
         self._out = log.open("wb")
-        self.process = subprocess.Popen(command, stdout=self._out, stderr=subprocess.STDOUT, start_new_session=True)
+        self.process = subprocess.Popen(command, stdout=self._out, stderr=subprocess.STDOUT, start_new_session=True,
+                                        preexec_fn=die_with_parent(os.getpid()))
 
     def wait_for(self, text: str, timeout_s: float) -> None:
         deadline_s = time.monotonic() + timeout_s

@@ -363,15 +363,16 @@ class _OutputProtocol(asyncio.SubprocessProtocol):
         self.closed.set()
 
 
-def _die_with_parent(parent_pid: int) -> Callable[[], None] | None:
-    """A ``preexec_fn`` that makes the child receive SIGTERM when the launcher dies (Linux), or None elsewhere."""
+def die_with_parent(parent_pid: int) -> Callable[[], None] | None:
+    """A ``preexec_fn`` that makes the child receive SIGTERM when its parent ``parent_pid`` (the launcher, a benchmark
+    that launched a stack) dies, even by SIGKILL (Linux), or None elsewhere."""
     if not sys.platform.startswith("linux"):
         return None
     libc = ctypes.CDLL(None, use_errno=True)
 
     def preexec() -> None:
         libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-        if os.getppid() != parent_pid:  # the launcher died before prctl took effect
+        if os.getppid() != parent_pid:  # the parent died before prctl took effect
             os.kill(os.getpid(), signal.SIGTERM)
 
     return preexec
@@ -403,7 +404,7 @@ class ServiceProcess:
         transport, protocol = await loop.subprocess_exec(
             lambda: _OutputProtocol(on_line), *command, stdin=asyncio.subprocess.DEVNULL,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT, env=env, start_new_session=True,
-            preexec_fn=_die_with_parent(os.getpid()))
+            preexec_fn=die_with_parent(os.getpid()))
         return cls(name, transport, protocol, ready)
 
     @property
