@@ -24,6 +24,7 @@ import loopback
 SIM_TOML = Path(__file__).parents[2] / "deploy" / "sim.toml"
 SIM_BIMANUAL_TOML = Path(__file__).parents[2] / "deploy" / "sim-bimanual.toml"
 READY_TIMEOUT_S = 240.0  # every service up and READY on a busy 2-core machine
+READY_POLL_S = 0.2  # between the status requests of a launch's wait for ready, s (a loopback request each: no load)
 STOP_BOUND_S = 10.0
 
 
@@ -121,7 +122,7 @@ class Stack:
             status = None if reply is None else reply.status
             if status is not None and status.received_hz.get("object_pose/object", 0) > 0:
                 return
-            time.sleep(1.0)
+            time.sleep(READY_POLL_S)
         raise AssertionError(f"the stack did not become ready within {READY_TIMEOUT_S} s:\n{self.text()[-4000:]}")
 
     def stop(self) -> float:

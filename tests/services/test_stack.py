@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 import pytest
-from stack_process import READY_TIMEOUT_S, Stack, assert_stopped_in_order, stack_config
+from stack_process import READY_POLL_S, READY_TIMEOUT_S, Stack, assert_stopped_in_order, stack_config
 
 from hydrosoft.services.client import StackClient, true_error_mm
 from hydrosoft.services.bus.config import load_config
@@ -70,7 +70,7 @@ async def kill_the_planner_mid_task(client: StackClient) -> tuple[float, int]:
         report = (await collect(client.config, ["planner"], 2.0))["planner"]
         if report is not None and report.get("restarts", 0) >= 1 and report.get("pid") != pid:
             return stop_s, report["restarts"]
-        await asyncio.sleep(1.0)
+        await asyncio.sleep(READY_POLL_S)
     raise AssertionError("the launcher did not restart the planner")
 
 
