@@ -20,18 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
+from hydrosoft.drivers.poses import quat_to_matrix
+
 DEFAULT_SUBSTEPS = 1  # on sim recordings 1, 4 and 8 agree within 1e-4 N: the arm's path between samples is straight
 
 
 # --- frames and errors (numpy) --------------------------------------------------------------------------------------
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix ``(3, 3)`` of a unit quaternion ``(4,)`` wxyz."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
 def sensor_to_tcp(wrenches: np.ndarray, tcp_in_sensor: Sequence[float]) -> np.ndarray:

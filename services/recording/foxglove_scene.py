@@ -50,6 +50,7 @@ from foxglove.messages import (
     Vector3,
 )
 
+from hydrosoft.drivers.poses import quat_to_matrix
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import StackConfig
 from hydrosoft.services.recording.image_codec import EncodedImage
@@ -154,21 +155,11 @@ def scene_topics(config: StackConfig, raw_format: RawFormat = RawFormat()) -> di
 # --- numpy geometry ----------------------------------------------------------------------------------------------
 
 
-def rotation_matrix(quaternion: np.ndarray) -> np.ndarray:
-    """The rotation matrix ``(3, 3)`` of a unit quaternion ``(4,)`` ``[w, x, y, z]``."""
-    w, x, y, z = np.asarray(quaternion, dtype=np.float64) / np.linalg.norm(quaternion)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Points ``(..., 3)`` given in the frame whose pose is ``pose (7,)`` ``[x, y, z, qw, qx, qy, qz]``, expressed
     in the pose's parent frame."""
     pose = np.asarray(pose, dtype=np.float64)
-    return np.asarray(points, dtype=np.float64) @ rotation_matrix(pose[3:]).T + pose[:3]
+    return np.asarray(points, dtype=np.float64) @ quat_to_matrix(pose[3:]).T + pose[:3]
 
 
 def x_axis_to(directions: np.ndarray) -> np.ndarray:

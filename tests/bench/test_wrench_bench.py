@@ -15,6 +15,7 @@ import torch
 from mcap.reader import make_reader
 
 from hydrosoft.bench import wrench, wrench_replay
+from hydrosoft.drivers.poses import quat_to_matrix
 from hydrosoft.bench.wrench_recording import (
     METADATA_NAME,
     TOPIC,
@@ -85,7 +86,7 @@ def test_sensor_to_tcp_moves_a_wrench_to_the_tcp_frame():
     w_tcp = rng.normal(size=(5, 6))
     turn = rng.normal(size=4)
     tcp_in_sensor = np.concatenate([[0.01, -0.02, 0.12], turn / np.linalg.norm(turn)])
-    R, p = wrench_replay.quat_to_matrix(tcp_in_sensor[3:]), tcp_in_sensor[:3]
+    R, p = quat_to_matrix(tcp_in_sensor[3:]), tcp_in_sensor[:3]
     f_sensor = w_tcp[:, :3] @ R.T
     m_sensor = w_tcp[:, 3:] @ R.T + np.cross(p, f_sensor)  # the same forces, about the sensor's origin
     np.testing.assert_allclose(wrench_replay.sensor_to_tcp(np.concatenate([f_sensor, m_sensor], 1), tcp_in_sensor), w_tcp,
