@@ -908,6 +908,14 @@ async def serve_without_device(service: Service, config: StackConfig, reason: st
         serving.cancel()
 
 
+def compute_niceness(config: StackConfig, worker_processes: bool) -> int:
+    """The niceness the planner's computing threads add (``compute_threads``): ``planner.nice`` where they solve
+    (worker threads, or one solver in the thread), 0 where the solver's worker processes do (``renice``d to
+    ``planner.nice``): the threads then compute only the penetration, a few ms on the camera-to-target path, and
+    hand the shares to the processes, and at +10 that waited behind every other service."""
+    return 0 if worker_processes else config.planner.nice
+
+
 def compute_threads(nice: int) -> ThreadPoolExecutor:
     """``COMPUTE_THREADS`` threads that each add ``nice`` to their niceness as they start (on Linux a thread's own;
     ``os.nice``): what runs on them, and the threads and processes they start, runs at that niceness, the calling
@@ -966,7 +974,6 @@ async def run(service: Service, config: StackConfig) -> None:
         await serve_without_device(service, config, unavailable)
         return
     loop = asyncio.get_running_loop()
-    compute = compute_threads(config.planner.nice)
     start_up = ThreadPoolExecutor(1, thread_name_prefix="planner-start")  # at the service's niceness (``renice``)
     if config.planner.nice:
         service.log.info("computing at niceness +%d (planner.nice) once ready: the other services go first",
@@ -975,6 +982,7 @@ async def run(service: Service, config: StackConfig) -> None:
     if config.planner.compile:  # before the model and the worker processes: they load its precompiled functions
         precompiled = artefacts.use_precompiled(config, artefacts.planner_key(config))
     core = await loop.run_in_executor(start_up, PlannerCore.build, config)
+    compute = compute_threads(compute_niceness(config, core.processes is not None))
     planner = Planner(service, config, core, compute)  # its inputs arrive from now on, while its solver loads
     if config.planner.compile:
         build = artefacts.PartBuild(artefacts.planner_key(config), artefacts.cache_dir(config))
