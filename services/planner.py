@@ -36,13 +36,15 @@ Start-up: the planner builds its model, starts its worker processes and loads (o
 the launcher started it before the arm commanders (``$HYDROSOFT_AWAIT_ARMS``, ``await_arm_commanders``), waits until
 each of them has published its arm state; only then does it serve the client API and report ready.
 
-Priority (``planner.nice``): once ready, the planner's computing runs at that niceness, in threads of its own
-(``compute_threads``: the penetration and the solve) and in its worker processes (``renice``d then), so that the
-commander and the sensors go first (each worker process leads a session of its own, and ``renice`` sets its
+Priority (``planner.nice``): once ready, the planner's computing runs at that niceness, in its worker processes
+(``renice``d then) or, without them, in a thread of its own (``compute_threads``: the penetration and the solve), so
+that the commander and the sensors go first (each worker process leads a session of its own, and ``renice`` sets its
 scheduling group's niceness too: where the kernel schedules each session as one group, Linux's autogroup, a niceness
 counts only within its group, and before this the workers' +10 had counted only against the planner's own threads);
 its event loop, which takes the inputs, estimates the state and sends the targets
-(a few ms per cycle on the camera-to-target path), runs at the niceness it was started with. So does its start-up
+(a few ms per cycle on the camera-to-target path), runs at the niceness it was started with, and so does the
+computing thread when worker processes solve (``compute_niceness``: it then computes the penetration and hands the
+shares out and in, all on that path). So does its start-up
 (the model build, the worker processes' start, the solver's load and first solve), in a thread of its own: no arm
 moves before the planner is ready, and at +10 its start-up waited behind every other program on a shared machine.
 
@@ -910,9 +912,10 @@ async def serve_without_device(service: Service, config: StackConfig, reason: st
 
 def compute_niceness(config: StackConfig, worker_processes: bool) -> int:
     """The niceness the planner's computing threads add (``compute_threads``): ``planner.nice`` where they solve
-    (worker threads, or one solver in the thread), 0 where the solver's worker processes do (``renice``d to
-    ``planner.nice``): the threads then compute only the penetration, a few ms on the camera-to-target path, and
-    hand the shares to the processes, and at +10 that waited behind every other service."""
+    (worker threads, or the solver in the thread itself), 0 where the solver's worker processes do (those are
+    ``renice``d to ``planner.nice``). The thread then computes the penetration (a few ms) and hands the shares to the
+    processes and takes their results, all on the camera-to-target path: at +10 each of those steps waited behind
+    every other service's burst (docs/decisions.md, 2026-11-29)."""
     return 0 if worker_processes else config.planner.nice
 
 

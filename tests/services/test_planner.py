@@ -37,6 +37,7 @@ from hydrosoft.services.planner import (
     Planner,
     PlannerCore,
     arm_end_positions,
+    compute_niceness,
     compute_threads,
     device_unavailable,
     ended_by_commander,
@@ -469,6 +470,15 @@ def test_compute_threads_run_at_the_planner_niceness_and_leave_the_caller_at_its
     assert in_thread == expected
     assert int(child.stdout) == expected
     assert os.nice(0) == before
+
+
+def test_the_computing_thread_keeps_the_services_niceness_only_where_worker_processes_solve():
+    """With worker processes the heavy computing is theirs (reniced to ``planner.nice``), and the thread's work (the
+    penetration, handing shares out and in) is on the camera-to-target path; without them the thread solves."""
+    config = load_config(SIM_TOML)
+    assert config.planner.nice == 10
+    assert compute_niceness(config, worker_processes=True) == 0
+    assert compute_niceness(config, worker_processes=False) == 10
 
 
 class StackInputs:
