@@ -39,8 +39,9 @@ from hydrosoft.services.bus.service_cli import CACHE_ENV
 
 RECORDS = "hydrosoft-artefacts"  # the folder of the records, in the compile cache
 PROGRESS_PERIOD_S = 15.0  # a compiling part reports its progress this often
-#: planner keys that do not shape the compiled graphs (timing and safety settings of the running service)
-PLANNER_RUNTIME_KEYS = ("max_age_s", "heartbeat_period_s", "target_lead_s", "max_reapproaches", "stall_s", "seed")
+#: planner keys that do not shape the compiled graphs (timing, priority and safety settings of the running service)
+PLANNER_RUNTIME_KEYS = ("max_age_s", "heartbeat_period_s", "target_lead_s", "max_reapproaches", "stall_s", "seed",
+                        "nice")
 #: sim keys that do not shape the plant's graphs (the rendered images' noise, the simulated devices)
 SIM_RUNTIME_KEYS = ("ur_tick_hz", "image_noise", "image_blur_px", "depth_noise_m", "ft_bias", "ft_noise",
                     "compile")

@@ -45,10 +45,10 @@ def test_a_key_changes_with_the_graph_shaping_config_and_the_torch_version(confi
 
 
 def test_runtime_settings_keep_the_key(config):
-    """Timing and device settings do not shape the graphs: changing them rebuilds nothing."""
+    """Timing, priority and device settings do not shape the graphs: changing them rebuilds nothing."""
     planner, plant = artefacts.planner_key(config, "2.13.0"), artefacts.plant_key(config, "2.13.0")
-    timing = changed(changed(config, "planner", target_lead_s=0.7, heartbeat_period_s=0.05, stall_s=30.0), "sim",
-                     image_noise=0.0)
+    timing = changed(changed(config, "planner", target_lead_s=0.7, heartbeat_period_s=0.05, stall_s=30.0,
+                             nice=(config.planner.nice + 5) % 20), "sim", image_noise=0.0)
     assert artefacts.planner_key(timing, "2.13.0") == planner and artefacts.plant_key(timing, "2.13.0") == plant
 
 
