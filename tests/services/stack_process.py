@@ -68,12 +68,15 @@ def place_scene(text: str, task_frame: list[float]) -> str:
 
 
 def stack_config(tmp_path: Path, compiled_plant: bool = False, task_frame: list[float] | None = None,
-                 object_offset_m: tuple[float, float] | None = None) -> Path:
-    """deploy/sim.toml with its run_dir, FT 300 link and UR address made private to this test, its scene at
-    ``task_frame`` when one is given (``place_scene``), and sim_world's object moved by ``object_offset_m`` (m, task
-    frame x, y) from under the bubble when one is given."""
+                 object_offset_m: tuple[float, float] | None = None, task: str = "pushing") -> Path:
+    """deploy/sim.toml with its run_dir, FT 300 link and UR address made private to this test, the scene of
+    ``task`` on the table (``scene.task``: pushing, rotation or rolling), at ``task_frame`` when one is given
+    (``place_scene``), and sim_world's object moved by ``object_offset_m`` (m, task frame x, y) from under the bubble
+    when one is given."""
     run_dir = tmp_path / "run"
     text = sim_toml_text(compiled_plant)
+    assert '\ntask = "pushing"' in text
+    text = text.replace('\ntask = "pushing"', f'\ntask = "{task}"', 1)
     if task_frame is not None:
         text = place_scene(text, task_frame)
     if object_offset_m is not None:

@@ -3,7 +3,8 @@ config in this module):
 
 1. A goal whose task name is 65,300 characters (its header just under the 64 KiB limit), then GetStatus at 1000/s
    for ``FLOOD_S``: every later request is answered, the planner's heartbeat never pauses as long as the arm
-   commander's watchdog timeout, and a normal goal is then reached.
+   commander's watchdog timeout, and a normal goal is then reached: the rotation task's, turning the cube by
+   ``TURN_DEG`` (the config is deploy/sim.toml with its rotation scene, the task's end-to-end check on the stack).
 2. The leftover client: ``hydrosoft-stack goal ... --wait 600`` runs a goal; the launcher is SIGKILLed; the client
    exits within seconds, non-zero, saying the stack is gone; each service's own log file holds its shutdown lines;
    the same config launched again: its arm does not move, and a goal of the old launch is refused by the new
@@ -16,6 +17,7 @@ timeout. Ground truth for the arm is the simulated controller's own TCP pose (``
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import re
 import signal
@@ -28,13 +30,15 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+import torch
 import zmq
 from stack_process import Stack, children_left, stack_config
 from test_stack_faults import HELD_M, tcp_truth
 
+from hydrosoft.geometry import se3
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.sockets import Bus
-from hydrosoft.services.client import EXIT_STACK_GONE, ClientError, Pursuit, StackClient, StackGone
+from hydrosoft.services.client import EXIT_STACK_GONE, ClientError, Pursuit, StackClient, StackGone, true_error_mm
 from hydrosoft.services.bus.config import load_config
 
 pytestmark = pytest.mark.slow
@@ -46,6 +50,9 @@ FLOOD_S = 5.0
 FLOOD_TICK_S = 0.01
 #: Requests sent one by one after the flood, each of which must be answered ok.
 AFTER_FLOOD_REQUESTS = 20
+#: The rotation goal after the flood (deg about base z) and its tolerance (mm, ADD over the cube's points).
+TURN_DEG = 30.0
+TURN_TOLERANCE_MM = 3.0
 #: From the launcher's SIGKILL to the leftover client's exit, s: its status request's timeout (3 s), the check of
 #: the launcher's pid, the client's exit, and slack for a loaded 2-core machine.
 CLIENT_EXIT_BOUND_S = 3.0 + 4.0
@@ -57,9 +64,10 @@ SERVICES_EXIT_TIMEOUT_S = 15.0
 
 @pytest.fixture(scope="module")
 def launch(tmp_path_factory):
-    """The first launch of a private copy of deploy/sim.toml (compiled plant: a goal must be reached)."""
+    """The first launch of a private copy of deploy/sim.toml with the rotation scene on the table (compiled plant: a
+    goal must be reached)."""
     folder = tmp_path_factory.mktemp("requests")
-    config_path = stack_config(folder, compiled_plant=True)
+    config_path = stack_config(folder, compiled_plant=True, task="rotation")
     stack = Stack(config_path, folder / "launcher-1.log")
     stacks = [stack]
     try:
@@ -163,17 +171,28 @@ def test_a_huge_goal_and_a_request_flood_leave_the_api_and_the_heartbeat_up_and_
     assert longest_gap_s < config.limits.heartbeat_timeout_s, longest_gap_s
     assert ok_after == AFTER_FLOOD_REQUESTS
 
-    async def push():
+    async def turn():
         client = StackClient(config)
         try:
-            await client.set_goal("pushing", dx_m=0.03, tolerance_mm=3.0, timeout_s=GOAL_TIMEOUT_S)
+            poses = client.subscribe("tag_tracker", ("object_pose/object",))
+            await poses.wait(2.0)
+            start = np.asarray(poses.latest("object_pose/object", 1.0, msg.ObjectPose).value.pose)
+            await client.set_goal("rotation", dyaw_rad=math.radians(TURN_DEG), tolerance_mm=TURN_TOLERANCE_MM,
+                                  timeout_s=GOAL_TIMEOUT_S)
             await client.start()
-            return await client.wait(GOAL_TIMEOUT_S + 10)
+            reply = await client.wait(GOAL_TIMEOUT_S + 10)
+            return reply, start, await true_error_mm(client, np.asarray(reply.goal.target_pose), "rotation")
         finally:
             client.close()
 
-    reply = asyncio.run(push())
+    reply, start, true = asyncio.run(turn())
     assert reply.outcome == "reached", (reply.outcome, reply.outcome_reason, stacks[0].text()[-3000:])
+    assert true is not None and true < 2 * TURN_TOLERANCE_MM, true  # sim_world's cube, not only the tracked one
+    turned_deg = math.degrees(float(se3.angle_between(torch.as_tensor(start[3:]),
+                                                      torch.as_tensor(reply.goal.target_pose[3:]))))
+    assert abs(turned_deg - TURN_DEG) < 0.5, turned_deg  # the goal asked for the turn
+    print(f"rotation {TURN_DEG:.0f} deg: reached in {reply.elapsed_s:.1f} s, error {reply.error_mm:.2f} mm (tracked), "
+          f"{true:.2f} mm (true), {reply.solves} solves")
     errors = reply.status.errors
     assert errors.get("rate_limited", 0) > 0 and errors.get("range", 0) >= 1, errors
 
@@ -183,8 +202,8 @@ def test_a_leftover_client_gives_up_at_once_and_the_relaunched_stack_does_not_mo
     config = load_config(config_path)
     first = stacks[0]
     client_out = (tmp_path / "client.out").open("wb")
-    leftover = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.commands.cli", "goal", "pushing", "--dx", "0.03",
-                                 "--wait", "600", "--config", str(config_path)],
+    leftover = subprocess.Popen([sys.executable, "-m", "hydrosoft.services.commands.cli", "goal", "rotation", "--dyaw",
+                                 "45", "--tolerance-mm", "1", "--wait", "600", "--config", str(config_path)],
                                 stdout=client_out, stderr=subprocess.STDOUT)
     try:
         async def goal_runs() -> tuple[str, np.ndarray]:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,15 +30,6 @@ ROLL_M = 0.02  # the rolling task's shortest goal (hydrosoft.tasks.rolling.DISTA
 TOLERANCE_MM = 3.0
 
 
-def rolling_config(tmp_path: Path) -> Path:
-    """``stack_config``'s private copy of deploy/sim.toml (compiled plant) with the rolling scene on the table."""
-    path = stack_config(tmp_path, compiled_plant=True)
-    text = path.read_text()
-    assert '\ntask = "pushing"' in text
-    path.write_text(text.replace('\ntask = "pushing"', '\ntask = "rolling"', 1))
-    return path
-
-
 def rolled(start: np.ndarray, distance_m: float, radius_m: float) -> np.ndarray:
     """``start (7,)`` (base frame) rolled without slipping by ``distance_m`` along base x: moved by it and turned by
     ``distance_m / radius_m`` about base y through the object's centre, as ``rolling.sample_goal`` does."""
@@ -49,7 +39,7 @@ def rolled(start: np.ndarray, distance_m: float, radius_m: float) -> np.ndarray:
 
 
 def test_the_sim_stack_tracks_and_rolls_the_cylinder_and_shuts_down_in_order(tmp_path):
-    config_path = rolling_config(tmp_path)
+    config_path = stack_config(tmp_path, compiled_plant=True, task="rolling")
     stack = Stack(config_path, tmp_path / "launcher.log")
     client = StackClient(load_config(config_path))
     radius_m = float(make_task("rolling").scene.object.params["radius"])
