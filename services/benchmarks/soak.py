@@ -76,10 +76,15 @@ from hydrosoft.services.commands.status import collect
 SAMPLE_PERIOD_S = 5.0  # memory and CPU time of every service, this often
 GOAL_TIMEOUT_S = 120.0  # one goal of the soak
 STATUS_WINDOW_S = 5.0  # how long to listen for the services' status (their pids)
-#: The goals of the soak per task: keyword arguments of ``StackClient.set_goal``, alternated.
+#: The sim cylinder's radius, m (the rolling task's scene): a roll by d along x turns it by d / radius about y.
+ROLLING_RADIUS_M = 0.025
+#: The goals of the soak per task: keyword arguments of ``StackClient.set_goal``, alternated. A rolling goal is a
+#: roll (moved along x and turned about y as rolling without slipping does): a move alone asks the cylinder to slide,
+#: which the bubble cannot do, and every such goal failed for want of progress.
 SOAK_GOALS = {
     "pushing": ({"dx_m": 0.03}, {"dx_m": -0.03}),
-    "rolling": ({"dx_m": 0.03}, {"dx_m": -0.03}),
+    "rolling": ({"dx_m": 0.03, "dpitch_rad": 0.03 / ROLLING_RADIUS_M},
+                {"dx_m": -0.03, "dpitch_rad": -0.03 / ROLLING_RADIUS_M}),
     "rotation": ({"dyaw_rad": 0.35}, {"dyaw_rad": -0.35}),
 }
 #: The stages of a plan's way from the camera to the targets: name -> (from stamp, to stamp) of ``msg.Plan``.

@@ -5,6 +5,7 @@ bench soak``), not here."""
 from __future__ import annotations
 
 import argparse
+import math
 import os
 
 import numpy as np
@@ -16,6 +17,8 @@ import time
 
 from hydrosoft.services.benchmarks.launched_stack import resident_mb, thread_cpu_times_s
 from hydrosoft.services.benchmarks.soak import (
+    ROLLING_RADIUS_M,
+    SOAK_GOALS,
     Samples,
     add_arguments,
     format_table,
@@ -49,6 +52,18 @@ def parts_plan(detection_ms: float, queue_ms: float, estimation_ms: float, solve
                     (2, 1)), predicted_forces=np.zeros((1, 3, 3)), cost=1.0, solve_ms=solve_ms,
                     **dict(zip(("image_stamp_ns", "pose_stamp_ns", "inputs_ns", "solve_start_ns", "targets_ns"),
                                (int(v) for v in stamps))))
+
+
+def test_the_rolling_goals_are_rolls_of_the_sim_cylinder():
+    """Each rolling goal turns the cylinder by its move over the task scene's radius, the same way round (a move alone
+    is a slide: no goal of it was ever reached)."""
+    from hydrosoft.tasks import make_task
+
+    radius_m = float(make_task("rolling").scene.object.params["radius"])
+    assert ROLLING_RADIUS_M == radius_m
+    for goal in SOAK_GOALS["rolling"]:
+        assert goal["dx_m"] != 0 and goal["dpitch_rad"] == pytest.approx(goal["dx_m"] / radius_m, rel=1e-12)
+    assert {math.copysign(1, goal["dx_m"]) for goal in SOAK_GOALS["rolling"]} == {-1.0, 1.0}  # back and forth
 
 
 def test_the_tail_names_the_parts_that_made_the_slowest_plans_slow():
