@@ -79,14 +79,6 @@ EVAL_PERIOD_S = 0.1  # ground truth on eval/ at 10 Hz
 RATE_LOG_PERIOD_S = 10.0  # how often the achieved rates and step and render times are logged
 MAX_LAG_TICKS = 5  # most plant steps one late tick catches up; further behind, the schedule restarts from now
 TORCH_THREADS = 1  # per torch op: physics and depth rendering run side by side on a small machine
-#: A tick that moved no body has brought the plant to rest when it moved the object by at most ``REST_POSE_TOL`` (m,
-#: and per quaternion entry) and changed no contact force by more than ``REST_FORCE_TOL`` (N): later ticks at the
-#: same TCP poses are skipped (``SimPlant.step_to``). The object settles geometrically (a third of the last tick's
-#: change per tick in the rolling scene), then dithers by rounding alone (1e-20-1e-19 m and N per tick); an exact
-#: fixed point, which the pushing cube reaches, the rolling cylinder never did, and its plant stepped at 50 Hz at
-#: rest (a fifth of a core). What such a tick leaves unstepped is under half a tolerance.
-REST_POSE_TOL = 1e-12
-REST_FORCE_TOL = 1e-12
 #: OpenCV threads of the renderers. OpenCV's default (one per core) cost 5.5-6.8 ms of CPU per 640 x 480 tag image
 #: against 3.4-3.9 ms with one thread, for no shorter render (3.5-4.6 against 3.4-3.9 ms, 2 cores); the same images.
 OPENCV_THREADS = 1
@@ -151,13 +143,6 @@ class PlantSnapshot:
     tcp_wrenches: dict[str, np.ndarray]
 
 
-def settled(before: State, after: State) -> bool:
-    """Whether a plant tick from ``before`` to ``after`` (batch 1) moved the object by at most ``REST_POSE_TOL`` and
-    changed every contact force by at most ``REST_FORCE_TOL``: the state is at rest to rounding."""
-    return (bool(((after.object_pose - before.object_pose).abs() <= REST_POSE_TOL).all())
-            and bool(((after.forces - before.forces).abs() <= REST_FORCE_TOL).all()))
-
-
 class SimPlant:
     """The plant: a compiled model, its state, and the step that carries the arms' bodies to their TCP poses.
 
@@ -187,7 +172,7 @@ class SimPlant:
         if unactuated:
             raise ValueError(f"arms {unactuated} carry bodies the scene does not actuate")
         self.snapshot = self._snapshot()
-        self._at_rest = False  # the last tick moved no body and changed the state by rounding at most (``settled``)
+        self._at_rest = False  # the last tick moved no body and changed nothing: the state is a fixed point
         self._last_tcp_poses: dict[str, bytes] = {}  # the TCP poses the last step_to was given, as bytes
 
     @classmethod
@@ -204,8 +189,7 @@ class SimPlant:
         distances the last step cached stay with the state: the next tick's stability check reuses them instead of
         solving every point's closest point again (``CompiledStep``), the plant's largest eager cost. At rest (no
         body moves and the last such tick left the state exactly as it was) the step is a fixed point and is
-        skipped: only the snapshot's stamp advances. At rest means a tick that moved no body and changed the state by
-        no more than rounding (``settled``).
+        skipped: only the snapshot's stamp advances.
 
         Raises:
             PlantStepError: for a missing or malformed TCP pose, an ``UnstableStepError``, a numerical failure
@@ -232,7 +216,8 @@ class SimPlant:
         with torch.no_grad():
             for _ in range(ticks):
                 nxt = self._step(nxt, u)
-        self._at_rest = still and settled(self.state, nxt)
+        self._at_rest = (still and torch.equal(nxt.object_pose, self.state.object_pose)
+                         and torch.equal(nxt.forces, self.state.forces))
         self.state = State(nxt.object_pose, target, nxt.forces, nxt.phi)
         self.snapshot = self._snapshot()
         self._remember(tcp_poses)

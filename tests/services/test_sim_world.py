@@ -23,7 +23,7 @@ import pytest
 import torch
 
 from hydrosoft.drivers.ur.config import SIM_CONTROL_PORT
-from hydrosoft.dynamics import CompiledStep, State, body_wrenches, packed_distances, step
+from hydrosoft.dynamics import CompiledStep, body_wrenches, packed_distances
 from hydrosoft.geometry import se3
 from hydrosoft.scene import compile_scene
 from hydrosoft.services.bus import messages as msg
@@ -32,14 +32,11 @@ from hydrosoft.services import sim_world
 from hydrosoft.services.bus.config import load_config, parse_config
 from hydrosoft.services.sim.render import BubbleDepthCamera, tag_camera
 from hydrosoft.services.sim_world import (
-    REST_FORCE_TOL,
-    REST_POSE_TOL,
     DurationStats,
     PlantStepError,
     SimPlant,
     body_control,
     plant_model,
-    settled,
 )
 from hydrosoft.tasks import make_task
 from hydrosoft.tasks.evaluation import with_contact
@@ -118,37 +115,6 @@ def test_a_plant_at_rest_is_recognised_without_a_step_and_keeping_still_only_adv
     assert plant.rests_at(rest)
     plant.step_to({"bubble": moved})
     assert not plant.rests_at({"bubble": moved})  # the bubble moved in that tick: step again before resting
-
-
-def test_the_rolling_cylinder_comes_to_rest_though_rounding_keeps_it_from_a_fixed_point():
-    """The cylinder under the still bubble settles by about a third per tick, then dithers by rounding alone
-    (1e-20-1e-19 m per tick: no tick returns the state it started from); its plant is at rest once a tick changes
-    the state by no more than ``settled``'s tolerances, and later ticks at the same TCP pose are skipped."""
-    plant = SimPlant.from_config(parse_config('[scene]\ntask = "rolling"\n[[arms]]\nname = "bubble"\n'))
-    rest = {"bubble": np.asarray(plant.snapshot.tcp_poses["bubble"], dtype=np.float64)}
-    stepped, start = 0, plant.state
-    while not plant.rests_at(rest):
-        assert stepped < 30, "the cylinder never came to rest"
-        plant.step_to(rest)
-        stepped += 1
-    assert stepped > 5  # it did settle first: the start is no rest
-    assert (plant.state.object_pose - start.object_pose).abs().max() > 1e-5
-    at_rest = plant.state
-    nxt = step(plant.model, at_rest, torch.zeros(1, plant.model.n_bodies, 6, dtype=plant.model.dtype))
-    assert not torch.equal(nxt.object_pose, at_rest.object_pose) or not torch.equal(nxt.forces, at_rest.forces)
-    assert settled(at_rest, nxt)  # one more tick would change it by rounding only
-    plant.keep_still()
-    assert plant.state is at_rest
-
-
-def test_settled_means_within_the_tolerances_and_never_a_non_finite_state():
-    plant = SimPlant.from_config(pushing_config())
-    state = plant.state
-    shifted = lambda pose=0.0, force=0.0: State(state.object_pose + pose, state.body_poses, state.forces + force,
-                                                 state.phi)
-    assert settled(state, state) and settled(state, shifted(REST_POSE_TOL / 2, REST_FORCE_TOL / 2))
-    assert not settled(state, shifted(pose=3 * REST_POSE_TOL)) and not settled(state, shifted(force=3 * REST_FORCE_TOL))
-    assert not settled(state, shifted(pose=math.nan))
 
 
 def test_a_cube_placed_off_the_bubble_is_untouched_until_the_bubble_comes_down_on_it():
