@@ -7,8 +7,8 @@ The benchmark launches the sim stack of CONFIG (default ``deploy/sim.toml``, mad
   its split over threads (``thread_split``): the asyncio loop's main thread, ZeroMQ's I/O threads and the others
   (worker threads, and native ones such as ur_rtde's receive threads in the arm commander);
 - **soak** (``--minutes``): goals back to back, there and back again (pushing: +-3 cm along x; rolling: +-3 cm
-  rolls, turned 3 cm / radius about y; rotation: +-20 deg), each waited for (``GOAL_TIMEOUT_S``) and its outcome (with the reason of one not reached),
-  true error and re-approaches of a lost object kept. Meanwhile every
+  rolls, turned 3 cm / radius about y; rotation: +-20 deg), each waited for (``GOAL_TIMEOUT_S``) and its outcome
+  (with the reason of one not reached), true error and re-approaches of a lost object kept. Meanwhile every
   ``SAMPLE_PERIOD_S`` each service's resident memory and CPU time are sampled, and every plan the planner publishes
   is read for its way from the camera to the arm targets (``msg.Plan``'s stamps), split into detection (image to
   the tracker's pose), queue (pose to the planner taking it), estimation (to the solve's start), solve (to the

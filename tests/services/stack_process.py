@@ -16,8 +16,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.client import StackClient
 import loopback
 
@@ -159,3 +161,11 @@ def assert_stopped_in_order(stack: Stack, elapsed_s: float, arms: tuple[str, ...
     commanders = [text.find(f"stopped arm_commander-{arm}") for arm in arms]
     assert -1 not in (planner, sim_world, *commanders), text[-3000:]
     assert planner < min(commanders) and max(commanders) < sim_world, text[-3000:]
+
+
+async def tracked_object_pose(client: StackClient) -> np.ndarray:
+    """The tag tracker's newest object pose ``(7,)`` (base frame, m and wxyz), at most 1 s old, waiting up to 2 s for
+    the subscription's first message."""
+    poses = client.subscribe("tag_tracker", ("object_pose/object",))
+    await poses.wait(2.0)
+    return np.asarray(poses.latest("object_pose/object", 1.0, msg.ObjectPose).value.pose)

@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 import torch
 import zmq
-from stack_process import Stack, children_left, stack_config
+from stack_process import Stack, children_left, stack_config, tracked_object_pose
 from test_stack_faults import HELD_M, tcp_truth
 
 from hydrosoft.geometry import se3
@@ -174,9 +174,7 @@ def test_a_huge_goal_and_a_request_flood_leave_the_api_and_the_heartbeat_up_and_
     async def turn():
         client = StackClient(config)
         try:
-            poses = client.subscribe("tag_tracker", ("object_pose/object",))
-            await poses.wait(2.0)
-            start = np.asarray(poses.latest("object_pose/object", 1.0, msg.ObjectPose).value.pose)
+            start = await tracked_object_pose(client)
             await client.set_goal("rotation", dyaw_rad=math.radians(TURN_DEG), tolerance_mm=TURN_TOLERANCE_MM,
                                   timeout_s=GOAL_TIMEOUT_S)
             await client.start()

@@ -14,10 +14,9 @@ import math
 import numpy as np
 import pytest
 import torch
-from stack_process import Stack, assert_stopped_in_order, stack_config
+from stack_process import Stack, assert_stopped_in_order, stack_config, tracked_object_pose
 
 from hydrosoft.geometry import se3
-from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.client import StackClient, true_error_mm
 from hydrosoft.services.bus.config import load_config
 from hydrosoft.services.commands.status import collect
@@ -48,9 +47,7 @@ def test_the_sim_stack_tracks_and_rolls_the_cylinder_and_shuts_down_in_order(tmp
 
         async def roll():
             tracker = (await collect(client.config, ["tag_tracker"], 2.0))["tag_tracker"]
-            poses = client.subscribe("tag_tracker", ("object_pose/object",))
-            await poses.wait(2.0)
-            start = np.asarray(poses.latest("object_pose/object", 1.0, msg.ObjectPose).value.pose)
+            start = await tracked_object_pose(client)
             target = rolled(start, ROLL_M, radius_m)
             await client.set_goal("rolling", target_pose=target, tolerance_mm=TOLERANCE_MM, timeout_s=GOAL_TIMEOUT_S)
             await client.start()
