@@ -104,7 +104,7 @@ def inverse(T_a_b: np.ndarray) -> np.ndarray:
 
 
 def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
-    """Map points ``(N, 3)`` (m) from frame ``b`` to frame ``a``: ``R p + t``."""
+    """Map points ``(..., 3)`` (m) from frame ``b`` to frame ``a``: ``R p + t``."""
     return np.asarray(points_b, dtype=np.float64) @ quat_to_matrix(T_a_b[3:]).T + np.asarray(T_a_b[:3])
 
 

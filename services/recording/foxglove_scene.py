@@ -50,7 +50,7 @@ from foxglove.messages import (
     Vector3,
 )
 
-from hydrosoft.drivers.poses import quat_to_matrix
+from hydrosoft.drivers.poses import transform_points
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import StackConfig
 from hydrosoft.services.recording.image_codec import EncodedImage
@@ -153,13 +153,6 @@ def scene_topics(config: StackConfig, raw_format: RawFormat = RawFormat()) -> di
 
 
 # --- numpy geometry ----------------------------------------------------------------------------------------------
-
-
-def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Points ``(..., 3)`` given in the frame whose pose is ``pose (7,)`` ``[x, y, z, qw, qx, qy, qz]``, expressed
-    in the pose's parent frame."""
-    pose = np.asarray(pose, dtype=np.float64)
-    return np.asarray(points, dtype=np.float64) @ quat_to_matrix(pose[3:]).T + pose[:3]
 
 
 def x_axis_to(directions: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ import pytest
 import torch
 from foxglove.messages import Color, CompressedImage, FrameTransforms, RawImage, SceneUpdate
 
+from hydrosoft.drivers.poses import transform_points
 from hydrosoft.geometry import se3
 from hydrosoft.services.bus import messages as msg
 from hydrosoft.services.bus.config import parse_config
@@ -21,7 +22,6 @@ from hydrosoft.services.recording.foxglove_scene import (
     SceneGeometry,
     force_arrows,
     timestamp,
-    transform_points,
     x_axis_to,
 )
 
